@@ -1,0 +1,65 @@
+"""The ``socbench`` command (the contract is in DESIGN.md, "Command line contract").
+
+Every command prints a short human summary, writes machine-readable results where ``--out``/``--json`` says, exits 0 on
+success, 2 on a user error (one line, no traceback) and 1 on an internal error. Set ``SOCBENCH_DEBUG=1`` for tracebacks.
+
+Each sub-command is a small module in ``socbench/commands/`` with ``add_arguments(parser)`` and ``run(args) -> int``;
+this file only registers them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from .errors import UserError
+
+#: sub-command -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "models": ("socbench.commands.models", "list the model registry"),
+    "simulate": ("socbench.commands.simulate", "simulate a model on a profile and score the voltage"),
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports a bad option as a one-line user error (exit 2), as it already does, but quietly."""
+
+    def error(self, message):  # noqa: D401 - argparse API
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="socbench", description="Battery SOC estimation testbed")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    for name, (module, help_) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        importlib.import_module(module).add_arguments(p)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not args.command:
+        parser.print_help()
+        return 2
+    module = importlib.import_module(COMMANDS[args.command][0])
+    try:
+        return int(module.run(args) or 0)
+    except UserError as exc:
+        print(f"socbench {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"socbench {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # an internal error: one line unless debugging
+        if os.environ.get("SOCBENCH_DEBUG"):
+            raise
+        print(f"socbench {args.command}: internal error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

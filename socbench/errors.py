@@ -1,0 +1,46 @@
+"""Errors that mean "the user gave us something wrong" (exit code 2) versus bugs (exit code 1).
+
+Every user-facing error prints as one line naming where the problem is: the file, the column and the first bad row.
+Rows are counted from 1 over data rows (the header is not a row), the way a person reads a spreadsheet.
+"""
+
+from __future__ import annotations
+
+
+class UserError(Exception):
+    """Base class of every error caused by input (files, options, configuration). The CLI exits 2 on these."""
+
+
+class DataError(UserError, ValueError):
+    """Bad data: NaN/inf, non-increasing time, missing or mislabelled columns, wrong units, empty input."""
+
+    def __init__(self, message: str, *, file: str | None = None, column: str | None = None, row: int | None = None):
+        self.message = message
+        self.file = file
+        self.column = column
+        self.row = row
+        super().__init__(self.__str__())
+
+    def __str__(self) -> str:
+        where = []
+        if self.file:
+            where.append(str(self.file))
+        if self.column is not None:
+            where.append(f"column '{self.column}'")
+        if self.row is not None:
+            where.append(f"row {self.row}")
+        return (", ".join(where) + ": " if where else "") + self.message
+
+    def with_file(self, file: str) -> DataError:
+        """The same error, attributed to ``file`` when it did not name one yet."""
+        if self.file:
+            return self
+        return DataError(self.message, file=file, column=self.column, row=self.row)
+
+
+class ConfigError(UserError, ValueError):
+    """A bad option, parameter file or scenario file (unknown key, impossible value)."""
+
+
+class ModelError(ValueError):
+    """A model left its admissible region in strict mode (negative capacitance, unstable eigenvalue...)."""

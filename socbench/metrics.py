@@ -1,0 +1,56 @@
+"""Error statistics: voltage error (the paper's Table 4 columns), SOC error, and filter consistency.
+
+Voltage error ``e_k = y_meas,k − y_model,k`` (ECM_SPEC §2): mean, RMS = √mean(e²), SD with N−1, max = max|e|.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+
+def voltage_error_stats(measured, model, axis=-1) -> dict:
+    """``{"n", "mean_v", "rmse_v", "sd_v", "max_v"}`` of ``measured − model`` along ``axis`` (floats or arrays)."""
+    e = np.asarray(measured, dtype=float) - np.asarray(model, dtype=float)
+    n = e.shape[axis]
+    out = {
+        "n": int(n),
+        "mean_v": np.mean(e, axis=axis),
+        "rmse_v": np.sqrt(np.mean(e * e, axis=axis)),
+        "sd_v": np.std(e, axis=axis, ddof=1) if n > 1 else np.zeros_like(np.mean(e, axis=axis)),
+        "max_v": np.max(np.abs(e), axis=axis),
+    }
+    return {k: (v if k == "n" else float(v) if np.ndim(v) == 0 else v) for k, v in out.items()}
+
+
+def soc_error_stats(estimate, truth, axis=-1) -> dict:
+    """``{"soc_rmse", "soc_max_abs", "soc_mean"}`` of ``estimate − truth`` (fractions, not %)."""
+    e = np.asarray(estimate, dtype=float) - np.asarray(truth, dtype=float)
+    out = {
+        "soc_rmse": np.sqrt(np.mean(e * e, axis=axis)),
+        "soc_max_abs": np.max(np.abs(e), axis=axis),
+        "soc_mean": np.mean(e, axis=axis),
+    }
+    return {k: (float(v) if np.ndim(v) == 0 else v) for k, v in out.items()}
+
+
+def chi2_band(dof: int, n_samples: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Two-sided band for the *average* of ``n_samples`` independent χ²(dof) statistics.
+
+    ``n_samples · mean ~ χ²(n_samples · dof)``, so the band of the mean is ``χ²_{α/2, ±}(N·dof) / N``.
+    """
+    a = (1.0 - confidence) / 2.0
+    nd = dof * n_samples
+    return float(stats.chi2.ppf(a, nd) / n_samples), float(stats.chi2.ppf(1 - a, nd) / n_samples)
+
+
+def convergence_time(time_s, soc_error, band: float = 0.02) -> float:
+    """First time after which ``|soc_error|`` stays within ``band`` (inf if it never settles)."""
+    err = np.abs(np.asarray(soc_error, dtype=float))
+    outside = np.nonzero(err > band)[0]
+    if outside.size == 0:
+        return float(time_s[0] - time_s[0])
+    k = outside[-1] + 1
+    if k >= err.size:
+        return float("inf")
+    return float(time_s[k] - time_s[0])

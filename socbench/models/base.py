@@ -1,0 +1,189 @@
+"""The Model protocol: a discrete-time state-space ECM with analytic Jacobians, batched over leading axes.
+
+Conventions (DESIGN.md, ECM_SPEC §2):
+
+* state ``x`` has shape ``(..., n)`` with ``x[..., 0] = z`` (SOC) for every model; input ``I`` (A, positive =
+  discharge) and temperature ``T`` (°C) broadcast to ``x.shape[:-1]``; ``dt`` may vary per step;
+* ``x_{k+1} = f(x_k, I_k, dt_k, T_k)`` with zero-order hold on ``I``; ``y_k = h(x_k, I_k, T_k)`` with direct
+  feed-through of the same-sample current;
+* ``F = ∂f/∂x`` ``(..., n, n)``, ``B = ∂f/∂I`` ``(..., n)``, ``H = ∂h/∂x`` ``(..., n)``, ``D = ∂h/∂I`` ``(...)``.
+
+A model implements two methods, each returning the value and, on request, its Jacobians from the same intermediate
+quantities (one evaluation per filter step):
+
+* ``step(x, i, dt, temp, jac, guards) -> (x⁺, F, B)``
+* ``output(x, i, temp, jac, guards) -> (y, H, D)``
+
+``f, h, F, H, B, D`` are thin views of these. Models are pure: parameters are fixed at construction
+(:class:`~socbench.models.params.ModelParams`), nothing mutates afterwards.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..profile import Profile
+from .blocks import ROBUST, STRICT, GuardLog
+from .params import ModelParams
+
+#: Reference temperature of the parameter sets [°C] when a profile carries none.
+T_REF_C = 25.0
+
+
+@dataclass(frozen=True, eq=False)
+class Simulation:
+    """Result of :meth:`Model.simulate`: voltage ``(…, T)``, states ``(…, T, n)`` and guard activity."""
+
+    time_s: np.ndarray
+    voltage_v: np.ndarray
+    states: np.ndarray
+    state_names: tuple
+    guard_fractions: dict = field(default_factory=dict)
+
+    @property
+    def soc(self) -> np.ndarray:
+        return self.states[..., 0]
+
+
+class Model(ABC):
+    """Base class of every ECM. Subclasses set the class attributes and implement ``step`` and ``output``."""
+
+    #: registry name
+    name: ClassVar[str] = ""
+    #: human title, e.g. "Thevenin (1 RC)"
+    title: ClassVar[str] = ""
+    #: literature source of the structure
+    source: ClassVar[str] = ""
+    #: ECM_SPEC section / paper number
+    paper_number: ClassVar[int | None] = None
+    #: parameters the model needs (units in ``param_units``)
+    param_names: ClassVar[tuple] = ()
+    param_units: ClassVar[dict] = {}
+    #: one line on what was corrected against the paper
+    corrections: ClassVar[str] = ""
+
+    def __init__(self, params: ModelParams, mode: str | None = None):
+        self.params = params
+        self.mode = mode or params.options.get("mode", ROBUST)
+        if self.mode not in (ROBUST, STRICT):
+            raise ConfigError(f"mode must be '{ROBUST}' or '{STRICT}', got {self.mode!r}")
+        missing = [p for p in self.required_params() if p not in params.values]
+        if missing:
+            raise ConfigError(f"model '{self.name}' needs parameter '{missing[0]}' (have {sorted(params.values)})")
+        self.capacity_ah = float(params.capacity_ah)
+        self.eta_charge = float(params.eta_charge)
+        self.ocv = params.ocv
+
+    # ------------------------------------------------------------------ description
+    def required_params(self) -> tuple:
+        return tuple(self.param_names)
+
+    @property
+    def state_names(self) -> tuple:
+        return ("z",)
+
+    @property
+    def n_states(self) -> int:
+        return len(self.state_names)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(states={self.state_names}, mode={self.mode!r})"
+
+    # ------------------------------------------------------------------ the two methods a model implements
+    @abstractmethod
+    def step(self, x, i, dt, temp=None, jac: bool = False, guards: GuardLog | None = None):
+        """``(x⁺, F, B)``; ``F`` and ``B`` are None unless ``jac``."""
+
+    @abstractmethod
+    def output(self, x, i, temp=None, jac: bool = False, guards: GuardLog | None = None):
+        """``(y, H, D)``; ``H`` and ``D`` are None unless ``jac``."""
+
+    def dxdt(self, x, i, temp=None, z_params=None):
+        """Continuous-time dynamics ``ẋ`` with every SOC-dependent parameter frozen at ``z_params`` (default: x's z).
+
+        ``step`` must be the exact zero-order-hold discretisation of this (tests integrate it with RK4 and compare).
+        States that only exist in discrete time (a sign memory) return 0 here and are listed in ``discrete_states``.
+        """
+        raise NotImplementedError(f"{type(self).__name__} does not expose its continuous dynamics")
+
+    #: states with no continuous-time counterpart (excluded from the discretisation check)
+    discrete_states: ClassVar[tuple] = ()
+
+    # ------------------------------------------------------------------ protocol views
+    def x0(self, soc, batch=()) -> np.ndarray:
+        """Initial state at SOC ``soc`` from rest: every dynamic state 0. ``soc`` broadcasts against ``batch``."""
+        soc = np.asarray(soc, dtype=float)
+        shape = np.broadcast_shapes(tuple(batch) if np.ndim(batch) else (int(batch),) if batch else (), soc.shape)
+        x = np.zeros(shape + (self.n_states,))
+        x[..., 0] = soc
+        return x
+
+    def f(self, x, i, dt, temp=None):
+        return self.step(x, i, dt, temp)[0]
+
+    def F(self, x, i, dt, temp=None):
+        return self.step(x, i, dt, temp, jac=True)[1]
+
+    def B(self, x, i, dt, temp=None):
+        return self.step(x, i, dt, temp, jac=True)[2]
+
+    def h(self, x, i, temp=None):
+        return self.output(x, i, temp)[0]
+
+    def H(self, x, i, temp=None):
+        return self.output(x, i, temp, jac=True)[1]
+
+    def D(self, x, i, temp=None):
+        return self.output(x, i, temp, jac=True)[2]
+
+    # ------------------------------------------------------------------ helpers for subclasses
+    def p(self, name: str, z):
+        """Parameter ``name`` and its z-derivative at SOC ``z``."""
+        return self.params[name].value_and_deriv(z)
+
+    @staticmethod
+    def _broadcast(x, *args):
+        x = np.asarray(x, dtype=float)
+        batch = x.shape[:-1]
+        return x, [np.broadcast_to(np.asarray(a, dtype=float), batch) if a is not None else None for a in args]
+
+    # ------------------------------------------------------------------ simulation
+    def simulate(self, profile: Profile, soc0=None, x0=None, guards: GuardLog | None = None) -> Simulation:
+        """Open-loop simulation on a profile's current (and temperature): ``y_k = h(x_k, I_k)``, ``x_{k+1} = f(...)``.
+
+        ``soc0`` defaults to the profile's reference SOC at the first sample, else the OCV inverse of the first
+        voltage, else 1. Batched profiles simulate all runs in one pass.
+        """
+        i = profile.current_a
+        T = profile.n
+        if x0 is None:
+            if soc0 is None:
+                if profile.soc_ref is not None:
+                    soc0 = profile.soc_ref[..., 0]
+                elif profile.voltage_v is not None:
+                    soc0 = np.clip(self.ocv.inverse(profile.voltage_v[..., 0]), 0.0, 1.0)
+                else:
+                    soc0 = 1.0
+            x0 = self.x0(soc0, i.shape[:-1])
+        x = np.array(x0, dtype=float)
+        batch = np.broadcast_shapes(x.shape[:-1], i.shape[:-1])
+        x = np.broadcast_to(x, batch + (self.n_states,)).copy()
+        temp = profile.temperature_c
+        log = guards if guards is not None else GuardLog()
+        states = np.empty(batch + (T, self.n_states))
+        volts = np.empty(batch + (T,))
+        dts = np.diff(profile.time_s)
+        for k in range(T):
+            ik = i[..., k]
+            tk = None if temp is None else temp[..., k]
+            states[..., k, :] = x
+            volts[..., k] = self.output(x, ik, tk, guards=log)[0]
+            if k + 1 < T:
+                x = self.step(x, ik, dts[k], tk, guards=log)[0]
+        log.samples += int(np.prod(batch, dtype=int)) * T
+        return Simulation(profile.time_s, volts, states, self.state_names, log.fractions())

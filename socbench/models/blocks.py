@@ -1,0 +1,168 @@
+"""Shared building blocks of the ECMs (ECM_SPEC §4), each with its exact ZOH form and derivatives.
+
+Every model is written with these; none re-derives them. All functions are batched: arguments broadcast.
+
+B1  SOC counter            z⁺ = z − η(I)·κ·I,  κ = dt/(3600 Q)
+B2  parallel RC branch     U⁺ = a U + b I,  a = e^{−dt/τ}, b = R(1 − a) = −R·expm1(−dt/τ), τ = R C
+B3  pure integrator        U0⁺ = U0 + dt·I/C0(z)
+B4  low-pass current       I*⁺ = a_f I* + (1 − a_f) I,  a_f = e^{−dt/t_c}
+B6  singular-term guard    1/z, ln z, ln(1−z) evaluated at z_s = clip(z, ε, 1−ε), derivative 0 when clipped
+
+Guards (ECM_SPEC §7.3) act in ``robust`` mode and raise :class:`~socbench.errors.ModelError` in ``strict`` mode; a
+:class:`GuardLog`, passed explicitly by the caller (no hidden state), counts on how many samples each guard acted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import ModelError
+
+#: ε of the singular-term guard (ECM_SPEC §4 B6 and §7.3).
+EPS_SINGULAR = 1e-3
+#: τ below this fraction of dt uses the algebraic limit a = 0, b = R.
+TAU_ALGEBRAIC = 1e-3
+#: capacitance floor of robust mode [F].
+C_FLOOR = 1e3
+#: resistance floor of robust mode [Ω].
+R_FLOOR = 0.0
+#: clip of exponent arguments (Liu/Tremblay e^{−B·it}).
+EXP_CLIP = 50.0
+
+ROBUST = "robust"
+STRICT = "strict"
+
+
+@dataclass
+class GuardLog:
+    """Counts, per guard, the samples on which it acted. Pass one to a model call to collect; None to skip."""
+
+    counts: dict = field(default_factory=dict)
+    samples: int = 0
+
+    def note(self, name: str, mask) -> None:
+        n = int(np.count_nonzero(mask))
+        if n:
+            self.counts[name] = self.counts.get(name, 0) + n
+
+    def fractions(self) -> dict:
+        return {k: v / max(self.samples, 1) for k, v in sorted(self.counts.items())}
+
+
+def _check_mode(mode: str) -> None:
+    if mode not in (ROBUST, STRICT):
+        raise ValueError(f"mode must be '{ROBUST}' or '{STRICT}', got {mode!r}")
+
+
+# ----------------------------------------------------------------------------------------------------------- B1
+def eta(i, eta_charge: float):
+    """Coulombic efficiency η(I): 1 on discharge (I ≥ 0), η_c on charge."""
+    return np.where(np.asarray(i) >= 0.0, 1.0, eta_charge)
+
+
+def soc_step(z, i, dt, capacity_ah: float, eta_charge: float = 1.0):
+    """B1. Returns ``(z⁺, ∂z⁺/∂I)``; ``∂z⁺/∂z = 1``."""
+    k = eta(i, eta_charge) * np.asarray(dt) / (3600.0 * capacity_ah)
+    return z - k * i, -k
+
+
+# ----------------------------------------------------------------------------------------------------------- floors
+def floor_value(p, dp, lower: float, mode: str, guards: GuardLog | None, name: str):
+    """Robust mode: ``max(p, lower)`` with zero derivative where floored. Strict mode: keep (R) — see callers."""
+    low = p < lower
+    if guards is not None:
+        guards.note(name, low)
+    if mode == ROBUST and np.any(low):
+        return np.where(low, lower, p), np.where(low, 0.0, dp)
+    return p, dp
+
+
+# ----------------------------------------------------------------------------------------------------------- B2
+def rc_coefficients(R, dR, C, dC, dt, mode: str = ROBUST, guards: GuardLog | None = None, name: str = "rc"):
+    """B2 coefficients ``(a, b, a_z, b_z)`` of ``U⁺ = a U + b I`` for branch ``R(z), C(z)`` with z-derivatives.
+
+    ``τ = R C``, ``a = e^{−dt/τ}``, ``b = −R·expm1(−dt/τ)``,
+    ``τ_z = R' C + R C'``, ``a_z = a·dt·τ_z/τ²``, ``b_z = R'(1 − a) − R a_z``.
+    ``τ < 10⁻³ dt`` → algebraic limit ``a = 0, b = R``. ``τ ≤ 0``: strict raises, robust floors ``R ≥ 0, C ≥ 10³ F``.
+    """
+    R = np.asarray(R, dtype=float)
+    C = np.asarray(C, dtype=float)
+    bad = (R < 0) | (C <= 0)
+    if np.any(bad):
+        if mode == STRICT:
+            raise ModelError(f"{name}: non-positive time constant (R={np.min(R):.3g} Ω, C={np.min(C):.3g} F)")
+        if guards is not None:
+            guards.note(f"{name}_floor", bad)
+        R, dR = np.where(R < 0, R_FLOOR, R), np.where(R < 0, 0.0, dR)
+        lowC = C < C_FLOOR
+        C, dC = np.where(lowC & bad, C_FLOOR, C), np.where(lowC & bad, 0.0, dC)
+    tau = R * C
+    dt = np.asarray(dt, dtype=float)
+    algebraic = tau < TAU_ALGEBRAIC * dt
+    safe_tau = np.where(algebraic, 1.0, tau)
+    em = np.expm1(-dt / safe_tau)
+    a = np.where(algebraic, 0.0, em + 1.0)
+    b = np.where(algebraic, R, -R * em)
+    tau_z = dR * C + R * dC
+    a_z = np.where(algebraic, 0.0, a * dt * tau_z / safe_tau**2)
+    b_z = np.where(algebraic, dR, dR * (1.0 - a) - R * a_z)
+    return a, b, a_z, b_z
+
+
+# ----------------------------------------------------------------------------------------------------------- B3
+def integrator_coefficients(C0, dC0, dt):
+    """B3 ``U0⁺ = U0 + g I`` with ``g = dt/C0`` and ``g_z = −dt·C0'/C0²``. ``C0 = inf`` disables it (g = 0)."""
+    C0 = np.asarray(C0, dtype=float)
+    g = np.asarray(dt) / C0
+    g_z = -np.asarray(dt) * dC0 / C0**2
+    return g, np.where(np.isinf(C0), 0.0, g_z)
+
+
+# ----------------------------------------------------------------------------------------------------------- B4
+def lowpass_coefficients(tc, dtc, dt):
+    """B4 ``I*⁺ = a_f I* + (1 − a_f) I`` with ``a_f = e^{−dt/t_c}`` and ``∂a_f/∂z = a_f·dt·t_c'/t_c²``."""
+    tc = np.asarray(tc, dtype=float)
+    a = np.exp(-np.asarray(dt) / tc)
+    return a, a * dt * dtc / tc**2
+
+
+# ----------------------------------------------------------------------------------------------------------- B6
+def _clip_singular(z, eps):
+    z = np.asarray(z, dtype=float)
+    zs = np.clip(z, eps, 1.0 - eps)
+    inside = (z > eps) & (z < 1.0 - eps)
+    return zs, inside
+
+
+def guarded_inv(z, eps: float = EPS_SINGULAR, guards: GuardLog | None = None):
+    """``(1/z_s, d/dz)`` — derivative 0 where clipped."""
+    zs, inside = _clip_singular(z, eps)
+    if guards is not None:
+        guards.note("singular_eps", ~inside)
+    return 1.0 / zs, np.where(inside, -1.0 / zs**2, 0.0)
+
+
+def guarded_log(z, eps: float = EPS_SINGULAR, guards: GuardLog | None = None):
+    """``(ln z_s, d/dz)``."""
+    zs, inside = _clip_singular(z, eps)
+    if guards is not None:
+        guards.note("singular_eps", ~inside)
+    return np.log(zs), np.where(inside, 1.0 / zs, 0.0)
+
+
+def guarded_log1m(z, eps: float = EPS_SINGULAR, guards: GuardLog | None = None):
+    """``(ln(1 − z_s), d/dz)``."""
+    zs, inside = _clip_singular(z, eps)
+    if guards is not None:
+        guards.note("singular_eps", ~inside)
+    return np.log1p(-zs), np.where(inside, -1.0 / (1.0 - zs), 0.0)
+
+
+def clipped_exp(arg):
+    """``(e^{arg_c}, d/d arg)`` with ``arg_c = clip(arg, −50, 50)``; derivative 0 where clipped."""
+    arg = np.asarray(arg, dtype=float)
+    c = np.clip(arg, -EXP_CLIP, EXP_CLIP)
+    e = np.exp(c)
+    return e, np.where(c == arg, e, 0.0)

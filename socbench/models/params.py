@@ -1,0 +1,250 @@
+"""Parameter sets are data: SOC functions, the parameter container, and the JSON file format.
+
+Every model parameter is a function of SOC with its derivative (the Jacobians need ``dp/dz``):
+
+* :class:`Constant`     ``p(z) = c``                          (the paper's models 7–14)
+* :class:`Polynomial`   ``p(z) = Σ c_j z_p^j``, ``z_p = clip(z, 0, 1)``, Horner form, ``p' = 0`` when clipped
+                        (the paper's 6th-degree fits for models 1–6; coefficients stored highest degree first,
+                        as Table 3 prints them)
+* :class:`Lookup`       piecewise linear in SOC between breakpoints, held flat outside (``p' = 0`` there)
+
+A parameter file (``PARAMS.json``) is self-contained: model name, capacity, OCV curve, the parameter functions, the
+coulombic efficiency and model options, plus provenance notes::
+
+    {"model": "thevenin", "capacity_ah": 22.0, "eta_charge": 1.0,
+     "ocv": {"soc": [...], "voltage": [...], "source": "..."},
+     "params": {"R0": {"poly": [c6, ..., c0]}, "R1": {"const": 0.006}, "C1": {"lookup": {"soc": [...], "value": [...]}}},
+     "options": {"mode": "robust"}, "source": "...", "notes": ["..."]}
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+
+import numpy as np
+
+from ..errors import ConfigError, DataError
+from ..ocv import OCVCurve
+
+
+class SocFunction:
+    """A parameter as a function of SOC: ``value_and_deriv(z) -> (p, dp/dz)``."""
+
+    def value_and_deriv(self, z):  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def __call__(self, z):
+        return self.value_and_deriv(z)[0]
+
+    def to_dict(self) -> dict:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    @property
+    def is_constant(self) -> bool:
+        return False
+
+    def range_on_unit(self, n: int = 2001) -> tuple[float, float]:
+        """(min, max) of the function on z ∈ [0, 1]."""
+        v = self(np.linspace(0.0, 1.0, n))
+        v = np.broadcast_to(v, (n,))
+        return float(v.min()), float(v.max())
+
+
+@dataclass(frozen=True)
+class Constant(SocFunction):
+    value: float
+
+    def value_and_deriv(self, z):
+        z = np.asarray(z, dtype=float)
+        return np.full(z.shape, self.value), np.zeros(z.shape)
+
+    def to_dict(self):
+        return {"const": float(self.value)}
+
+    @property
+    def is_constant(self):
+        return True
+
+
+@dataclass(frozen=True, eq=False)
+class Polynomial(SocFunction):
+    """``Σ c_j z^j`` with ``coeffs`` highest degree first (Table 3 order), on ``z_p = clip(z, 0, 1)``."""
+
+    coeffs: tuple
+
+    def __post_init__(self):
+        object.__setattr__(self, "coeffs", tuple(float(c) for c in self.coeffs))
+
+    def value_and_deriv(self, z):
+        z = np.asarray(z, dtype=float)
+        zp = np.clip(z, 0.0, 1.0)
+        c = self.coeffs
+        v = np.full(z.shape, c[0])
+        d = np.zeros(z.shape)
+        for cj in c[1:]:  # Horner for the value and the derivative together
+            d = d * zp + v
+            v = v * zp + cj
+        d = np.where((z < 0.0) | (z > 1.0), 0.0, d)
+        return v, d
+
+    def to_dict(self):
+        return {"poly": list(self.coeffs)}
+
+
+@dataclass(frozen=True, eq=False)
+class Lookup(SocFunction):
+    """Piecewise-linear table in SOC; flat (zero derivative) outside the breakpoints."""
+
+    soc: tuple
+    value: tuple
+
+    def __post_init__(self):
+        z = np.asarray(self.soc, dtype=float)
+        v = np.asarray(self.value, dtype=float)
+        if z.ndim != 1 or z.size != v.size or z.size < 2 or np.any(np.diff(z) <= 0):
+            raise ConfigError("a lookup parameter needs >= 2 strictly increasing SOC breakpoints and as many values")
+        object.__setattr__(self, "soc", z)
+        object.__setattr__(self, "value", v)
+        object.__setattr__(self, "_slopes", np.diff(v) / np.diff(z))
+
+    def value_and_deriv(self, z):
+        z = np.asarray(z, dtype=float)
+        v = np.interp(z, self.soc, self.value)
+        j = np.clip(np.searchsorted(self.soc, z, side="right") - 1, 0, self.soc.size - 2)
+        d = np.where((z < self.soc[0]) | (z > self.soc[-1]), 0.0, self._slopes[j])
+        return v, d
+
+    def to_dict(self):
+        return {"lookup": {"soc": self.soc.tolist(), "value": self.value.tolist()}}
+
+
+def soc_function(spec) -> SocFunction:
+    """Build a :class:`SocFunction` from its JSON form (a bare number is a constant)."""
+    if isinstance(spec, SocFunction):
+        return spec
+    if isinstance(spec, (int, float)):
+        return Constant(float(spec))
+    if not isinstance(spec, Mapping) or len(spec) == 0:
+        raise ConfigError(f"a parameter must be a number or one of {{const, poly, lookup}}, got {spec!r}")
+    if "const" in spec:
+        return Constant(float(spec["const"]))
+    if "poly" in spec:
+        return Polynomial(tuple(spec["poly"]))
+    if "lookup" in spec:
+        lk = spec["lookup"]
+        return Lookup(tuple(lk["soc"]), tuple(lk["value"]))
+    raise ConfigError(f"unknown parameter form {sorted(spec)}; expected const, poly or lookup")
+
+
+@dataclass(frozen=True, eq=False)
+class ModelParams:
+    """Everything a model needs besides its structure: capacity, OCV curve, parameter functions, options."""
+
+    capacity_ah: float
+    ocv: OCVCurve
+    values: Mapping[str, SocFunction]
+    eta_charge: float = 1.0
+    options: Mapping = field(default_factory=dict)
+    source: str = ""
+    notes: tuple = ()
+
+    def __post_init__(self):
+        if not (np.isfinite(self.capacity_ah) and self.capacity_ah > 0):
+            raise ConfigError(f"capacity_ah must be positive, got {self.capacity_ah}")
+        if not (0 < self.eta_charge <= 1):
+            raise ConfigError(f"eta_charge must be in (0, 1], got {self.eta_charge}")
+        vals = {k: soc_function(v) for k, v in self.values.items()}
+        object.__setattr__(self, "values", MappingProxyType(vals))
+        object.__setattr__(self, "options", MappingProxyType(dict(self.options)))
+        object.__setattr__(self, "notes", tuple(self.notes))
+
+    def __getitem__(self, name: str) -> SocFunction:
+        try:
+            return self.values[name]
+        except KeyError:
+            raise ConfigError(f"parameter '{name}' is missing (have {sorted(self.values)})") from None
+
+    def replace(self, **changes) -> ModelParams:
+        d = {
+            "capacity_ah": self.capacity_ah,
+            "ocv": self.ocv,
+            "values": dict(self.values),
+            "eta_charge": self.eta_charge,
+            "options": dict(self.options),
+            "source": self.source,
+            "notes": self.notes,
+        }
+        d.update(changes)
+        return ModelParams(**d)
+
+    def with_values(self, **values) -> ModelParams:
+        new = dict(self.values)
+        new.update({k: soc_function(v) for k, v in values.items()})
+        return self.replace(values=new)
+
+
+def params_to_dict(model_name: str, params: ModelParams, **extra) -> dict:
+    return {
+        "model": model_name,
+        "capacity_ah": params.capacity_ah,
+        "eta_charge": params.eta_charge,
+        "ocv": params.ocv.to_dict(),
+        "params": {k: v.to_dict() for k, v in params.values.items()},
+        "options": dict(params.options),
+        "source": params.source,
+        "notes": list(params.notes),
+        **extra,
+    }
+
+
+def params_from_dict(d: Mapping, *, ocv: OCVCurve | None = None, file: str = "") -> tuple[str, ModelParams]:
+    """``(model_name, ModelParams)`` from the JSON form. ``ocv`` fills in a file that carries none."""
+    known = {"model", "capacity_ah", "eta_charge", "ocv", "params", "options", "source", "notes", "fit", "paper"}
+    unknown = sorted(set(d) - known)
+    if unknown:
+        raise ConfigError(f"{file or 'parameters'}: unknown key '{unknown[0]}'")
+    for key in ("model", "params"):
+        if key not in d:
+            raise ConfigError(f"{file or 'parameters'}: missing key '{key}'")
+    curve = OCVCurve.from_dict(d["ocv"]) if "ocv" in d else ocv
+    if curve is None:
+        raise ConfigError(f"{file or 'parameters'}: no OCV curve (key 'ocv')")
+    if "capacity_ah" not in d:
+        raise ConfigError(f"{file or 'parameters'}: missing key 'capacity_ah'")
+    try:
+        p = ModelParams(
+            capacity_ah=float(d["capacity_ah"]),
+            ocv=curve,
+            values={k: soc_function(v) for k, v in d["params"].items()},
+            eta_charge=float(d.get("eta_charge", 1.0)),
+            options=d.get("options", {}),
+            source=d.get("source", ""),
+            notes=tuple(d.get("notes", ())),
+        )
+    except ConfigError as exc:
+        raise ConfigError(f"{file or 'parameters'}: {exc}") from None
+    return str(d["model"]), p
+
+
+def load_params(path) -> tuple[str, ModelParams]:
+    """Read a ``PARAMS.json`` file; errors name the file."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DataError("file not found", file=str(path)) from None
+    except json.JSONDecodeError as exc:
+        raise DataError(f"not valid JSON ({exc.msg} at line {exc.lineno})", file=str(path)) from None
+    if not isinstance(d, Mapping):
+        raise ConfigError(f"{path}: expected a JSON object")
+    return params_from_dict(d, file=str(path))
+
+
+def save_params(path, model_name: str, params: ModelParams, **extra) -> None:
+    from ..io import atomic_write_text
+
+    atomic_write_text(path, json.dumps(params_to_dict(model_name, params, **extra), indent=2))

@@ -1,0 +1,38 @@
+"""The model registry: one line per model. A new model is one file plus one line here.
+
+Entries are ``"module:Class"`` strings, imported on first use, so that listing the registry stays cheap.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from ..errors import ConfigError
+
+MODELS: dict[str, str] = {
+    "rint": "socbench.models.rc_network:Rint",
+    "thevenin": "socbench.models.rc_network:Thevenin",
+    "pngv": "socbench.models.rc_network:PNGV",
+    "dp": "socbench.models.rc_network:DP",
+    "gnl": "socbench.models.rc_network:GNL",
+    "nrc": "socbench.models.rc_network:NRC",
+}
+
+
+def model_names() -> list[str]:
+    return list(MODELS)
+
+
+def model_class(name: str):
+    """The class registered as ``name``; a :class:`ConfigError` listing the known names otherwise."""
+    try:
+        target = MODELS[name]
+    except KeyError:
+        raise ConfigError(f"unknown model '{name}'; known: {', '.join(MODELS)}") from None
+    module, cls = target.split(":")
+    return getattr(importlib.import_module(module), cls)
+
+
+def make_model(name: str, params, mode: str | None = None):
+    """Instantiate model ``name`` with ``params`` (a :class:`~socbench.models.params.ModelParams`)."""
+    return model_class(name)(params, mode)

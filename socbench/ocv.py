@@ -1,0 +1,153 @@
+"""Open-circuit-voltage curves ``U_oc(z)``: monotone PCHIP through rest points (ECM_SPEC §3.3).
+
+The interpolant is built once with :class:`scipy.interpolate.PchipInterpolator` (shape preserving, C¹, analytic
+derivative per segment). Evaluation is done here from the cached piecewise-cubic coefficients, because a filter calls it
+once per time step on a whole batch and scipy's per-call overhead would dominate.
+
+Outside the rest points the curve is extended linearly with the end slopes; :meth:`OCVCurve.excursion` tells how far a
+SOC lies outside (the spec asks to flag ``|Δz| > 0.05``).
+
+Inverse ``z = U_oc⁻¹(v)`` is exact on the monotone interpolant (bisection on the segment, then Newton polish).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.interpolate import PchipInterpolator
+
+from .errors import DataError
+
+#: |Δz| beyond the rest points at which an extrapolated OCV is flagged (ECM_SPEC §7.3).
+EXCURSION_FLAG = 0.05
+
+
+@dataclass(frozen=True, eq=False)
+class OCVCurve:
+    """Monotone OCV curve through ``(soc, voltage)`` rest points.
+
+    Parameters
+    ----------
+    soc, voltage : array-like
+        Rest points. Sorted by SOC here; duplicate SOCs are averaged. Voltage must be non-decreasing in SOC
+        (a measured curve that wiggles is made monotone by :func:`monotone_points` before this).
+    source : str
+        Where the points come from (kept in parameter files).
+    """
+
+    soc: np.ndarray
+    voltage: np.ndarray
+    source: str = ""
+
+    def __post_init__(self):
+        z = np.asarray(self.soc, dtype=float).ravel()
+        v = np.asarray(self.voltage, dtype=float).ravel()
+        if z.size != v.size or z.size < 2:
+            raise DataError(f"an OCV curve needs at least 2 (soc, voltage) points, got {z.size} and {v.size}")
+        if not (np.all(np.isfinite(z)) and np.all(np.isfinite(v))):
+            raise DataError("OCV points contain NaN or inf")
+        order = np.argsort(z, kind="stable")
+        z, v = z[order], v[order]
+        uz, inv = np.unique(z, return_inverse=True)
+        if uz.size != z.size:
+            v = np.bincount(inv, weights=v) / np.bincount(inv)
+            z = uz
+        if uz.size < 2:
+            raise DataError("OCV points need at least 2 distinct SOC values")
+        if np.any(np.diff(v) < 0):
+            k = int(np.argmax(np.diff(v) < 0))
+            raise DataError(
+                f"OCV must not decrease with SOC (z={z[k]:.4f}: {v[k]:.4f} V, z={z[k + 1]:.4f}: {v[k + 1]:.4f} V)",
+                column="voltage",
+                row=k + 2,
+            )
+        object.__setattr__(self, "soc", z)
+        object.__setattr__(self, "voltage", v)
+        pchip = PchipInterpolator(z, v, extrapolate=False)
+        # c[m, j]: coefficient of (z - x_j)^(3-m) on segment j
+        object.__setattr__(self, "_coef", np.ascontiguousarray(pchip.c.T))  # (segments, 4)
+        d = pchip.derivative()
+        object.__setattr__(self, "_slope_lo", float(d(z[0])))
+        object.__setattr__(self, "_slope_hi", float(d(z[-1])))
+
+    # ------------------------------------------------------------ evaluation
+    def _segment(self, z: np.ndarray):
+        j = np.clip(np.searchsorted(self.soc, z, side="right") - 1, 0, self.soc.size - 2)
+        return j, z - self.soc[j]
+
+    def value_and_slope(self, z) -> tuple[np.ndarray, np.ndarray]:
+        """``(U_oc(z), dU_oc/dz)`` with linear extension outside the rest points."""
+        z = np.asarray(z, dtype=float)
+        j, s = self._segment(z)
+        c = self._coef[j]
+        v = ((c[..., 0] * s + c[..., 1]) * s + c[..., 2]) * s + c[..., 3]
+        dv = (3.0 * c[..., 0] * s + 2.0 * c[..., 1]) * s + c[..., 2]
+        lo, hi = z < self.soc[0], z > self.soc[-1]
+        if lo.any() or hi.any():
+            v = np.where(lo, self.voltage[0] + self._slope_lo * (z - self.soc[0]), v)
+            v = np.where(hi, self.voltage[-1] + self._slope_hi * (z - self.soc[-1]), v)
+            dv = np.where(lo, self._slope_lo, np.where(hi, self._slope_hi, dv))
+        return v, dv
+
+    def __call__(self, z) -> np.ndarray:
+        return self.value_and_slope(z)[0]
+
+    def slope(self, z) -> np.ndarray:
+        return self.value_and_slope(z)[1]
+
+    def excursion(self, z) -> np.ndarray:
+        """How far ``z`` lies outside the rest points (0 inside)."""
+        z = np.asarray(z, dtype=float)
+        return np.maximum(self.soc[0] - z, 0.0) + np.maximum(z - self.soc[-1], 0.0)
+
+    def inverse(self, v, tol: float = 1e-12) -> np.ndarray:
+        """SOC whose OCV is ``v``; outside the curve the linear extension is inverted (flat ends clipped)."""
+        v = np.asarray(v, dtype=float)
+        lo = self.soc[0] - 0.2
+        hi = self.soc[-1] + 0.2
+        a = np.full(v.shape, lo)
+        b = np.full(v.shape, hi)
+        for _ in range(60):  # bisection on a monotone function: 60 halvings reach 1e-18 of the bracket
+            m = 0.5 * (a + b)
+            below = self(m) < v
+            a = np.where(below, m, a)
+            b = np.where(below, b, m)
+            if np.max(b - a, initial=0.0) < tol:
+                break
+        return 0.5 * (a + b)
+
+    # ----------------------------------------------------------- persistence
+    def to_dict(self) -> dict:
+        return {"soc": self.soc.tolist(), "voltage": self.voltage.tolist(), "source": self.source}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> OCVCurve:
+        try:
+            return cls(d["soc"], d["voltage"], d.get("source", ""))
+        except KeyError as exc:
+            raise DataError(f"OCV curve needs key {exc}") from None
+
+    def scaled(self, n_series: int) -> OCVCurve:
+        """The curve of ``n_series`` identical cells in series."""
+        return OCVCurve(self.soc, self.voltage * n_series, self.source + f" ×{n_series} in series")
+
+
+def monotone_points(soc, voltage) -> tuple[np.ndarray, np.ndarray]:
+    """Make measured rest points monotone by isotonic regression (pool adjacent violators), SOC ascending.
+
+    Measured OCV points can wiggle by a few mV (relaxation not finished, noise); PCHIP needs monotone data.
+    """
+    z = np.asarray(soc, dtype=float)
+    v = np.asarray(voltage, dtype=float)
+    order = np.argsort(z, kind="stable")
+    z, v = z[order], v[order]
+    blocks: list[list[float]] = []  # [sum, count]
+    for val in v:
+        blocks.append([val, 1.0])
+        while len(blocks) > 1 and blocks[-2][0] / blocks[-2][1] > blocks[-1][0] / blocks[-1][1]:
+            s, c = blocks.pop()
+            blocks[-1][0] += s
+            blocks[-1][1] += c
+    out = np.concatenate([np.full(int(c), s / c) for s, c in blocks])
+    return z, out

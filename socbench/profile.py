@@ -1,0 +1,221 @@
+"""Profile: the one time-series type of socbench.
+
+A profile is a record sampled at times ``time_s`` (shape ``(T,)``, strictly increasing) with
+
+* ``current_a``      A, positive = discharge, shape ``(T,)`` or ``(R, T)`` for a batch of R Monte Carlo runs;
+* ``voltage_v``      V, terminal voltage (optional: a pure load profile has none);
+* ``temperature_c``  °C (optional);
+* ``soc_ref``        reference or true SOC as a fraction in [0, 1] (optional);
+
+plus :class:`ProfileMeta` (capacity, cells in series, chemistry, name, source file).
+
+Validation happens on construction, so a ``Profile`` that exists is clean: every problem raises a
+:class:`~socbench.errors.DataError` naming the file, the column and the first bad row (rows count from 1).
+Gaps are reported by :meth:`Profile.gaps`, never interpolated silently.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .errors import DataError
+
+#: Tolerance on SOC bounds: amp-hour counters overshoot [0, 1] by rounding only.
+SOC_TOLERANCE = 1e-6
+
+
+@dataclass(frozen=True)
+class ProfileMeta:
+    """What a profile is: the cell or pack it was measured on and where it came from."""
+
+    name: str = "profile"
+    source: str = ""
+    capacity_ah: float | None = None
+    n_series: int = 1
+    chemistry: str = ""
+    extra: dict = field(default_factory=dict, compare=False)
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "source": self.source,
+            "capacity_ah": self.capacity_ah,
+            "n_series": self.n_series,
+            "chemistry": self.chemistry,
+            **({"extra": self.extra} if self.extra else {}),
+        }
+
+
+def _first_bad_row(mask: np.ndarray) -> int:
+    """1-based time index of the first True in ``mask`` (any run)."""
+    flat = mask.reshape(-1, mask.shape[-1]).any(axis=0)
+    return int(np.argmax(flat)) + 1
+
+
+@dataclass(frozen=True, eq=False)
+class Profile:
+    """A validated battery time series (see the module docstring for units and shapes)."""
+
+    time_s: np.ndarray
+    current_a: np.ndarray
+    voltage_v: np.ndarray | None = None
+    temperature_c: np.ndarray | None = None
+    soc_ref: np.ndarray | None = None
+    meta: ProfileMeta = field(default_factory=ProfileMeta)
+
+    def __post_init__(self):
+        src = self.meta.source or self.meta.name
+        t = np.asarray(self.time_s, dtype=float)
+        if t.ndim != 1:
+            raise DataError(f"time must be one-dimensional, got shape {t.shape}", file=src, column="time_s")
+        if t.size == 0:
+            raise DataError("no samples (empty profile)", file=src, column="time_s")
+        object.__setattr__(self, "time_s", t)
+        self._check_finite(t, "time_s", src)
+        if t.size > 1:
+            dt = np.diff(t)
+            if np.any(dt <= 0):
+                k = int(np.argmax(dt <= 0))
+                kind = "duplicate time stamp" if dt[k] == 0 else "time goes backwards"
+                raise DataError(f"{kind} ({t[k]:g} s then {t[k + 1]:g} s)", file=src, column="time_s", row=k + 2)
+        for name in ("current_a", "voltage_v", "temperature_c", "soc_ref"):
+            value = getattr(self, name)
+            if value is None:
+                if name == "current_a":
+                    raise DataError("missing column", file=src, column=name)
+                continue
+            arr = np.asarray(value, dtype=float)
+            if arr.shape[-1:] != t.shape:
+                raise DataError(
+                    f"has {arr.shape[-1] if arr.ndim else 0} samples but time has {t.size}", file=src, column=name
+                )
+            if arr.ndim > 2:
+                raise DataError(f"expected (T,) or (runs, T), got shape {arr.shape}", file=src, column=name)
+            self._check_finite(arr, name, src)
+            object.__setattr__(self, name, arr)
+        if self.soc_ref is not None:
+            bad = (self.soc_ref < -SOC_TOLERANCE) | (self.soc_ref > 1 + SOC_TOLERANCE)
+            if bad.any():
+                row = _first_bad_row(bad)
+                raise DataError(
+                    f"SOC must be a fraction in [0, 1] (got {self.soc_ref[..., row - 1].ravel()[0]:g}; "
+                    "percent values must be divided by 100)",
+                    file=src,
+                    column="soc_ref",
+                    row=row,
+                )
+        shapes = {a.shape[:-1] for a in self._signals() if a is not None and a.ndim == 2}
+        if len(shapes) > 1:
+            raise DataError(f"batched columns disagree on the number of runs: {sorted(shapes)}", file=src)
+
+    @staticmethod
+    def _check_finite(arr: np.ndarray, name: str, src: str) -> None:
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            row = _first_bad_row(bad) if arr.ndim else 1
+            raise DataError("NaN or infinite value", file=src, column=name, row=row)
+
+    def _signals(self):
+        return (self.current_a, self.voltage_v, self.temperature_c, self.soc_ref)
+
+    # ------------------------------------------------------------------ views
+    @property
+    def n(self) -> int:
+        """Number of samples."""
+        return int(self.time_s.size)
+
+    @property
+    def n_runs(self) -> int:
+        """Number of Monte Carlo runs carried (1 for a plain profile)."""
+        for a in self._signals():
+            if a is not None and a.ndim == 2:
+                return int(a.shape[0])
+        return 1
+
+    @property
+    def batched(self) -> bool:
+        return any(a is not None and a.ndim == 2 for a in self._signals())
+
+    @property
+    def dt(self) -> np.ndarray:
+        """Step lengths ``dt_k = t_{k+1} - t_k`` (length T-1)."""
+        return np.diff(self.time_s)
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.time_s[-1] - self.time_s[0])
+
+    @property
+    def name(self) -> str:
+        return self.meta.name
+
+    def run(self, r: int) -> Profile:
+        """Run ``r`` of a batched profile as a plain profile."""
+
+        def pick(a):
+            return None if a is None else (a[r] if a.ndim == 2 else a)
+
+        return replace(
+            self,
+            current_a=pick(self.current_a),
+            voltage_v=pick(self.voltage_v),
+            temperature_c=pick(self.temperature_c),
+            soc_ref=pick(self.soc_ref),
+        )
+
+    def slice(self, start: int, stop: int | None = None) -> Profile:
+        """Samples ``start:stop`` (time kept as is)."""
+        sl = slice(start, stop)
+
+        def cut(a):
+            return None if a is None else a[..., sl]
+
+        return replace(
+            self,
+            time_s=self.time_s[sl],
+            current_a=cut(self.current_a),
+            voltage_v=cut(self.voltage_v),
+            temperature_c=cut(self.temperature_c),
+            soc_ref=cut(self.soc_ref),
+        )
+
+    def with_(self, **changes) -> Profile:
+        """A validated copy with some fields replaced."""
+        return replace(self, **changes)
+
+    def require(self, *columns: str) -> None:
+        """Raise a :class:`DataError` naming the first of ``columns`` the profile lacks."""
+        for c in columns:
+            if getattr(self, c) is None:
+                raise DataError("missing column", file=self.meta.source or self.meta.name, column=c)
+
+    def gaps(self, factor: float = 5.0) -> list[tuple[int, float]]:
+        """Sample gaps longer than ``factor`` × the median step: ``[(row, gap_s), ...]`` (rows from 1)."""
+        if self.n < 3:
+            return []
+        dt = self.dt
+        med = float(np.median(dt))
+        idx = np.nonzero(dt > factor * med)[0]
+        return [(int(k) + 2, float(dt[k])) for k in idx]
+
+    def amp_hours(self) -> np.ndarray:
+        """Discharged charge since the first sample [Ah], zero-order hold on the current (shape like current)."""
+        i = self.current_a
+        dq = i[..., :-1] * self.dt / 3600.0
+        out = np.zeros_like(i)
+        out[..., 1:] = np.cumsum(dq, axis=-1)
+        return out
+
+    def to_frame(self):
+        """A pandas DataFrame of a plain (non-batched) profile, canonical column names."""
+        import pandas as pd
+
+        if self.batched:
+            raise ValueError("to_frame() needs a plain profile; use run(r) first")
+        cols = {"time_s": self.time_s, "current_a": self.current_a}
+        for c in ("voltage_v", "temperature_c", "soc_ref"):
+            if getattr(self, c) is not None:
+                cols[c] = getattr(self, c)
+        return pd.DataFrame(cols)
