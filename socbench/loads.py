@@ -20,7 +20,8 @@ def _profile(segments, dt: float, name: str, capacity_ah: float, n_series: int) 
         currents.append(np.full(n, float(amps)))
     i = np.concatenate(currents)
     t = np.arange(i.size) * dt
-    return Profile(t, i, meta=ProfileMeta(name=name, source="socbench.loads", capacity_ah=capacity_ah, n_series=n_series))
+    meta = ProfileMeta(name=name, source="socbench.loads", capacity_ah=capacity_ah, n_series=n_series)
+    return Profile(t, i, meta=meta)
 
 
 def constant_current(capacity_ah: float, c_rate: float = 1.0, dt: float = 1.0, soc_span: float = 1.0,
@@ -36,8 +37,8 @@ def hppc(capacity_ah: float, c_rate: float = 1.0, dt: float = 1.0, pulse_s: floa
          charge_ratio: float = 0.75, rest_s: float = 3600.0, step: float = 0.1, n_series: int = 1) -> Profile:
     """HPPC: at each SOC level a discharge pulse, a rest, a charge pulse, a rest; then a ``step`` discharge and a rest.
 
-    The first pulse set is at full charge (after ``rest_s``), the last at ``step`` above empty; the profile ends with the
-    final discharge to empty and a rest, so rests are taken at 1.0, 0.9, …, 0.0.
+    The first pulse set is at full charge (after ``rest_s``), the last at ``step`` above empty; the profile ends with
+    the final discharge to empty and a rest, so rests are taken at 1.0, 0.9, …, 0.0.
     """
     amps = c_rate * capacity_ah
     levels = int(round(1.0 / step))

@@ -9,7 +9,7 @@ Models without a Table 3 set (``esc``, ``nrc``) have stand-in sets marked as suc
 from __future__ import annotations
 
 import json
-from functools import lru_cache
+from functools import cache
 from importlib import resources
 
 from ..errors import ConfigError
@@ -17,7 +17,7 @@ from ..ocv import OCVCurve
 from .params import ModelParams, params_from_dict
 
 
-@lru_cache(maxsize=None)
+@cache
 def _read(name: str) -> dict:
     path = resources.files("socbench") / "data" / "paper" / f"{name}.json"
     try:

@@ -13,7 +13,8 @@ coulombic efficiency and model options, plus provenance notes::
 
     {"model": "thevenin", "capacity_ah": 22.0, "eta_charge": 1.0,
      "ocv": {"soc": [...], "voltage": [...], "source": "..."},
-     "params": {"R0": {"poly": [c6, ..., c0]}, "R1": {"const": 0.006}, "C1": {"lookup": {"soc": [...], "value": [...]}}},
+     "params": {"R0": {"poly": [c6, ..., c0]}, "R1": {"const": 0.006},
+                "C1": {"lookup": {"soc": [...], "value": [...]}}},
      "options": {"mode": "robust"}, "source": "...", "notes": ["..."]}
 """
 
