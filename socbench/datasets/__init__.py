@@ -15,6 +15,7 @@ from ..profile import Profile
 #: format name -> "module:function" taking (path) and returning a Profile
 FORMATS: dict[str, str] = {
     "canonical": "socbench.datasets.canonical:load_canonical",
+    "panasonic-mat": "socbench.datasets.panasonic:load_panasonic",
 }
 
 
@@ -27,13 +28,25 @@ def _loader(fmt: str):
 
 
 def detect_format(path) -> str:
-    """The format of ``path`` (each format module may offer a ``sniff(path) -> bool``)."""
+    """The one format whose ``sniff(path)`` says yes; a :class:`DataError` when none or several do.
+
+    Never guesses: an ambiguous file must be given an explicit ``--format``.
+    """
+    hits = []
     for fmt, target in FORMATS.items():
         module = importlib.import_module(target.split(":")[0])
         sniff = getattr(module, "sniff", None)
-        if sniff is not None and sniff(path):
-            return fmt
-    raise DataError("could not detect the format; pass --format explicitly", file=str(path))
+        try:
+            if sniff is not None and sniff(path):
+                hits.append(fmt)
+        except OSError as exc:
+            raise DataError(f"cannot read ({exc.strerror or exc})", file=str(path)) from None
+    if len(hits) == 1:
+        return hits[0]
+    if not hits:
+        raise DataError(f"could not detect the format; pass --format explicitly (known: {', '.join(FORMATS)})",
+                        file=str(path))
+    raise DataError(f"ambiguous format: matches {' and '.join(hits)}; pass --format explicitly", file=str(path))
 
 
 def load(path, fmt: str = "auto") -> Profile:
