@@ -16,6 +16,8 @@ STATE_RANGES = {
     "Istar": (-30.0, 60.0),
     "h": (-1.0, 1.0),
     "s": (-1.0, 1.0),
+    "cap": (0.7, 1.3),  # effects.Capacity: Q_model / Q_true
+    "b": (-0.1, 0.1),  # effects.CurrentBias [A]: small enough that |I − b| stays above the sign/η kinks
 }
 
 

@@ -1,0 +1,589 @@
+"""Effects the 14 ECMs lack (ECM_SPEC §9), as augmentations of any model: ``augment(model, [effects]) -> Model``.
+
+An :class:`Effect` adds states, parameters (each with a physically bounded range, :meth:`Effect.bounds`) and terms,
+with their Jacobian blocks. :class:`AugmentedModel` is a real :class:`~socbench.models.base.Model`: every estimator and
+the generic Jacobian / ZOH / batch tests run it unchanged. State ``x = [base states, effect 1 states, ...]``.
+
+How the pieces compose in one step (``i`` the measured current, ``T`` the measured temperature)::
+
+    i_e = i − b                                         current_bias: base model and effects see the true current
+    x_b⁺ = f_base(x_b, i_e)                              the base model's own step (its F_b, B_b = ∂f_b/∂I)
+    z⁺  = z + G·(z_b⁺ − z) − Σ leak                      capacity (G ∋ c), coulombic_efficiency (G ∋ η_c on charge),
+                                                         self_discharge (leak)
+    e⁺  = f_e(e, z, i_e)                                 the effects' own states (hysteresis h, s; extra RC U_x; c; b)
+    y   = (1 − k(T))·U(z) + k(T)·h_base(x_b, i_e) + ΔS·(T − T_ref) + Σ terms(e, z, i_e, T)
+
+and for the bias state (``b`` enters only through ``i_e``): ``∂x⁺/∂b = −∂x⁺/∂i_e``, ``∂y/∂b = −∂y/∂i_e``, which needs
+the base model's ``B = ∂f/∂I`` and ``D = ∂h/∂I``.
+
+Effects (ECM_SPEC §9 numbering in brackets):
+
+* :class:`Temperature` [2] — Arrhenius scaling of the over-potential plus an entropic OCV term.
+* :class:`Hysteresis` [1] — Plett's one-state dynamic + instantaneous hysteresis (states ``h``, ``s``).
+* :class:`Capacity` [3] — capacity fade / wrong declared capacity: a random-walk state ``cap`` = Q_model/Q_true.
+* :class:`CurrentBias` [4] — current-sensor offset ``b`` as a random-walk state.
+* :class:`ExtraRC` [7] — a further RC branch ``U_x`` (diffusion), built with ``blocks.rc_coefficients``.
+* :class:`ButlerVolmer` [6] — asinh charge-transfer over-potential (no state).
+* :class:`CoulombicEfficiency` [5] — η_c < 1 on charge.
+* :class:`SelfDischarge` [8] — a leak ``ż = −r_sd·U_oc(z)/U_oc(1)/3600``.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from ..errors import ConfigError
+from .base import T_REF_C, Model
+from .blocks import rc_coefficients
+
+#: gas constant [J/(mol K)] and Faraday constant [C/mol]
+R_GAS = 8.314462618
+FARADAY = 96485.33212
+KELVIN = 273.15
+
+
+def n_cells(model) -> int:
+    """Cells in series, from the OCV level at full charge (≈ 3.4–4.2 V per cell): scales the voltage bounds."""
+    return max(1, int(round(float(model.ocv(1.0)) / 4.0)))
+
+
+def resistance_scale(model) -> float:
+    """A generous upper bound for an added resistance [Ω]: 0.5 Ω·Ah per cell divided by the capacity."""
+    return 0.5 * n_cells(model) / model.capacity_ah
+
+
+class Effect:
+    """An augmentation: states, bounded parameters, and hooks that the :class:`AugmentedModel` composes.
+
+    Subclasses set ``name``, ``state_names``, ``param_names``, ``defaults`` and implement :meth:`bounds` and the hooks
+    they need. Parameters are fixed at construction (``Effect(**values)``); :meth:`with_values` returns a copy.
+    Every hook is batched over the leading axes; ``e`` is the effect's own slice of the state, shape ``(..., ne)``.
+    """
+
+    name: ClassVar[str] = ""
+    state_names: ClassVar[tuple] = ()
+    discrete_states: ClassVar[tuple] = ()
+    param_names: ClassVar[tuple] = ()
+    defaults: ClassVar[dict] = {}
+    #: settings that are not fitted (e.g. the reference temperature)
+    settings: ClassVar[dict] = {}
+
+    def __init__(self, **values):
+        unknown = sorted(set(values) - set(self.param_names) - set(self.settings))
+        if unknown:
+            raise ConfigError(f"effect '{self.name}' has no parameter '{unknown[0]}' (have {list(self.param_names)})")
+        self.values = {**self.defaults, **self.settings, **{k: float(v) for k, v in values.items()}}
+
+    def __getitem__(self, key):
+        return self.values[key]
+
+    def with_values(self, **values) -> Effect:
+        return type(self)(**{**self.values, **values})
+
+    def __repr__(self) -> str:
+        vals = ", ".join(f"{k}={v:.4g}" for k, v in self.values.items())
+        return f"{type(self).__name__}({vals})"
+
+    @property
+    def n_states(self) -> int:
+        return len(self.state_names)
+
+    def bounds(self, model) -> dict:
+        """``{param: (low, high)}``: the physically admissible range on base ``model`` (used by every fit)."""
+        raise NotImplementedError
+
+    def initial(self) -> np.ndarray:
+        """Initial values of the effect's states."""
+        return np.zeros(self.n_states)
+
+    # ------------------------------------------------------------------ hooks (defaults: no contribution)
+    def current_offset(self, e):
+        """Offset subtracted from the measured current (current_bias), or None."""
+        return None
+
+    def soc_gain(self, e, i, base):
+        """``(g, ∂g/∂e)``: factor on the base SOC increment, or None."""
+        return None
+
+    def soc_leak(self, z, e, dt, base):
+        """``(Δz, ∂Δz/∂z)``: SOC removed per step in addition to the current, or None."""
+        return None
+
+    def advance(self, e, z, i, dt, temp, base, jac):
+        """``(e⁺, ∂e⁺/∂e (…, ne, ne), ∂e⁺/∂z (…, ne), ∂e⁺/∂I (…, ne))`` of the effect's states."""
+        return e, None, None, None
+
+    def rate(self, e, z, i, temp, base):
+        """Continuous-time ``ė`` (0 for discrete states); SOC-dependent quantities frozen at ``z``."""
+        return np.zeros_like(e)
+
+    def soc_rate(self, z_params, e, base):
+        """Continuous-time leak ``ż`` (self_discharge), or None."""
+        return None
+
+    def scale_output(self, y, H, D, z, temp, base, jac):
+        """Transform the base output (temperature): returns ``(y, H_b, H_z, D)``, or None."""
+        return None
+
+    def output_term(self, e, z, i, temp, base, jac):
+        """``(Δy, ∂Δy/∂e (…, ne), ∂Δy/∂z, ∂Δy/∂I)`` added to the output, or None."""
+        return None
+
+
+def _temp_k(temp, t_ref_c, shape):
+    t = np.full(shape, t_ref_c) if temp is None else np.broadcast_to(np.asarray(temp, dtype=float), shape)
+    return t + KELVIN
+
+
+# ======================================================================================================= effects
+class Temperature(Effect):
+    """Arrhenius scaling of the over-potential and an entropic OCV term (ECM_SPEC §9.2).
+
+    ``y = U(z) + ΔS·(T − T_ref) − k(T)·(U(z) − h_base(x, I))``,  ``k(T) = exp[(E_a/R_g)(1/T − 1/T_ref)]`` (kelvin).
+
+    This is **exact for a constant temperature** when every resistance of the base model scales with ``k(T)`` and every
+    time constant stays fixed (each C scales with 1/k): the RC states then scale with ``k`` too, so the whole
+    over-potential ``U − h_base`` does. With a time-varying ``T`` it is the quasi-static approximation (the RC
+    states are not re-weighted by the temperature history). ``T`` is the profile's measured temperature; no temperature
+    input means ``T = T_ref`` (``k = 1``). Parameters: ``Ea`` [J/mol], ``dUdT`` [V/K] (pack: cells × per-cell),
+    setting ``t_ref`` [°C] (the temperature the base model was fitted at).
+
+    Jacobians: ``H = (1 − k)U'(z)·e_z + k·H_base``, ``D = k·D_base``.
+    """
+
+    name = "temperature"
+    param_names = ("Ea", "dUdT")
+    defaults = {"Ea": 20e3, "dUdT": 0.0}
+    settings = {"t_ref": T_REF_C}
+
+    def bounds(self, model):
+        n = n_cells(model)
+        return {"Ea": (0.0, 100e3), "dUdT": (-1e-3 * n, 1e-3 * n)}
+
+    def factor(self, temp, shape):
+        tk = _temp_k(temp, self["t_ref"], shape)
+        return np.exp(self["Ea"] / R_GAS * (1.0 / tk - 1.0 / (self["t_ref"] + KELVIN))), tk
+
+    def scale_output(self, y, H, D, z, temp, base, jac):
+        k, tk = self.factor(temp, np.shape(y))
+        u, du = base.ocv.value_and_slope(z)
+        y = (1.0 - k) * u + k * y + self["dUdT"] * (tk - KELVIN - self["t_ref"])
+        if not jac:
+            return y, None, None, None
+        return y, k[..., None] * H, (1.0 - k) * du, k * D
+
+
+class Hysteresis(Effect):
+    """Plett's one-state dynamic plus instantaneous hysteresis (ESC, ECM_SPEC §9.1).
+
+    ``A_h = exp(−|η(I)·I·γ·dt/(3600 Q)|)``, ``h⁺ = A_h h − (1 − A_h) sgn(I)``; ``s_k = sgn(I_k)`` if ``|I_k| > Q/100``
+    else ``s_{k−1}``; ``y += M h_k + M0 s_k``. State ``s`` stores ``s_{k−1}`` (discrete: no derivative, no ``ṡ``).
+    Continuous form: ``ḣ = −γ|η I|/(3600 Q)·(h + sgn I)`` (exact under ZOH).
+    Jacobians: ``∂h⁺/∂h = A_h``, ``∂h⁺/∂I = ∂A_h/∂I·(h + sgn I)`` with ``∂A_h/∂I = −A_h γ η dt sgn(I)/(3600 Q)``;
+    ``∂y/∂h = M``, ``∂y/∂s = M0`` where the current is below Q/100 (else 0). Parameter ``h0`` is the initial ``h``
+    (+1: the cell comes from a charge).
+    """
+
+    name = "hysteresis"
+    state_names = ("h", "s")
+    discrete_states = ("s",)
+    param_names = ("M", "M0", "gamma", "h0")
+    defaults = {"M": 0.01, "M0": 0.0, "gamma": 50.0, "h0": 0.0}
+
+    def bounds(self, model):
+        n = n_cells(model)
+        return {"M": (0.0, 0.1 * n), "M0": (-0.05 * n, 0.05 * n), "gamma": (1.0, 500.0), "h0": (-1.0, 1.0)}
+
+    def initial(self):
+        return np.array([self["h0"], 0.0])
+
+    def _decay(self, i, dt, base):
+        eta = np.where(i >= 0.0, 1.0, base.eta_charge)
+        c = self["gamma"] * eta / (3600.0 * base.capacity_ah)
+        return np.exp(-np.abs(i * c * dt)), c
+
+    def advance(self, e, z, i, dt, temp, base, jac):
+        h, s = e[..., 0], e[..., 1]
+        a, c = self._decay(i, dt, base)
+        sg = np.sign(i)
+        moving = np.abs(i) > base.capacity_ah / 100.0
+        en = np.stack([a * h - (1.0 - a) * sg, np.where(moving, sg, s)], axis=-1)
+        if not jac:
+            return en, None, None, None
+        Fe = np.zeros(e.shape + (2,))
+        Fe[..., 0, 0] = a
+        Fe[..., 1, 1] = np.where(moving, 0.0, 1.0)
+        Be = np.zeros(e.shape)
+        Be[..., 0] = -a * c * dt * sg * (h + sg)
+        return en, Fe, np.zeros(e.shape), Be
+
+    def rate(self, e, z, i, temp, base):
+        eta = np.where(i >= 0.0, 1.0, base.eta_charge)
+        r = np.zeros_like(e)
+        r[..., 0] = -self["gamma"] * np.abs(eta * i) / (3600.0 * base.capacity_ah) * (e[..., 0] + np.sign(i))
+        return r
+
+    def output_term(self, e, z, i, temp, base, jac):
+        moving = np.abs(i) > base.capacity_ah / 100.0
+        s = np.where(moving, np.sign(i), e[..., 1])
+        dy = self["M"] * e[..., 0] + self["M0"] * s
+        if not jac:
+            return dy, None, None, None
+        He = np.stack([np.full(dy.shape, self["M"]), np.where(moving, 0.0, self["M0"])], axis=-1)
+        return dy, He, np.zeros(dy.shape), np.zeros(dy.shape)
+
+
+class Capacity(Effect):
+    """Capacity fade or a wrong declared capacity (ECM_SPEC §9.3): state ``cap = Q_model/Q_true`` (random walk).
+
+    ``z⁺ = z + cap·(z_base⁺ − z)`` — the base SOC increment (computed with the declared Q) is scaled.
+    ``∂z⁺/∂cap = z_base⁺ − z``; ``∂z⁺/∂I = cap·B_base[z]``; ``cap⁺ = cap``. Parameter ``cap0`` is its initial value.
+    """
+
+    name = "capacity"
+    state_names = ("cap",)
+    param_names = ("cap0",)
+    defaults = {"cap0": 1.0}
+
+    def bounds(self, model):
+        return {"cap0": (0.6, 1.6)}
+
+    def initial(self):
+        return np.array([self["cap0"]])
+
+    def soc_gain(self, e, i, base):
+        return e[..., 0], np.ones(e.shape)
+
+    def advance(self, e, z, i, dt, temp, base, jac):
+        if not jac:
+            return e, None, None, None
+        return e, np.ones(e.shape + (1,)), np.zeros(e.shape), np.zeros(e.shape)
+
+
+class CurrentBias(Effect):
+    """Current-sensor offset (ECM_SPEC §9.4): ``I_meas = I + b``, ``b`` a random-walk state (``b⁺ = b``).
+
+    The base model and every other effect run on ``I − b``; so ``∂x⁺/∂b = −∂x⁺/∂I`` (the base model's ``B``, e.g.
+    ``∂z⁺/∂b = ηκ``) and ``∂y/∂b = −∂y/∂I`` (e.g. ``+R0``; the RC paths act through their states). Parameter ``b0``.
+    """
+
+    name = "current_bias"
+    state_names = ("b",)
+    param_names = ("b0",)
+    defaults = {"b0": 0.0}
+
+    def bounds(self, model):
+        return {"b0": (-0.05 * model.capacity_ah, 0.05 * model.capacity_ah)}
+
+    def initial(self):
+        return np.array([self["b0"]])
+
+    def current_offset(self, e):
+        return e[..., 0]
+
+    def advance(self, e, z, i, dt, temp, base, jac):
+        if not jac:
+            return e, None, None, None
+        return e, np.ones(e.shape + (1,)), np.zeros(e.shape), np.zeros(e.shape)
+
+
+class ExtraRC(Effect):
+    """A further RC branch (diffusion, ECM_SPEC §9.7): ``U_x⁺ = a U_x + b I``, ``y −= U_x`` (block B2).
+
+    ``a = e^{−dt/τ}``, ``b = R(1 − a)`` from :func:`~socbench.models.blocks.rc_coefficients` with ``C = τ/R``;
+    ``F = a``, ``B = b``, ``H = −1``. Parameters ``R`` [Ω] and ``log10_tau`` (τ in s), constant in SOC.
+    """
+
+    name = "extra_rc"
+    state_names = ("Ux",)
+    param_names = ("R", "log10_tau")
+    defaults = {"R": 1e-3, "log10_tau": 2.5}
+
+    def bounds(self, model):
+        return {"R": (1e-6, resistance_scale(model)), "log10_tau": (0.5, 4.0)}
+
+    def _coef(self, dt, base):
+        R = max(self["R"], 1e-9)
+        tau = 10.0 ** self["log10_tau"]
+        zero = np.zeros(np.shape(dt))
+        a, b, _, _ = rc_coefficients(np.full(np.shape(dt), R), zero, np.full(np.shape(dt), tau / R), zero, dt,
+                                     base.mode, name="RCx")
+        return a, b
+
+    def advance(self, e, z, i, dt, temp, base, jac):
+        a, b = self._coef(dt, base)
+        en = (a * e[..., 0] + b * i)[..., None]
+        if not jac:
+            return en, None, None, None
+        return en, a[..., None, None], np.zeros(e.shape), b[..., None]
+
+    def rate(self, e, z, i, temp, base):
+        tau = 10.0 ** self["log10_tau"]
+        return ((-e[..., 0] + self["R"] * i) / tau)[..., None]
+
+    def output_term(self, e, z, i, temp, base, jac):
+        dy = -e[..., 0]
+        if not jac:
+            return dy, None, None, None
+        return dy, -np.ones(e.shape), np.zeros(dy.shape), np.zeros(dy.shape)
+
+
+class ButlerVolmer(Effect):
+    """Current-dependent charge-transfer over-potential (ECM_SPEC §9.6), no state.
+
+    ``y += −U_ct(I) + ΔR·I``, ``U_ct = N_s·(2 R_g T/F)·asinh(I/(2 I_0))`` (symmetric α = 0.5, ``N_s`` cells in series,
+    ``T`` the measured temperature, else 25 °C). ``ΔR`` hands back the part of the base model's linear ``R0·I`` that the
+    asinh term now carries (``y = … − R_Ω I − U_ct``). ``D = −N_s(2R_gT/F)/(2 I_0 √(1 + (I/2I_0)²)) + ΔR``.
+    Parameters ``I0`` [A] and ``dR`` [Ω].
+    """
+
+    name = "butler_volmer"
+    param_names = ("I0", "dR")
+    defaults = {"I0": 1.0, "dR": 0.0}
+
+    def bounds(self, model):
+        q = model.capacity_ah
+        return {"I0": (0.01 * q, 10.0 * q), "dR": (-resistance_scale(model), resistance_scale(model))}
+
+    def output_term(self, e, z, i, temp, base, jac):
+        tk = _temp_k(temp, T_REF_C, np.shape(i))
+        g = n_cells(base) * 2.0 * R_GAS * tk / FARADAY
+        x = i / (2.0 * self["I0"])
+        dy = -g * np.arcsinh(x) + self["dR"] * i
+        if not jac:
+            return dy, None, None, None
+        return dy, np.zeros(e.shape), np.zeros(dy.shape), -g / (2.0 * self["I0"] * np.sqrt(1.0 + x * x)) + self["dR"]
+
+
+class CoulombicEfficiency(Effect):
+    """Coulombic efficiency on charge (ECM_SPEC §9.5): the base SOC increment is scaled by ``η_c`` when ``I < 0``.
+
+    ``z⁺ = z + η(I)·(z_base⁺ − z)``, ``η = η_c`` for ``I < 0`` else 1 (on top of the base model's own ``eta_charge``).
+    Parameter ``eta_c`` ∈ [0.9, 1].
+    """
+
+    name = "coulombic_efficiency"
+    param_names = ("eta_c",)
+    defaults = {"eta_c": 1.0}
+
+    def bounds(self, model):
+        return {"eta_c": (0.9, 1.0)}
+
+    def soc_gain(self, e, i, base):
+        return np.where(i < 0.0, self["eta_c"], 1.0), np.zeros(e.shape)
+
+
+class SelfDischarge(Effect):
+    """Self-discharge through a leak (ECM_SPEC §9.8): ``ż = −r_sd·U_oc(z)/U_oc(1)/3600`` (per hour at full charge).
+
+    This is the spec's ``U_oc(z)/(3600 Q R_sd)`` with ``r_sd = U_oc(1)/(Q R_sd)``. With ``U_oc`` frozen at ``z_k`` over
+    the step (as every SOC-dependent quantity): ``Δz = −r_sd·U(z_k)·dt/(3600 U(1))``,
+    ``∂Δz/∂z = −r_sd U'(z) dt/(3600 U(1))``.
+    Parameter ``rate`` [1/h], at most 5 %/h.
+    """
+
+    name = "self_discharge"
+    param_names = ("rate",)
+    defaults = {"rate": 0.0}
+
+    def bounds(self, model):
+        return {"rate": (0.0, 0.05)}
+
+    def _c(self, base):
+        return self["rate"] / (3600.0 * float(base.ocv(1.0)))
+
+    def soc_leak(self, z, e, dt, base):
+        u, du = base.ocv.value_and_slope(z)
+        c = self._c(base) * dt
+        return c * u, c * du
+
+    def soc_rate(self, z_params, e, base):
+        return -self._c(base) * base.ocv(z_params)
+
+
+#: effect name -> class
+EFFECTS: dict[str, type] = {
+    cls.name: cls
+    for cls in (Temperature, Hysteresis, Capacity, CurrentBias, ExtraRC, ButlerVolmer, CoulombicEfficiency,
+                SelfDischarge)
+}
+
+
+def effect_names() -> list[str]:
+    return list(EFFECTS)
+
+
+def make_effect(name: str, **values) -> Effect:
+    try:
+        return EFFECTS[name](**values)
+    except KeyError:
+        raise ConfigError(f"unknown effect '{name}'; known: {', '.join(EFFECTS)}") from None
+
+
+# ======================================================================================================= the model
+class AugmentedModel(Model):
+    """A base model with effects: ``x = [x_base, e_1, e_2, …]`` (see the module docstring for the composition)."""
+
+    def __init__(self, base: Model, effects):
+        effects = tuple(effects)
+        names = [e.name for e in effects]
+        if len(set(names)) != len(names):
+            raise ConfigError(f"an effect appears twice: {names}")
+        states = list(base.state_names)
+        for e in effects:
+            clash = set(e.state_names) & set(states)
+            if clash:
+                raise ConfigError(f"effect '{e.name}' state {sorted(clash)[0]!r} already exists in {base.name}")
+            states += list(e.state_names)
+        self.base = base
+        self.effects = effects
+        super().__init__(base.params, base.mode)
+        self.name = base.name + "".join(f"+{n}" for n in names)
+        self.title = base.title + "".join(f" + {n}" for n in names)
+        self._states = tuple(states)
+        self.discrete_states = tuple(base.discrete_states) + tuple(s for e in effects for s in e.discrete_states)
+        nb = base.n_states
+        self._nb = nb
+        self._slices = []
+        for e in effects:
+            self._slices.append(slice(nb, nb + e.n_states))
+            nb += e.n_states
+
+    def required_params(self):
+        return self.base.required_params()
+
+    @property
+    def state_names(self):
+        return self._states
+
+    def effect(self, name: str) -> Effect:
+        for e in self.effects:
+            if e.name == name:
+                return e
+        raise KeyError(name)
+
+    def x0(self, soc, batch=()):
+        xb = self.base.x0(soc, batch)
+        parts = [xb] + [np.broadcast_to(e.initial(), xb.shape[:-1] + (e.n_states,)) for e in self.effects]
+        return np.concatenate(parts, axis=-1)
+
+    # ------------------------------------------------------------------ pieces
+    def _effective_current(self, x, i):
+        """``(i_e, bias column or None)``."""
+        for e, sl in zip(self.effects, self._slices):
+            off = e.current_offset(x[..., sl])
+            if off is not None:
+                return i - off, sl.start
+        return i, None
+
+    def step(self, x, i, dt, temp=None, jac=False, guards=None):
+        x, (i, dt) = self._broadcast(x, i, dt)
+        tmp = None if temp is None else np.broadcast_to(np.asarray(temp, dtype=float), x.shape[:-1])
+        nb, n = self._nb, x.shape[-1]
+        ie, bcol = self._effective_current(x, i)
+        xb = x[..., :nb]
+        z = x[..., 0]
+        xbn, Fb, Bb = self.base.step(xb, ie, dt, tmp, jac, guards)
+        xn = np.empty_like(x)
+        xn[..., :nb] = xbn
+        dz = xbn[..., 0] - z
+        # SOC gain and leak
+        gain = np.ones_like(z)
+        gains = []
+        for e, sl in zip(self.effects, self._slices):
+            g = e.soc_gain(x[..., sl], ie, self.base)
+            if g is not None:
+                gains.append((sl, g))
+                gain = gain * g[0]
+        xn[..., 0] = z + gain * dz
+        leak_dz = np.zeros_like(z)
+        for e, sl in zip(self.effects, self._slices):
+            lk = e.soc_leak(z, x[..., sl], dt, self.base)
+            if lk is not None:
+                xn[..., 0] -= lk[0]
+                leak_dz = leak_dz + lk[1]
+        if jac:
+            F = np.zeros(x.shape + (n,))
+            B = np.zeros(x.shape)
+            F[..., :nb, :nb] = Fb
+            B[..., :nb] = Bb
+            F[..., 0, :nb] = gain[..., None] * Fb[..., 0, :]
+            F[..., 0, 0] += 1.0 - gain - leak_dz
+            B[..., 0] = gain * Bb[..., 0]
+            for sl, (g, dg) in gains:
+                others = np.where(g != 0, gain / np.where(g != 0, g, 1.0), 0.0)
+                F[..., 0, sl] += (others * dz)[..., None] * dg
+        for e, sl in zip(self.effects, self._slices):
+            if not e.n_states:
+                continue
+            en, Fe, Fez, Be = e.advance(x[..., sl], z, ie, dt, tmp, self.base, jac)
+            xn[..., sl] = en
+            if jac:
+                F[..., sl, sl] = Fe
+                F[..., sl, 0] += Fez
+                B[..., sl] = Be
+        if not jac:
+            return xn, None, None
+        if bcol is not None:
+            F[..., :, bcol] -= B
+        return xn, F, B
+
+    def output(self, x, i, temp=None, jac=False, guards=None):
+        x, (i,) = self._broadcast(x, i)
+        tmp = None if temp is None else np.broadcast_to(np.asarray(temp, dtype=float), x.shape[:-1])
+        nb = self._nb
+        ie, bcol = self._effective_current(x, i)
+        z = x[..., 0]
+        y, Hb, D = self.base.output(x[..., :nb], ie, tmp, jac, guards)
+        if jac:
+            H = np.zeros(x.shape)
+            H[..., :nb] = Hb
+        for e in self.effects:
+            out = e.scale_output(y, H[..., :nb] if jac else None, D, z, tmp, self.base, jac)
+            if out is not None:
+                y, Hs, Hz, D = out
+                if jac:
+                    H[..., :nb] = Hs
+                    H[..., 0] += Hz
+        for e, sl in zip(self.effects, self._slices):
+            out = e.output_term(x[..., sl], z, ie, tmp, self.base, jac)
+            if out is not None:
+                y = y + out[0]
+                if jac:
+                    H[..., sl] += out[1]
+                    H[..., 0] += out[2]
+                    D = D + out[3]
+        if not jac:
+            return y, None, None
+        if bcol is not None:
+            H[..., bcol] -= D
+        return y, H, D
+
+    def dxdt(self, x, i, temp=None, z_params=None):
+        x, (i,) = self._broadcast(x, i)
+        nb = self._nb
+        ie, _ = self._effective_current(x, i)
+        zp = x[..., 0] if z_params is None else np.broadcast_to(z_params, x.shape[:-1])
+        d = np.zeros_like(x)
+        d[..., :nb] = self.base.dxdt(x[..., :nb], ie, temp, z_params)
+        gain = np.ones_like(zp)
+        for e, sl in zip(self.effects, self._slices):
+            g = e.soc_gain(x[..., sl], ie, self.base)
+            if g is not None:
+                gain = gain * g[0]
+        d[..., 0] *= gain
+        for e, sl in zip(self.effects, self._slices):
+            r = e.soc_rate(zp, x[..., sl], self.base)
+            if r is not None:
+                d[..., 0] += r
+            d[..., sl] = e.rate(x[..., sl], zp, ie, temp, self.base)
+        return d
+
+
+def augment(model: Model, effects) -> AugmentedModel:
+    """``model`` with ``effects`` added (an :class:`AugmentedModel` is flattened: its effects come first)."""
+    if isinstance(model, AugmentedModel):
+        return AugmentedModel(model.base, model.effects + tuple(effects))
+    return AugmentedModel(model, effects)
