@@ -6,6 +6,7 @@ B1  SOC counter            z⁺ = z − η(I)·κ·I,  κ = dt/(3600 Q)
 B2  parallel RC branch     U⁺ = a U + b I,  a = e^{−dt/τ}, b = R(1 − a) = −R·expm1(−dt/τ), τ = R C
 B3  pure integrator        U0⁺ = U0 + dt·I/C0(z)
 B4  low-pass current       I*⁺ = a_f I* + (1 − a_f) I,  a_f = e^{−dt/t_c}
+B5  coupled two-capacitor  w⁺ = Φ w + Γ I,  Φ = I₂ + φ1 A,  Γ = (dt I₂ + φ2 A) B  (Improved RC; A² = λA)
 B6  singular-term guard    1/z, ln z, ln(1−z) evaluated at z_s = clip(z, ε, 1−ε), derivative 0 when clipped
 
 Guards (ECM_SPEC §7.3) act in ``robust`` mode and raise :class:`~socbench.errors.ModelError` in ``strict`` mode; a
@@ -166,3 +167,108 @@ def clipped_exp(arg):
     c = np.clip(arg, -EXP_CLIP, EXP_CLIP)
     e = np.exp(c)
     return e, np.where(c == arg, e, 0.0)
+
+
+# ------------------------------------------------------------------------------------------------ B1 (continuous)
+def soc_rate(i, capacity_ah: float, eta_charge: float = 1.0):
+    """B1 in continuous time: ``ż = −η(I)·I/(3600 Q)``."""
+    return -eta(i, eta_charge) * np.asarray(i, dtype=float) / (3600.0 * capacity_ah)
+
+
+# ----------------------------------------------------------------------------------------------------------- B5
+#: below this |λ·dt| the φ functions are summed as power series (the closed forms cancel near 0: relative error
+#: ≈ 6ε/x² for e2', i.e. 6e-14 at the switch; the 10-term series is exact to 1e-19 there).
+_PHI_SERIES_BELOW = 0.1
+_PHI_TERMS = 10
+_INV_FACT = 1.0 / np.cumprod(np.r_[1.0, np.arange(1.0, _PHI_TERMS + 3.0)])  # 1/n!, n = 0 … _PHI_TERMS + 2
+
+
+def _phi_functions(x, derivatives: bool = True):
+    """``e1 = expm1(x)/x``, ``e2 = (expm1(x) − x)/x²`` and (optionally) their x-derivatives ``e1', e2'``.
+
+    Series (|x| < 0.1): ``e1 = Σ x^k/(k+1)!``, ``e2 = Σ x^k/(k+2)!``, ``e1' = Σ k x^{k−1}/(k+1)!``,
+    ``e2' = Σ k x^{k−1}/(k+2)!``. Closed forms otherwise: ``e1' = (x e^x − expm1 x)/x²``,
+    ``e2' = (x expm1 x − 2(expm1 x − x))/x³``.
+    """
+    x = np.asarray(x, dtype=float)
+    small = np.abs(x) < _PHI_SERIES_BELOW
+    out = [None] * 4
+    if small.any():
+        xs = np.where(small, x, 0.0)
+        e1, e2, d1, d2 = (np.zeros_like(xs) for _ in range(4))
+        for k in range(_PHI_TERMS, -1, -1):  # Horner, highest power first
+            e1 = e1 * xs + _INV_FACT[k + 1]
+            e2 = e2 * xs + _INV_FACT[k + 2]
+            if derivatives and k >= 1:
+                d1 = d1 * xs + k * _INV_FACT[k + 1]
+                d2 = d2 * xs + k * _INV_FACT[k + 2]
+        out = [e1, e2, d1, d2]
+    if not small.all():
+        xl = np.where(small, 1.0, x)
+        em = np.expm1(xl)
+        closed = [em / xl, (em - xl) / xl**2]
+        if derivatives:
+            closed += [(xl * (em + 1.0) - em) / xl**2, (xl * em - 2.0 * (em - xl)) / xl**3]
+        else:
+            closed += [None, None]
+        out = [c if o is None or c is None else np.where(small, o, c) for o, c in zip(out, closed)]
+    return tuple(out) if derivatives else (out[0], out[1], None, None)
+
+
+def _mv(M, v):
+    """Batched matrix–vector product ``M v`` for ``M (..., 2, 2)``, ``v (..., 2)``."""
+    return np.einsum("...ij,...j->...i", M, v)
+
+
+def coupled_rc_coefficients(Re, dRe, Rc, dRc, Ce, dCe, Cc, dCc, dt, derivatives: bool = True):
+    """B5: exact ZOH ``w⁺ = Φ w + Γ I`` of the coupled two-capacitor network and its z-derivatives.
+
+    ``w = [U_e, U_c]``, ``R_s = R_e + R_c``, ``α = 1/C_e``, ``β = 1/C_c``::
+
+        ẇ = A w + B I,   A = (1/R_s)[[−α, α], [β, −β]],   B = −(1/R_s)[R_c α, R_e β]ᵀ
+        A² = λA,  λ = −(α + β)/R_s
+        Φ = I₂ + φ1 A,            φ1 = expm1(λ dt)/λ
+        Γ = (dt I₂ + φ2 A) B,     φ2 = (expm1(λ dt) − λ dt)/λ²
+
+    z-derivatives (primes), from ``R_e', R_c', C_e', C_c'``::
+
+        α' = −C_e'/C_e²,  β' = −C_c'/C_c²,  R_s' = R_e' + R_c'
+        A' = −(R_s'/R_s) A + (1/R_s)[[−α', α'], [β', −β']]
+        B' = −(R_s'/R_s) B − (1/R_s)[R_c' α + R_c α',  R_e' β + R_e β']ᵀ
+        λ' = −(α' + β')/R_s − λ R_s'/R_s
+        Φ' = φ1 A' + (dφ1/dλ) λ' A
+        Γ' = (dt I₂ + φ2 A) B' + (φ2 A' + (dφ2/dλ) λ' A) B
+
+    Returns ``(Φ (…,2,2), Γ (…,2), Φ', Γ', λ)`` (``Φ', Γ'`` None unless ``derivatives``). No guards here: the
+    caller checks ``C > 0``, ``R_s > 0`` and ``λ ≤ 0`` (strict) or floors ``C`` (robust) first (ECM_SPEC §7.3).
+    """
+    Re, dRe, Rc, dRc, Ce, dCe, Cc, dCc, dt = np.broadcast_arrays(
+        *(np.asarray(v, dtype=float) for v in (Re, dRe, Rc, dRc, Ce, dCe, Cc, dCc, dt))
+    )
+    Rs = Re + Rc
+    dRs = dRe + dRc
+    al, be = 1.0 / Ce, 1.0 / Cc
+    lam = -(al + be) / Rs
+
+    def mat(a, b):
+        return np.stack([np.stack([-a, a], axis=-1), np.stack([b, -b], axis=-1)], axis=-2)
+
+    A = mat(al, be) / Rs[..., None, None]
+    B = -np.stack([Rc * al, Re * be], axis=-1) / Rs[..., None]
+    e1, e2, d1, d2 = _phi_functions(lam * dt, derivatives)
+    phi1, phi2 = dt * e1, dt**2 * e2
+    eye = np.eye(2)
+    Phi = eye + phi1[..., None, None] * A
+    G = dt[..., None, None] * eye + phi2[..., None, None] * A  # ∫₀^dt e^{As} ds
+    Gamma = _mv(G, B)
+    if not derivatives:
+        return Phi, Gamma, None, None, lam
+    dal, dbe = -dCe / Ce**2, -dCc / Cc**2
+    dlam = -(dal + dbe) / Rs - lam * dRs / Rs
+    dA = -(dRs / Rs)[..., None, None] * A + mat(dal, dbe) / Rs[..., None, None]
+    dB = -(dRs / Rs)[..., None] * B - np.stack([dRc * al + Rc * dal, dRe * be + Re * dbe], axis=-1) / Rs[..., None]
+    dphi1, dphi2 = dt**2 * d1, dt**3 * d2  # d/dλ
+    dPhi = phi1[..., None, None] * dA + (dphi1 * dlam)[..., None, None] * A
+    dG = phi2[..., None, None] * dA + (dphi2 * dlam)[..., None, None] * A
+    dGamma = _mv(G, dB) + _mv(dG, B)
+    return Phi, Gamma, dPhi, dGamma, lam

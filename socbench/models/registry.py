@@ -15,6 +15,13 @@ MODELS: dict[str, str] = {
     "pngv": "socbench.models.rc_network:PNGV",
     "dp": "socbench.models.rc_network:DP",
     "gnl": "socbench.models.rc_network:GNL",
+    "improved_rc": "socbench.models.improved_rc:ImprovedRC",
+    "shepherd": "socbench.models.static_terms:Shepherd",
+    "unnewehr": "socbench.models.static_terms:Unnewehr",
+    "nernst": "socbench.models.static_terms:Nernst",
+    "fang": "socbench.models.static_terms:Fang",
+    "tremblay1": "socbench.models.static_terms:Tremblay1",
+    "plett": "socbench.models.static_terms:Plett",
     "nrc": "socbench.models.rc_network:NRC",
 }
 
