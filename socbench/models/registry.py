@@ -20,7 +20,9 @@ MODELS: dict[str, str] = {
     "unnewehr": "socbench.models.static_terms:Unnewehr",
     "nernst": "socbench.models.static_terms:Nernst",
     "fang": "socbench.models.static_terms:Fang",
+    "liu": "socbench.models.tremblay:Liu",
     "tremblay1": "socbench.models.static_terms:Tremblay1",
+    "tremblay2": "socbench.models.tremblay:Tremblay2",
     "plett": "socbench.models.static_terms:Plett",
     "nrc": "socbench.models.rc_network:NRC",
 }
