@@ -16,6 +16,8 @@ from ..profile import Profile
 FORMATS: dict[str, str] = {
     "canonical": "socbench.datasets.canonical:load_canonical",
     "panasonic-mat": "socbench.datasets.panasonic:load_panasonic",
+    "calce-csv": "socbench.datasets.calce:load_calce",
+    "nissan-leaf": "socbench.datasets.nissan_leaf:load_nissan_leaf",
 }
 
 
