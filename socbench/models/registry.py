@@ -24,6 +24,7 @@ MODELS: dict[str, str] = {
     "tremblay1": "socbench.models.static_terms:Tremblay1",
     "tremblay2": "socbench.models.tremblay:Tremblay2",
     "plett": "socbench.models.static_terms:Plett",
+    "esc": "socbench.models.esc:ESC",
     "nrc": "socbench.models.rc_network:NRC",
 }
 
