@@ -1,0 +1,129 @@
+"""The study grid: models × estimators × scenarios × seeds, and the keys that name its pieces in the store.
+
+A study has two kinds of work:
+
+* a **fit**: one model fitted on one characterisation test (``identify.fit_model(model, hppc, mode)``). Its key
+  hashes the model name, the fit mode and the characterisation's bytes, so scenarios that share a truth cell and a
+  characterisation share the fit;
+* a **cell**: one estimator run on one model over every seed of one scenario, as one batch. Its key hashes the cell's
+  full configuration: model, estimator, scenario name and fingerprint, seeds, the fit key, the store schema and the
+  package version. A cell is a deterministic function of that configuration (the particle filter's random stream is
+  seeded from the key), so the same key always means the same result, on any backend.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import ConfigError
+
+#: bump when the meaning of a stored record changes (old records are then ignored, never misread)
+STORE_SCHEMA = 1
+
+#: the default study (DESIGN.md): every registered model, these four filters, these three scenarios, 10 seeds
+DEFAULT_ESTIMATORS = ("coulomb", "ekf", "ukf", "pf")
+DEFAULT_SCENARIOS = ("flight-0kg", "flight-10kg", "dji-m100-replay")
+DEFAULT_SEEDS = 10
+
+
+def stable_hash(obj) -> str:
+    """SHA-256 (hex) of the canonical JSON of ``obj`` (sorted keys; floats written exactly)."""
+    text = json.dumps(obj, sort_keys=True, separators=(",", ":"), default=_json_default)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    return repr(o)
+
+
+def profile_fingerprint(profile) -> str:
+    """SHA-256 of a profile's samples and metadata: two characterisations with this hash are the same test."""
+    h = hashlib.sha256()
+    for name in ("time_s", "current_a", "voltage_v", "temperature_c", "soc_ref"):
+        arr = getattr(profile, name)
+        h.update(name.encode())
+        if arr is not None:
+            arr = np.ascontiguousarray(arr, dtype=np.float64)
+            h.update(str(arr.shape).encode())
+            h.update(arr.tobytes())
+    meta = profile.meta
+    h.update(json.dumps([meta.capacity_ah, meta.n_series, meta.chemistry], default=str).encode())
+    return h.hexdigest()
+
+
+def parse_names(text: str | None, known: list[str], kind: str, default) -> tuple[str, ...]:
+    """``"a,b"`` -> ``("a", "b")`` checked against ``known``; ``None`` -> ``default``. Unknown -> ConfigError."""
+    if text is None:
+        names = tuple(default)
+    else:
+        names = tuple(n.strip() for n in str(text).split(",") if n.strip())
+        if not names:
+            raise ConfigError(f"--{kind}s is empty")
+    for n in names:
+        if n not in known:
+            raise ConfigError(f"unknown {kind} '{n}'; known: {', '.join(known)}")
+    if len(set(names)) != len(names):
+        dup = next(n for n in names if names.count(n) > 1)
+        raise ConfigError(f"{kind} '{dup}' is listed twice")
+    return names
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    """What to run. ``seeds`` are the Monte Carlo seeds handed to ``scenario.realize``."""
+
+    models: tuple[str, ...]
+    estimators: tuple[str, ...]
+    scenarios: tuple[str, ...]
+    seeds: tuple[int, ...]
+    fit_mode: str = "paper"
+    #: extra keyword options per estimator name, part of the cell key (e.g. {"pf": {"n_particles": 200}})
+    estimator_options: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        for kind in ("models", "estimators", "scenarios", "seeds"):
+            if not getattr(self, kind):
+                raise ConfigError(f"a study needs at least one of {kind}")
+        if len(set(self.seeds)) != len(self.seeds):
+            raise ConfigError("seeds must be distinct")
+
+    @property
+    def n_cells(self) -> int:
+        return len(self.models) * len(self.estimators) * len(self.scenarios)
+
+    def to_dict(self) -> dict:
+        return {
+            "models": list(self.models),
+            "estimators": list(self.estimators),
+            "scenarios": list(self.scenarios),
+            "seeds": list(self.seeds),
+            "fit_mode": self.fit_mode,
+            "estimator_options": {k: dict(v) for k, v in self.estimator_options.items()},
+        }
+
+
+def fit_config(model: str, char_hash: str, fit_mode: str, version: str) -> dict:
+    """The configuration that determines a fit (its key is the hash of this)."""
+    return {"kind": "fit", "schema": STORE_SCHEMA, "version": version, "model": model, "mode": fit_mode,
+            "characterisation": char_hash}
+
+
+def cell_config(model: str, estimator: str, scenario: str, scenario_fp: str, seeds, fit_key: str,
+                options: dict, version: str) -> dict:
+    """The configuration that determines a cell (its key is the hash of this)."""
+    return {"kind": "cell", "schema": STORE_SCHEMA, "version": version, "model": model, "estimator": estimator,
+            "scenario": scenario, "scenario_fingerprint": scenario_fp, "seeds": [int(s) for s in seeds],
+            "fit": fit_key, "estimator_options": dict(options)}
+
+
+def seed_from_key(key: str) -> int:
+    """A 32-bit seed for the estimator's own random stream (the particle filter), derived from the cell key."""
+    return int(key[:8], 16)

@@ -1,0 +1,184 @@
+"""Run a study into a store: fit each model once per characterisation, then every cell, each saved the moment it ends.
+
+Order of work: for every scenario the runner builds its characterisation test and fingerprints it; every (model,
+characterisation) pair not yet in the store becomes a fit task; as each fit lands (or is found in the store) the cells
+that need it are submitted. Finished cells are never recomputed: a cell whose key is in the store is reused as is.
+On an interrupt the runner stops the workers, records what this invocation computed, and re-raises.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import re
+import sys
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+
+from .. import __version__
+from .backends import make_backend
+from .cell import LEADERBOARD_COLUMNS, Toolkit, _scenario, compute_cell, compute_fit
+from .grid import StudyConfig, cell_config, fit_config, profile_fingerprint, seed_from_key, stable_hash
+from .store import Store
+
+
+@dataclass
+class StudyResult:
+    """The finished study: cell records in grid order (scenario, model, estimator) and the fits they used."""
+
+    config: StudyConfig
+    cells: list[dict]
+    fits: dict = field(default_factory=dict)  # (scenario, model) -> fit record
+    computed: list[str] = field(default_factory=list)
+    reused: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+    backend: str = "serial"
+    jobs: int = 1
+
+    def frame(self):
+        """The leaderboard as a DataFrame with exactly the DESIGN.md columns (empty metrics are None)."""
+        import pandas as pd
+
+        rows = [{c: rec["row"].get(c) for c in LEADERBOARD_COLUMNS} for rec in self.cells]
+        return pd.DataFrame(rows, columns=list(LEADERBOARD_COLUMNS))
+
+
+def scenario_fingerprint(scenario, name: str) -> str:
+    """A stable description of a scenario for the cell key: its ``to_dict()`` or dataclass fields, else its name."""
+    desc = None
+    to_dict = getattr(scenario, "to_dict", None)
+    if callable(to_dict):
+        desc = to_dict()
+    elif dataclasses.is_dataclass(scenario):
+        desc = {f.name: getattr(scenario, f.name) for f in dataclasses.fields(scenario)}
+    text = json.dumps({"name": name, "desc": desc}, sort_keys=True, default=repr)
+    text = re.sub(r" at 0x[0-9a-fA-F]+", "", text)  # object addresses change from run to run
+    return stable_hash(text)
+
+
+def _progress(total: int, enabled: bool | None):
+    from tqdm.auto import tqdm
+
+    if enabled is None:
+        enabled = sys.stderr.isatty()
+    return tqdm(total=total, desc="leaderboard", unit="task", disable=not enabled, leave=False, file=sys.stderr)
+
+
+def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", jobs: int | None = None,
+              scheduler: str | None = None, toolkit: Toolkit | None = None, progress: bool | None = None,
+              log=None) -> StudyResult:
+    """Run (or resume) ``config`` into ``store``; see the module docstring. ``log(msg)`` receives progress lines."""
+    t_start = time.perf_counter()
+    toolkit = toolkit or Toolkit()
+    store = store if isinstance(store, Store) else Store(store)
+    say = log or (lambda msg: None)
+    run_id = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ") + f"-{os.getpid()}"
+    store.write_config({**config.to_dict(), "version": __version__, "run_id": run_id})
+
+    # ---- the grid: characterisations, fit keys, cell keys
+    char_profiles: dict[str, object] = {}  # fit key -> characterisation profile
+    fit_cfg: dict[str, dict] = {}  # fit key -> its configuration
+    fit_of: dict[tuple, str] = {}  # (scenario, model) -> fit key
+    cells: list[tuple] = []  # (cell key, job)
+    for scen_name in config.scenarios:
+        scen = _scenario(toolkit, scen_name)
+        char = scen.characterisation()
+        char_hash = profile_fingerprint(char)
+        scen_fp = scenario_fingerprint(scen, scen_name)
+        for model in config.models:
+            fcfg = fit_config(model, char_hash, config.fit_mode, __version__)
+            fkey = stable_hash(fcfg)
+            fit_cfg[fkey] = fcfg
+            fit_of[(scen_name, model)] = fkey
+            char_profiles.setdefault(fkey, char)
+            for est in config.estimators:
+                opts = dict(config.estimator_options.get(est, {}))
+                ckey = stable_hash(cell_config(model, est, scen_name, scen_fp, config.seeds, fkey, opts, __version__))
+                job = {"model": model, "estimator": est, "scenario": scen_name, "seeds": list(config.seeds),
+                       "options": opts, "seed": seed_from_key(ckey), "fit_key": fkey}
+                cells.append((ckey, job))
+
+    records: dict[str, dict] = {}
+    reused: list[str] = []
+    todo: list[tuple] = []
+    for ckey, job in cells:
+        rec = store.get_cell(ckey)
+        if rec is not None:
+            records[ckey] = rec
+            reused.append(ckey)
+        else:
+            todo.append((ckey, job))
+
+    fits: dict[str, dict] = {}
+    need_fits = {job["fit_key"] for _, job in todo}
+    for fkey in list(need_fits) + [k for k in set(fit_of.values()) if k not in need_fits]:
+        rec = store.get_fit(fkey)
+        if rec is not None:
+            fits[fkey] = rec
+    fit_tasks = [k for k in dict.fromkeys(job["fit_key"] for _, job in todo) if k not in fits]
+    say(f"{len(cells)} cells: {len(reused)} in the store, {len(todo)} to run; {len(fit_tasks)} fits to compute")
+
+    computed: list[str] = []
+    waiting: dict[str, list] = {}  # fit key -> cells waiting for it
+    for ckey, job in todo:
+        waiting.setdefault(job["fit_key"], []).append((ckey, job))
+
+    bk = make_backend(backend, jobs, scheduler) if todo else None
+    bar = _progress(len(todo) + len(fit_tasks), progress) if todo else None
+    pending: dict = {}
+
+    def submit_cells(fkey):
+        for ckey, job in waiting.pop(fkey, []):
+            task = {**job, "fit": fits[fkey]}
+            pending[bk.submit(compute_cell, toolkit, task)] = ("cell", ckey, job)
+
+    def write_log(interrupted: bool):
+        store.write_run_log(run_id, {"run_id": run_id, "started": run_id, "interrupted": interrupted,
+                                     "backend": backend, "jobs": None if bk is None else bk.jobs,
+                                     "computed": computed, "reused": reused,
+                                     "seconds": time.perf_counter() - t_start})
+
+    try:
+        if bk is not None:
+            for fkey in fit_tasks:
+                model = fit_cfg[fkey]["model"]
+                pending[bk.submit(compute_fit, toolkit, model, char_profiles[fkey], config.fit_mode)] = \
+                    ("fit", fkey, model)
+            for fkey in list(waiting):
+                if fkey in fits:
+                    submit_cells(fkey)
+            while pending:
+                for handle in bk.wait(pending):
+                    kind, key, info = pending.pop(handle)
+                    result = bk.result(handle)
+                    if kind == "fit":
+                        fits[key] = store.put_fit(key, {**result, "config": fit_cfg[key]})
+                        if result.get("error"):
+                            say(f"fit of {info} failed: {result['error']}")
+                        submit_cells(key)
+                    else:
+                        records[key] = store.put_cell(key, {**result, "config": {**info, "seeds": list(config.seeds)},
+                                                            "run_id": run_id,
+                                                            "finished": datetime.now(timezone.utc).isoformat()})
+                        computed.append(key)
+                    bar.update(1)
+    except BaseException:
+        if bk is not None:
+            bk.close(cancel=True)
+        if bar is not None:
+            bar.close()
+        write_log(interrupted=True)
+        raise
+    if bk is not None:
+        bk.close()
+    if bar is not None:
+        bar.close()
+    write_log(interrupted=False)
+
+    fits_by_cell = {sm: fits.get(k) for sm, k in fit_of.items()}
+    return StudyResult(config=config, cells=[records[k] for k, _ in cells], fits=fits_by_cell, computed=computed,
+                       reused=reused, seconds=time.perf_counter() - t_start, backend=backend,
+                       jobs=1 if bk is None else bk.jobs)
+
