@@ -18,6 +18,7 @@ FORMATS: dict[str, str] = {
     "panasonic-mat": "socbench.datasets.panasonic:load_panasonic",
     "calce-csv": "socbench.datasets.calce:load_calce",
     "nissan-leaf": "socbench.datasets.nissan_leaf:load_nissan_leaf",
+    "dji-log": "socbench.datasets.dji:load_dji",
 }
 
 

@@ -1,0 +1,270 @@
+"""A scenario: a load (synthetic mission, replayed flight or HPPC), a truth cell, a lab schedule and a sensor model.
+
+``Scenario.realize(seeds)`` runs the truth once (it is the same cell and the same mission for every run; the result
+is cached) and measures it with the sensors once per seed, batched: a :class:`~socbench.profile.Profile` with
+``current_a, voltage_v, temperature_c`` of shape ``(R, T)``, ``soc_ref`` the true SOC ``(R, T)`` and
+``meta.capacity_ah`` the *declared* capacity. ``characterisation(seed)`` is the HPPC test of the same truth cell,
+measured by the same sensors without their timed faults (a lab test, at the HPPC ambient temperature).
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass, field, replace
+from functools import lru_cache
+
+import numpy as np
+
+from .. import loads
+from ..errors import ConfigError
+from ..estimators.noise import SensorNoise
+from ..profile import Profile, ProfileMeta
+from .config import require
+from .mission import Mission, Vehicle, fly
+from .schedule import Record, Schedule, prepare, rest, run_current
+from .sensors import SensorSpec, apply_channel, initial_soc_guess, jitter_offsets
+from .truth import TEMP, TruthCell, TruthParams, Z
+
+#: step of the truth simulation of everything the sensors record [s]
+TRUTH_DT = 1.0
+KINDS = ("mission", "replay", "hppc")
+#: smallest white-noise SDs handed to the estimators (an ideal sensor still needs R > 0)
+MIN_VOLTAGE_SD = 1e-3
+MIN_CURRENT_SD = 1e-3
+
+
+@dataclass(frozen=True)
+class ReplaySpec:
+    """Which flight current a ``replay`` scenario plays: the shipped template or selected real segments."""
+
+    source: str = "template"  # "template" | "data" ($SOCBENCH_DATA_DIR/uav_dji_m100)
+    segments: tuple = ()  # for "data": "log_id#segment" keys, played back to back
+    reserve_soc: float = 0.0
+    max_duration_s: float = 4 * 3600.0
+
+    def __post_init__(self):
+        require(self.source in ("template", "data"), "source", f"must be 'template' or 'data', got {self.source!r}")
+        require(self.source != "data" or len(self.segments) > 0, "segments", "source 'data' needs segment keys")
+        require(0 <= self.reserve_soc < 1, "reserve_soc", f"must be in [0, 1), got {self.reserve_soc}")
+        require(self.max_duration_s > 0, "max_duration_s", "must be > 0")
+
+
+@dataclass(frozen=True)
+class HppcSpec:
+    """The characterisation test (socbench.loads.hppc at 1 s): 1 C pulses, 10 % SOC steps, rests."""
+
+    c_rate: float = 1.0
+    pulse_s: float = 10.0
+    rest_pulse_s: float = 30.0
+    charge_ratio: float = 0.75
+    rest_s: float = 540.0
+    ambient_c: float = 25.0
+
+    def __post_init__(self):
+        for name in ("c_rate", "pulse_s", "rest_pulse_s", "rest_s"):
+            require(getattr(self, name) > 0, name, f"must be > 0, got {getattr(self, name)}")
+        require(0 <= self.charge_ratio <= 1, "charge_ratio", f"must be in [0, 1], got {self.charge_ratio}")
+        require(-60 <= self.ambient_c <= 80, "ambient_c", f"must be in [-60, 80] °C, got {self.ambient_c}")
+
+
+@dataclass(frozen=True)
+class ScenarioSpec:
+    name: str
+    description: str = ""
+    kind: str = "mission"
+    truth: TruthParams = field(default_factory=TruthParams)
+    schedule: Schedule = field(default_factory=Schedule)
+    mission: Mission = field(default_factory=Mission)
+    vehicle: Vehicle = field(default_factory=Vehicle)
+    replay: ReplaySpec = field(default_factory=ReplaySpec)
+    hppc: HppcSpec = field(default_factory=HppcSpec)
+    sensors: SensorSpec = field(default_factory=SensorSpec)
+    file: str = ""
+
+    def __post_init__(self):
+        require(self.kind in KINDS, "kind", f"must be one of {', '.join(KINDS)}, got {self.kind!r}")
+        ratio = self.sensors.dt / TRUTH_DT
+        require(abs(ratio - round(ratio)) < 1e-9 and ratio >= 1, "sensors.dt",
+                f"must be a multiple of the truth step {TRUTH_DT:g} s, got {self.sensors.dt}")
+
+
+# ------------------------------------------------------------------------------------------------ truth (cached)
+@lru_cache(maxsize=32)
+def _prepared(truth: TruthParams, schedule: Schedule):
+    x, _ = prepare(TruthCell(truth), schedule)
+    return x
+
+
+@lru_cache(maxsize=32)
+def _load_record(kind: str, truth: TruthParams, schedule: Schedule, mission: Mission, vehicle: Vehicle,
+                 replay: ReplaySpec) -> Record:
+    """True signals of the recorded part: the end of the rest, the load until its stop, the rest after."""
+    cell = TruthCell(truth)
+    x = _prepared(truth, schedule)
+    amb = schedule.ambient_c
+    parts = []
+    if schedule.rest_record_s > 0:
+        parts.append(rest(cell, x, schedule.rest_record_s, TRUTH_DT, amb))
+        x = parts[-1].last_state
+    if kind == "mission":
+        load = fly(cell, x, mission, vehicle, TRUTH_DT, amb)
+    else:
+        from .replay import data_pattern, template_pattern
+
+        rates, phases = (template_pattern(TRUTH_DT) if replay.source == "template"
+                         else data_pattern(list(replay.segments), TRUTH_DT))
+        reps = max(int(np.ceil(replay.max_duration_s / (rates.size * TRUTH_DT))), 1)
+        period = rates.size * TRUTH_DT
+        load = run_current(cell, x, np.tile(rates, reps)[: int(replay.max_duration_s / TRUTH_DT)] * truth.capacity_ah,
+                           TRUTH_DT, amb, stop_uv=True, reserve_soc=replay.reserve_soc,
+                           phases=[(n, t + r * period) for r in range(reps) for n, t in phases])
+        load.phases = [p for p in load.phases if p[1] <= load.time[-1]]
+    parts.append(load)
+    if schedule.rest_after_s > 0:
+        after = rest(cell, load.last_state, schedule.rest_after_s, TRUTH_DT, amb)
+        after.stop_reason = load.stop_reason
+        parts.append(after)
+    return Record.concat(parts)
+
+
+@lru_cache(maxsize=8)
+def _hppc_record(truth: TruthParams, hppc: HppcSpec) -> Record:
+    """The HPPC of the truth cell from full (z = 1, on the charge branch after CC-CV, relaxed) at 1 s."""
+    cell = TruthCell(truth)
+    prof = loads.hppc(truth.capacity_ah, c_rate=hppc.c_rate, dt=TRUTH_DT, pulse_s=hppc.pulse_s,
+                      rest_pulse_s=hppc.rest_pulse_s, charge_ratio=hppc.charge_ratio, rest_s=hppc.rest_s)
+    x = cell.initial_state(1.0, hppc.ambient_c, hyst=1.0, batch=1)
+    rec = run_current(cell, x, prof.current_a, TRUTH_DT, hppc.ambient_c, phases=[("hppc", 0.0)])
+    rec.stop_reason = "end"
+    return rec
+
+
+def _key(name: str) -> int:
+    return zlib.crc32(name.encode("utf-8"))
+
+
+def _seeds(seeds) -> list[int]:
+    if isinstance(seeds, (int, np.integer)):
+        seeds = [int(seeds)]
+    seeds = [int(s) for s in seeds]
+    if not seeds:
+        raise ConfigError("realize() needs at least one seed")
+    if any(s < 0 for s in seeds):
+        raise ConfigError(f"seeds must be non-negative integers, got {seeds}")
+    return seeds
+
+
+class Scenario:
+    """One named scenario (see the module docstring). Build it with :func:`socbench.scenarios.load_scenario`."""
+
+    def __init__(self, spec: ScenarioSpec):
+        self.spec = spec
+
+    # ------------------------------------------------------------------ description
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    @property
+    def description(self) -> str:
+        return self.spec.description
+
+    @property
+    def kind(self) -> str:
+        return self.spec.kind
+
+    @property
+    def truth_cell(self) -> TruthCell:
+        return TruthCell(self.spec.truth)
+
+    @property
+    def true_capacity_ah(self) -> float:
+        return self.spec.truth.capacity_ah
+
+    @property
+    def declared_capacity_ah(self) -> float:
+        return self.spec.truth.capacity_ah * (1.0 + self.spec.sensors.capacity_mismatch)
+
+    def __repr__(self) -> str:
+        return f"Scenario({self.name!r}, kind={self.kind!r})"
+
+    # ------------------------------------------------------------------ truth
+    def truth_record(self) -> Record:
+        """True signals at 1 s of what ``realize`` measures (cached across scenarios with the same truth and load)."""
+        s = self.spec
+        if s.kind == "hppc":
+            return _hppc_record(s.truth, s.hppc)
+        return _load_record(s.kind, s.truth, s.schedule, s.mission, s.vehicle, s.replay)
+
+    # ------------------------------------------------------------------ measurement
+    def _measure(self, rec: Record, sensors: SensorSpec, seeds: list, key: int, name: str) -> Profile:
+        step = int(round(sensors.dt / TRUTH_DT))
+        idx = np.arange(0, rec.time.size, step)
+        t = rec.time[idx]
+        R = len(seeds)
+        delta = jitter_offsets(t, sensors, seeds, key)
+        f = np.clip((t[None, :] + delta - rec.time[0]) / TRUTH_DT, 0.0, rec.time.size - 1.0)
+        k0 = np.floor(f).astype(int)
+        k1 = np.minimum(k0 + 1, rec.time.size - 1)
+        w = f - k0
+        v_true = rec.voltage[0]
+        temp_true = rec.states[0, :, TEMP]
+        i_true = rec.current[0]
+
+        def lin(a):
+            return a[k0] * (1.0 - w) + a[k1] * w
+
+        truth = {"current_a": i_true[k0], "voltage_v": lin(v_true), "temperature_c": lin(temp_true)}
+        measured, flags = {}, {}
+        for j, (col, channel) in enumerate((("current_a", sensors.current), ("voltage_v", sensors.voltage),
+                                            ("temperature_c", sensors.temperature))):
+            measured[col], flags[col] = apply_channel(truth[col], t, channel, seeds, key, j)
+        soc = np.clip(rec.states[0, idx, Z], 0.0, 1.0)
+        extra = {
+            "scenario": self.name, "kind": self.kind, "seeds": list(seeds), "true_capacity_ah": self.true_capacity_ah,
+            "stop_reason": rec.stop_reason, "phases": list(rec.phases),
+            "truth": {"current_a": i_true[idx], "voltage_v": v_true[idx], "temperature_c": temp_true[idx]},
+            "dropouts": {c: m for c, m in flags.items() if m.any()},
+        }
+        meta = ProfileMeta(name=name, source=f"scenario:{self.name}" + (f" ({self.spec.file})" if self.spec.file
+                                                                         else ""),
+                           capacity_ah=self.declared_capacity_ah, n_series=self.spec.truth.n_series,
+                           chemistry="LiPo (truth: ESC-like 2RC + hysteresis + thermal + Butler-Volmer)", extra=extra)
+        return Profile(t - t[0], measured["current_a"], measured["voltage_v"], measured["temperature_c"],
+                       np.repeat(soc[None, :], R, axis=0), meta=meta)
+
+    def realize(self, seeds) -> Profile:
+        """The measured batch for ``seeds`` (an int or a sequence of ints): arrays ``(R, T)``, true SOC attached."""
+        seeds = _seeds(seeds)
+        return self._measure(self.truth_record(), self.spec.sensors, seeds, _key(self.name), self.name)
+
+    def characterisation(self, seed: int = 0) -> Profile:
+        """The HPPC test of the same truth cell (1 s, at the HPPC ambient), measured by the same sensors without
+        their timed faults; a plain (one-run) profile."""
+        rec = _hppc_record(self.spec.truth, self.spec.hppc)
+        prof = self._measure(rec, self.spec.sensors.without_faults(), _seeds(seed), _key(self.name + "/hppc"),
+                             f"{self.name}/hppc")
+        return prof.run(0)
+
+    def initial_soc(self, seeds) -> np.ndarray:
+        """SOC handed to the estimators ``(R,)``: the true SOC at the first sample plus the initial-SOC error."""
+        z0 = float(self.truth_record().states[0, 0, Z])
+        return initial_soc_guess(z0, self.spec.sensors, _seeds(seeds), _key(self.name))
+
+    def sensor_noise(self) -> SensorNoise:
+        """White-noise SDs (noise and quantisation) of the voltage and current readings, for the filter covariances.
+
+        ``current_bias_sd`` is the sensor's steady offset (its datasheet figure); timed faults are not announced.
+        """
+        s = self.spec.sensors
+        return SensorNoise(voltage_sd=max(s.voltage.white_sd, MIN_VOLTAGE_SD),
+                           current_sd=max(s.current.white_sd, MIN_CURRENT_SD), dt=s.dt,
+                           current_bias_sd=abs(s.current.offset))
+
+    def summary(self) -> str:
+        """One line for listings."""
+        return f"{self.name:<16} {self.kind:<8} {self.description}"
+
+    def with_sensors(self, **changes) -> Scenario:
+        """The same scenario with some sensor fields replaced (a convenience for studies and tests)."""
+        return Scenario(replace(self.spec, sensors=replace(self.spec.sensors, **changes)))
