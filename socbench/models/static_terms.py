@@ -101,7 +101,7 @@ class Unnewehr(StaticTermModel):
     name = "unnewehr"
     title = "Unnewehr universal"
     paper_number = 8
-    source = "Unnewehr & Nasar 1982 as given by Plett 2004 (y = E0 − R i − K z), E0 → U_oc(z)"
+    source = "Unnewehr universal model as given by Plett 2004 (y = E0 − R i − K z), E0 → U_oc(z)"
     param_names = ("K", "R0")
     param_units = {"K": "V", "R0": "Ω"}
     corrections = "K in V (printed Ω)"
