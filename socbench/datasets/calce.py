@@ -147,7 +147,21 @@ def load_calce(path) -> Profile:
 
 
 def ocv_branches(profile: Profile, current_a: float = OCV_CURRENT_A, tol: float = 0.3):
-    """Boolean masks ``(discharge, charge)`` of the low-current OCV samples, from the current sign (+ = discharge)."""
+    """Boolean masks ``(discharge, charge)`` of the low-current OCV test's two branches.
+
+    Each branch is the longest unbroken run of samples at ≈ ``current_a`` with one sign (+ = discharge, − = charge):
+    the CV top-off also passes through 0.05 A on its taper, briefly, and is not a branch.
+    """
     i = profile.current_a
     near = np.abs(np.abs(i) - current_a) <= tol * current_a
-    return near & (i > 0), near & (i < 0)
+
+    def longest(mask):
+        edges = np.diff(np.r_[0, mask.astype(np.int8), 0])
+        starts, stops = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+        out = np.zeros_like(mask)
+        if starts.size:
+            k = int(np.argmax(stops - starts))
+            out[starts[k]:stops[k]] = True
+        return out
+
+    return longest(near & (i > 0)), longest(near & (i < 0))

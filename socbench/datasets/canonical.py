@@ -2,11 +2,22 @@
 
 An optional JSON sidecar with the same stem (``run.csv`` + ``run.json``) holds the metadata
 (``name, capacity_ah, n_series, chemistry, source``).
+
+The loader trusts nothing: besides what :class:`Profile` checks (NaN/inf, time order, duplicate stamps, SOC range)
+it refuses, with a :class:`DataError` naming the file, the column and the first bad row,
+
+* columns labelled in other units (``current_ma``, ``voltage_mv``, ``soc_pct``...);
+* currents no cell carries: beyond :data:`MAX_C_RATE` × the declared capacity (or :data:`MAX_CURRENT_NO_CAPACITY`
+  without one) — milliamps written as amps;
+* voltages outside :data:`CELL_VOLTAGE_RANGE` per cell in series: millivolts, or a current column in its place;
+* a flipped current sign, seen two independent ways: the reference SOC moving against the counted charge, or the
+  voltage jumping *up* when the discharge current steps up (the ohmic drop has one sign for every cell).
 """
 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +28,23 @@ from ..profile import Profile, ProfileMeta
 
 REQUIRED = ("time_s", "current_a", "voltage_v")
 OPTIONAL = ("temperature_c", "soc_ref")
+#: column names that say the values are in other units than the canonical ones
+WRONG_UNIT_NAMES = {
+    "current_ma": "current in mA: convert to A and name it current_a",
+    "voltage_mv": "voltage in mV: convert to V and name it voltage_v",
+    "soc_pct": "SOC in %: divide by 100 and name it soc_ref",
+    "soc_percent": "SOC in %: divide by 100 and name it soc_ref",
+    "soc_ref_pct": "SOC in %: divide by 100 and name it soc_ref",
+    "time_ms": "time in ms: convert to s and name it time_s",
+    "temperature_k": "temperature in K: convert to °C and name it temperature_c",
+}
+MAX_C_RATE = 30.0
+MAX_CURRENT_NO_CAPACITY = 1000.0  # A per string, when no capacity is declared
+CELL_VOLTAGE_RANGE = (1.0, 5.0)
+TEMPERATURE_RANGE = (-60.0, 150.0)
+#: sign checks need this much evidence before they speak
+MIN_SOC_SWING = 0.02
+MIN_STEPS = 5
 
 
 def sniff(path) -> bool:
@@ -25,10 +53,13 @@ def sniff(path) -> bool:
         return True
     if path.suffix.lower() != ".csv":
         return False
-    with open(path, encoding="utf-8", errors="replace") as fh:
-        header = fh.readline()
-    cols = {c.strip() for c in header.split(",")}
-    return {"time_s", "current_a"} <= cols
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            header = fh.readline()
+    except OSError:
+        return False
+    cols = {c.strip().lower() for c in header.split(",")}
+    return "time_s" in cols and ({"current_a", "current_ma"} & cols) != set() and "current_A" not in header
 
 
 def _read_meta(path: Path) -> dict:
@@ -36,47 +67,150 @@ def _read_meta(path: Path) -> dict:
     if not side.exists():
         return {}
     try:
-        d = json.loads(side.read_text())
-    except json.JSONDecodeError as exc:
-        raise DataError(f"sidecar is not valid JSON ({exc.msg})", file=str(side)) from None
+        d = json.loads(side.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataError(f"sidecar is not valid JSON ({getattr(exc, 'msg', exc)})", file=str(side)) from None
     if not isinstance(d, dict):
         raise DataError("sidecar must be a JSON object", file=str(side))
     return d
 
 
-def load_canonical(path) -> Profile:
-    path = Path(path)
+def _meta(path: Path) -> ProfileMeta:
+    meta = _read_meta(path)
+    side = str(path.with_suffix(".json"))
+    cap = meta.get("capacity_ah")
+    if cap is not None:
+        try:
+            cap = float(cap)
+        except (TypeError, ValueError):
+            raise DataError(f"capacity_ah must be a number, got {cap!r}", file=side) from None
+        if not (math.isfinite(cap) and cap > 0):
+            raise DataError(f"capacity_ah must be positive, got {cap!r}", file=side)
+    n_series = meta.get("n_series", 1)
+    if isinstance(n_series, bool) or not isinstance(n_series, int) or n_series < 1:
+        raise DataError(f"n_series must be a positive integer, got {n_series!r}", file=side)
+    return ProfileMeta(
+        name=str(meta.get("name", path.stem)),
+        source=str(path),
+        capacity_ah=cap,
+        n_series=n_series,
+        chemistry=str(meta.get("chemistry", "")),
+        extra={k: v for k, v in meta.items() if k not in ("name", "source", "capacity_ah", "n_series", "chemistry")},
+    )
+
+
+def _read_frame(path: Path) -> pd.DataFrame:
+    src = str(path)
     try:
+        if path.stat().st_size == 0:
+            raise DataError("empty file", file=src)
         if path.suffix.lower() == ".parquet":
             df = pd.read_parquet(path)
         else:
-            df = pd.read_csv(path)
-    except (pd.errors.EmptyDataError, pd.errors.ParserError, UnicodeDecodeError) as exc:
-        raise DataError(f"cannot parse: {str(exc).splitlines()[0]}", file=str(path)) from None
+            # everything as text first: numbers are parsed column by column below, so a stray word is reported
+            df = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
+    except DataError:
+        raise
+    except Exception as exc:  # pandas/pyarrow raise many types on junk input; at this boundary all mean "unreadable"
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DataError(f"cannot parse: {first}", file=src) from None
     df.columns = [str(c).strip() for c in df.columns]
+    return df
+
+
+def _numeric(df: pd.DataFrame, c: str, src: str) -> np.ndarray:
+    col = df[c]
+    if isinstance(col, pd.DataFrame):
+        raise DataError("column appears more than once", file=src, column=c)
+    values = pd.to_numeric(col, errors="coerce").to_numpy(dtype=float, na_value=np.nan)
+    bad = ~np.isfinite(values)
+    if bad.any():
+        row = int(np.argmax(bad)) + 1
+        raise DataError(f"not a finite number ({col.iloc[row - 1]!r})", file=src, column=c, row=row)
+    return values
+
+
+def _check_units(cols: dict, meta: ProfileMeta, src: str) -> None:
+    i = cols["current_a"]
+    limit = MAX_C_RATE * meta.capacity_ah if meta.capacity_ah else MAX_CURRENT_NO_CAPACITY
+    bad = np.abs(i) > limit
+    if bad.any():
+        k = int(np.argmax(bad))
+        basis = f"{MAX_C_RATE:g}C of {meta.capacity_ah:g} Ah" if meta.capacity_ah else "any plausible cell current"
+        raise DataError(f"current {i[k]:g} A is beyond {basis} (milliamps written as amps?)", file=src,
+                        column="current_a", row=k + 1)
+    v = cols["voltage_v"] / meta.n_series
+    lo, hi = CELL_VOLTAGE_RANGE
+    bad = (v < lo) | (v > hi)
+    if bad.any():
+        k = int(np.argmax(bad))
+        if v[k] > hi:
+            hint = "millivolts written as volts?" if v[k] > 100 * lo else "wrong n_series in the sidecar?"
+        else:
+            hint = "current and voltage columns swapped?" if np.any(v < 0) or np.ptp(v) > 1.0 else "not a cell voltage"
+        raise DataError(f"{v[k]:g} V per cell is outside {lo:g}-{hi:g} V ({hint})", file=src, column="voltage_v",
+                        row=k + 1)
+    if "temperature_c" in cols:
+        t = cols["temperature_c"]
+        lo, hi = TEMPERATURE_RANGE
+        bad = (t < lo) | (t > hi)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise DataError(f"temperature {t[k]:g} °C outside {lo:g}..{hi:g} °C (kelvin or °F?)", file=src,
+                            column="temperature_c", row=k + 1)
+    if "soc_ref" in cols:
+        s = cols["soc_ref"]
+        bad = (s > 1.0 + 1e-6) | (s < -1e-6)
+        if bad.any():
+            k = int(np.argmax(bad))
+            hint = " (percent? divide by 100)" if 1.0 < s.max() <= 100.0 and s.min() >= 0 else ""
+            raise DataError(f"SOC {s[k]:g} is not a fraction in [0, 1]{hint}", file=src, column="soc_ref", row=k + 1)
+
+
+def _check_sign(cols: dict, meta: ProfileMeta, src: str) -> None:
+    t, i, v = cols["time_s"], cols["current_a"], cols["voltage_v"]
+    if t.size < 3 or np.any(np.diff(t) <= 0):
+        return  # the Profile reports the time problem itself
+    if "soc_ref" in cols:
+        s = cols["soc_ref"]
+        q = np.r_[0.0, np.cumsum(-i[:-1] * np.diff(t))] / 3600.0  # charge in [Ah]
+        ds = s - s[0]
+        if np.ptp(s) >= MIN_SOC_SWING and np.dot(q, q) > 0:
+            slope = float(np.dot(q, ds) / np.dot(q, q))  # ds ≈ q / C, so the slope must be positive
+            if slope < 0:
+                wrong = (np.sign(q) == -np.sign(ds)) & (q != 0) & (np.abs(ds) >= MIN_SOC_SWING / 2)
+                k = int(np.argmax(wrong)) if wrong.any() else 0
+                raise DataError("current sign looks flipped: soc_ref rises while the current says discharge "
+                                "(canonical convention: positive = discharge)", file=src, column="current_a",
+                                row=k + 1)
+    di, dv = np.diff(i), np.diff(v)
+    big = np.abs(di) > 0.2 * max(float(np.max(np.abs(i))), 1e-9)
+    if big.sum() >= MIN_STEPS:
+        agree = np.sign(di[big]) == -np.sign(dv[big])  # more discharge -> lower voltage
+        if agree.mean() < 0.2:
+            k = int(np.nonzero(big)[0][np.argmax(~agree)])
+            raise DataError("current sign looks flipped: the voltage jumps up when the discharge current steps up "
+                            f"at {int((~agree).sum())} of {int(big.sum())} current steps "
+                            "(canonical convention: positive = discharge)", file=src, column="current_a", row=k + 2)
+
+
+def load_canonical(path) -> Profile:
+    path = Path(path)
+    src = str(path)
+    df = _read_frame(path)
+    cols_lower = {c.lower(): c for c in df.columns}
+    for name, why in WRONG_UNIT_NAMES.items():
+        if name in cols_lower:
+            raise DataError(why, file=src, column=cols_lower[name])
     for c in REQUIRED:
         if c not in df.columns:
-            raise DataError("missing column", file=str(path), column=c)
+            raise DataError("missing column", file=src, column=c)
     if len(df) == 0:
-        raise DataError("no data rows", file=str(path))
-    cols = {}
-    for c in REQUIRED + OPTIONAL:
-        if c not in df.columns:
-            continue
-        values = pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float)
-        bad = ~np.isfinite(values)
-        if bad.any():
-            row = int(np.argmax(bad)) + 1
-            raise DataError(f"not a finite number ({df[c].iloc[row - 1]!r})", file=str(path), column=c, row=row)
-        cols[c] = values
-    meta = _read_meta(path)
-    pm = ProfileMeta(
-        name=str(meta.get("name", path.stem)),
-        source=str(path),
-        capacity_ah=float(meta["capacity_ah"]) if meta.get("capacity_ah") is not None else None,
-        n_series=int(meta.get("n_series", 1)),
-        chemistry=str(meta.get("chemistry", "")),
-    )
+        raise DataError("no data rows", file=src)
+    cols = {c: _numeric(df, c, src) for c in REQUIRED + OPTIONAL if c in df.columns}
+    meta = _meta(path)
+    _check_units(cols, meta, src)
+    _check_sign(cols, meta, src)
     return Profile(
-        cols["time_s"], cols["current_a"], cols["voltage_v"], cols.get("temperature_c"), cols.get("soc_ref"), pm
+        cols["time_s"], cols["current_a"], cols["voltage_v"], cols.get("temperature_c"), cols.get("soc_ref"), meta
     )
