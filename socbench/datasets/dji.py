@@ -22,6 +22,7 @@ phases of each. :func:`read_segments` gives the segments one by one (the replay 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -59,6 +60,7 @@ class DjiSegment:
     temperature_c: np.ndarray
     soc_bms: np.ndarray
     modes: list = field(default_factory=list)  # [(t_s, flight mode)] relative to time_s, from the events file
+    raw_n: int = 0  # records as logged, glitches included
 
     @property
     def key(self) -> str:
@@ -141,14 +143,23 @@ def read_segments(path, min_samples: int = 1) -> tuple[list[DjiSegment], dict]:
     """Every battery segment with at least ``min_samples`` logged records, glitches removed, and the glitch counts.
 
     The size rule counts the records as logged (PROVENANCE: 144 segments with ≥ 20 samples), so removing a glitch
-    never drops a segment from the replay."""
+    never drops a segment from the replay. Parsed once per file version (cached on path, size and mtime); treat
+    the returned arrays as read-only."""
     path = _telemetry_path(path)
+    if not path.exists():
+        raise DataError("file not found", file=str(path))
+    st = path.stat()
+    segments, dropped = _read_segments(str(path.resolve()), st.st_size, st.st_mtime_ns)
+    return [s for s in segments if s.raw_n >= min_samples], dict(dropped)
+
+
+@lru_cache(maxsize=4)
+def _read_segments(path: str, size: int, mtime_ns: int) -> tuple[list[DjiSegment], dict]:
+    path = Path(path)
     df, dropped = read_telemetry(path)
     events = _read_events(path)
     segments = []
     for (log_id, seg), g in df.groupby(["log_id", "battery_segment"], sort=False):
-        if df.attrs["raw_counts"].get((log_id, seg), len(g)) < min_samples:
-            continue
         g = g.sort_values("t_s_since_first_battery_record", kind="stable")
         t_abs = g["t_s_since_first_battery_record"].to_numpy()
         t0 = t_abs[0]
@@ -157,7 +168,7 @@ def read_segments(path, min_samples: int = 1) -> tuple[list[DjiSegment], dict]:
             log_id=str(log_id), segment=int(seg), serial=str(g["aircraft_serial"].iloc[0]) if "aircraft_serial" in g
             else "", time_s=t_abs - t0, current_a=g["current_A"].to_numpy(), voltage_v=g["voltage_V"].to_numpy(),
             temperature_c=g["temperature_C"].to_numpy(), soc_bms=g["remain_percent_bms"].to_numpy() / 100.0,
-            modes=modes))
+            modes=modes, raw_n=int(df.attrs["raw_counts"].get((log_id, seg), len(g)))))
     return segments, dropped
 
 

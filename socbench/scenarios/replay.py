@@ -58,6 +58,7 @@ class DjiReplay:
 
     keys: list
     n_records: np.ndarray  # (S,) clean records per segment
+    n_steps: np.ndarray  # (S,) grid samples per segment (first to last record)
     time_s: np.ndarray  # (T,)
     c_rate: np.ndarray  # (S, T) held DJI C-rate
     current_a: np.ndarray  # (S, T) scaled current applied to the truth pack (0 after the end or the UV stop)
@@ -105,7 +106,8 @@ def replay_dataset(path=None, dt: float = 1.0, cell: TruthCell | None = None, ca
         active[:, k] &= ~stopped
         volts[:, k], socs[:, k], applied[:, k] = y, x[:, Z], i
         x = cell.step(x, i, dt, temp0)
-    return DjiReplay([s.key for s in segments], np.array([s.n for s in segments]), np.arange(T) * dt, c_rate,
+    return DjiReplay([s.key for s in segments], np.array([s.n for s in segments]), np.array([h.size for h in held]),
+                     np.arange(T) * dt, c_rate,
                      applied, volts, socs, active, dropped)
 
 
