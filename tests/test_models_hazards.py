@@ -271,10 +271,12 @@ def test_esc_hysteresis_and_sign_memory():
     assert x_small[js] == 1.0
     x_chg = m.f(x, -5.0, 1.0)
     assert x_chg[js] == -1.0 and x_chg[jh] > x[jh]
-    y = m.h(x, 0.0)
     r = m.params
-    expected = paper_ocv()(x[0]) + r["M0"](0) * 1.0 + r["M"](0) * x[jh] - r["R1"](0) * x[1] - r["R2"](0) * x[2]
-    assert y == pytest.approx(expected, abs=1e-12)
+    rest = paper_ocv()(x[0]) + r["M"](0) * x[jh] - r["R1"](0) * x[1] - r["R2"](0) * x[2]
+    assert m.h(x, 0.0) == pytest.approx(rest + r["M0"](0) * 1.0, abs=1e-12)  # held sign
+    # a charge sample flips the instantaneous sign in its own output (simCell.m: s_k from I_k)
+    assert m.h(x, -5.0) == pytest.approx(rest - r["M0"](0) + r["R0"](0) * 5.0, abs=1e-12)
+    assert m.H(x, -5.0)[js] == 0.0 and m.H(x, -0.1)[js] == r["M0"](0)
 
 
 # ------------------------------------------------------------------------------------------ docs/models.md

@@ -6,8 +6,8 @@ hysteresis, ``s`` the instantaneous-hysteresis sign memory (discrete only). ``κ
     z⁺   = z − η(I) κ I                                                  (B1)
     iRj⁺ = a_j iRj + (1 − a_j) I,   a_j = e^{−dt/τj}                     (B4: a low-pass of the current)
     h⁺   = A_h h − (1 − A_h) sgn(I),   A_h = exp(−|η(I) I γ κ|)          (exact ZOH of ḣ = −|ηIγ/3600Q| (h + sgn I))
-    s⁺   = sgn(I) if |I| > Q/100 else s
-    y    = U(z) + M0 s + M h − Σ Rj iRj − R0 I
+    s_k  = sgn(I) if |I| > Q/100 else s          (the same-sample sign, as in simCell.m; s⁺ = s_k)
+    y    = U(z) + M0 s_k + M h − Σ Rj iRj − R0 I
 
 Jacobians (``u = η I γ κ``, so ``A_h = e^{−|u|}``; SOC-dependent parameters add their ``p'`` terms)::
 
@@ -15,7 +15,7 @@ Jacobians (``u = η I γ κ``, so ``A_h = e^{−|u|}``; SOC-dependent parameters
     F[h, 0]   = −A_h sgn(u) η I γ' κ (h + sgn I),   F[h, h] = A_h
     F[s, s]   = 1 if |I| ≤ Q/100 else 0            (s is not differentiable: treat it as an input)
     B = [−ηκ, 1 − a_1, …, 1 − a_n, −A_h sgn(u) η γ κ (h + sgn I), 0]
-    H = [U' + M0' s + M' h − Σ Rj' iRj − R0' I, −R1, …, −Rn, M, M0],   D = −R0
+    H = [U' + M0' s_k + M' h − Σ Rj' iRj − R0' I, −R1, …, −Rn, M, M0 (0 if |I| > Q/100)],   D = −R0
 
 Parameters: ``R0, R1..Rn`` [Ω], ``tau1..taun`` [s], ``M, M0`` [V], ``gamma`` [-]; n is the number of ``R1..Rn`` keys.
 """
@@ -65,6 +65,11 @@ class ESC(Model):
         c = eta(i, self.eta_charge) / (3600.0 * self.capacity_ah)
         return c * i * g, c * i * dg, c * g
 
+    def _sign_memory(self, s, i):
+        """``(moving, s_k)``: ``s_k = sgn(I)`` where ``|I| > Q/100`` (moving), else the held ``s``."""
+        moving = np.abs(i) > self.capacity_ah / 100.0
+        return moving, np.where(moving, np.sign(i), s)
+
     def step(self, x, i, dt, temp=None, jac=False, guards=None):
         x, (i, dt) = self._broadcast(x, i, dt)
         z = x[..., 0]
@@ -90,8 +95,7 @@ class ESC(Model):
         sg = np.sign(i)
         h = x[..., jh]
         xn[..., jh] = ah * h - (1.0 - ah) * sg
-        moving = np.abs(i) > self.capacity_ah / 100.0
-        xn[..., js] = np.where(moving, sg, x[..., js])
+        moving, xn[..., js] = self._sign_memory(x[..., js], i)
         if not jac:
             return xn, None, None
         dah_du = -ah * np.sign(u)
@@ -116,7 +120,8 @@ class ESC(Model):
         x, (i,) = self._broadcast(x, i)
         z = x[..., 0]
         n = self._n
-        h, s = x[..., n + 1], x[..., n + 2]
+        h = x[..., n + 1]
+        moving, s = self._sign_memory(x[..., n + 2], i)
         u, du = self.ocv.value_and_slope(z)
         r0, dr0 = floor_value(*self.p("R0", z), R_FLOOR, self.mode, guards, "R0_floor")
         m, dm = self.p("M", z)
@@ -134,5 +139,5 @@ class ESC(Model):
             return y, None, None
         H[..., 0] = dy_z
         H[..., n + 1] = m
-        H[..., n + 2] = m0
+        H[..., n + 2] = np.where(moving, 0.0, m0)
         return y, H, -r0
