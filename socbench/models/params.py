@@ -8,6 +8,12 @@ Every model parameter is a function of SOC with its derivative (the Jacobians ne
                         as Table 3 prints them)
 * :class:`Lookup`       piecewise linear in SOC between breakpoints, held flat outside (``p' = 0`` there)
 
+Parameter batches (for fitting: one simulation runs many parameter variants at once). ``Constant.value`` may be an
+array of shape ``P``, ``Polynomial.coeffs`` an array ``P + (degree + 1,)`` and ``Lookup.value`` an array ``P + (K,)``
+on shared breakpoints. ``value_and_deriv(z)`` then returns the numpy broadcast of ``P`` and ``z.shape`` (trailing axes
+aligned), so a state batch ``(P,)`` gives row ``p`` the parameter variant ``p``; for a state batch ``(P, R)`` use
+``P = (P, 1)``. Scalar sets behave exactly as without batching.
+
 A parameter file (``PARAMS.json``) is self-contained: model name, capacity, OCV curve, the parameter functions, the
 coulombic efficiency and model options, plus provenance notes::
 
@@ -57,11 +63,17 @@ class SocFunction:
 
 @dataclass(frozen=True)
 class Constant(SocFunction):
+    """``p(z) = value``. ``value`` may be an array of a parameter batch (shape ``P``): the result then has the
+    numpy broadcast of ``P`` and ``z``'s shape (one parameter variant per state row; see the module docstring)."""
+
     value: float
 
     def value_and_deriv(self, z):
         z = np.asarray(z, dtype=float)
-        return np.full(z.shape, self.value), np.zeros(z.shape)
+        if np.ndim(self.value) == 0:
+            return np.full(z.shape, self.value), np.zeros(z.shape)
+        shape = np.broadcast_shapes(z.shape, np.shape(self.value))
+        return np.broadcast_to(np.asarray(self.value, dtype=float), shape).copy(), np.zeros(shape)
 
     def to_dict(self):
         return {"const": float(self.value)}
@@ -78,14 +90,26 @@ class Polynomial(SocFunction):
     coeffs: tuple
 
     def __post_init__(self):
-        object.__setattr__(self, "coeffs", tuple(float(c) for c in self.coeffs))
+        if np.ndim(self.coeffs) > 1:  # a parameter batch: (..., degree + 1), coefficients on the last axis
+            object.__setattr__(self, "coeffs", np.asarray(self.coeffs, dtype=float))
+        else:
+            object.__setattr__(self, "coeffs", tuple(float(c) for c in self.coeffs))
+
+    @property
+    def batched(self) -> bool:
+        return isinstance(self.coeffs, np.ndarray)
 
     def value_and_deriv(self, z):
         z = np.asarray(z, dtype=float)
         zp = np.clip(z, 0.0, 1.0)
-        c = self.coeffs
-        v = np.full(z.shape, c[0])
-        d = np.zeros(z.shape)
+        if self.batched:
+            c = np.moveaxis(self.coeffs, -1, 0)  # (degree + 1, *P): c[j] broadcasts against z
+            shape = np.broadcast_shapes(z.shape, c.shape[1:])
+        else:
+            c = self.coeffs
+            shape = z.shape
+        v = np.full(shape, c[0]) if not self.batched else np.broadcast_to(c[0], shape).copy()
+        d = np.zeros(shape)
         for cj in c[1:]:  # Horner for the value and the derivative together
             d = d * zp + v
             v = v * zp + cj
@@ -93,6 +117,8 @@ class Polynomial(SocFunction):
         return v, d
 
     def to_dict(self):
+        if self.batched:
+            raise ConfigError("a batched polynomial (parameter batch) cannot be saved")
         return {"poly": list(self.coeffs)}
 
 
@@ -106,20 +132,36 @@ class Lookup(SocFunction):
     def __post_init__(self):
         z = np.asarray(self.soc, dtype=float)
         v = np.asarray(self.value, dtype=float)
-        if z.ndim != 1 or z.size != v.size or z.size < 2 or np.any(np.diff(z) <= 0):
+        if z.ndim != 1 or v.shape[-1:] != z.shape or z.size < 2 or np.any(np.diff(z) <= 0):
             raise ConfigError("a lookup parameter needs >= 2 strictly increasing SOC breakpoints and as many values")
         object.__setattr__(self, "soc", z)
-        object.__setattr__(self, "value", v)
-        object.__setattr__(self, "_slopes", np.diff(v) / np.diff(z))
+        object.__setattr__(self, "value", v)  # (K,) or a parameter batch (..., K) on shared breakpoints
+        object.__setattr__(self, "_slopes", np.diff(v, axis=-1) / np.diff(z))
+
+    @property
+    def batched(self) -> bool:
+        return self.value.ndim > 1
 
     def value_and_deriv(self, z):
         z = np.asarray(z, dtype=float)
-        v = np.interp(z, self.soc, self.value)
         j = np.clip(np.searchsorted(self.soc, z, side="right") - 1, 0, self.soc.size - 2)
-        d = np.where((z < self.soc[0]) | (z > self.soc[-1]), 0.0, self._slopes[j])
+        outside = (z < self.soc[0]) | (z > self.soc[-1])
+        if not self.batched:
+            v = np.interp(z, self.soc, self.value)
+            d = np.where(outside, 0.0, self._slopes[j])
+            return v, d
+        shape = np.broadcast_shapes(z.shape, self.value.shape[:-1])
+        jb = np.broadcast_to(j, shape)[..., None]
+        v0 = np.take_along_axis(np.broadcast_to(self.value, shape + self.value.shape[-1:]), jb, -1)[..., 0]
+        s = np.take_along_axis(np.broadcast_to(self._slopes, shape + self._slopes.shape[-1:]), jb, -1)[..., 0]
+        zc = np.clip(z, self.soc[0], self.soc[-1])
+        v = v0 + s * (zc - self.soc[j])
+        d = np.where(outside, 0.0, s)
         return v, d
 
     def to_dict(self):
+        if self.batched:
+            raise ConfigError("a batched lookup (parameter batch) cannot be saved")
         return {"lookup": {"soc": self.soc.tolist(), "value": self.value.tolist()}}
 
 

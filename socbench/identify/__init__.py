@@ -1,0 +1,48 @@
+"""Identification: HPPC analysis (rests, pulses, OCV points, pulse resistances) and parameter fitting.
+
+* :func:`analyze_hppc`, :func:`ocv_from_hppc`, :func:`ocv_from_slow_test` — :mod:`socbench.identify.hppc`
+* :func:`fit_model` — any registered model in the paper's modes (``paper``, ``constant``, ``lookup``)
+* :func:`fit_parameters` — the generic bounded least-squares building block (batched finite-difference Jacobian)
+* :func:`compress_profile` — exact merging of constant-current steps before fitting
+"""
+
+from .compress import Compression, compress_profile
+from .fit import MODES, FitProblem, FitResult, fit_model, model_parameter_names, setup_fit
+from .hppc import (
+    HPPCAnalysis,
+    Pulse,
+    Rest,
+    SlowOCV,
+    analyze_hppc,
+    discharged_ah,
+    edge_resistance,
+    ocv_from_hppc,
+    ocv_from_slow_test,
+    unrecorded_charge,
+)
+from .lsq import LsqResult, covariance, fit_parameters, simulate_voltage
+
+__all__ = [
+    "Compression",
+    "compress_profile",
+    "MODES",
+    "FitProblem",
+    "FitResult",
+    "fit_model",
+    "model_parameter_names",
+    "setup_fit",
+    "HPPCAnalysis",
+    "Pulse",
+    "Rest",
+    "SlowOCV",
+    "analyze_hppc",
+    "discharged_ah",
+    "edge_resistance",
+    "ocv_from_hppc",
+    "ocv_from_slow_test",
+    "unrecorded_charge",
+    "LsqResult",
+    "covariance",
+    "fit_parameters",
+    "simulate_voltage",
+]

@@ -1,0 +1,295 @@
+"""Fit any registered model to a measured record (normally an HPPC test) in the paper's identification modes.
+
+``fit_model(name, profile, mode)`` with
+
+* ``mode="paper"``    Jung & Tullu's protocol (ECM_SPEC §1): the parameters of models 1–6 (``paper_number`` 1…6) are
+  6th-degree polynomials in SOC, those of every other model constants;
+* ``mode="constant"`` every parameter a constant;
+* ``mode="lookup"``   every parameter piecewise linear in SOC on a knot grid (default: the SOC levels of the HPPC pulse
+  sets).
+
+The model's parameter names come from the model itself (``required_params()`` of an instance built with its reference
+set, or its ``param_names``), their kinds, start values and bounds from :mod:`socbench.identify.specs` with scales
+measured by the HPPC analysis (:mod:`socbench.identify.hppc`). Positive quantities are fitted as logarithms.
+
+The OCV curve, when not given, is built from the HPPC rest points (:func:`~socbench.identify.hppc.ocv_from_hppc`);
+the capacity defaults to the charge the HPPC discharges from full to empty. Records with gaps whose charge only the
+reference SOC knows (the Panasonic HPPC files) get the missing charge added to the SOC at the gaps.
+
+Polynomial and lookup fits start from a constant fit (warm start), which is cheap and keeps the high-dimensional
+fits away from the poor local minima a cold start in 35+ parameters can find.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import ConfigError, DataError
+from ..models.params import Constant, ModelParams
+from ..models.registry import model_class, model_names
+from ..ocv import OCVCurve
+from ..profile import Profile
+from .hppc import analyze_hppc, edge_resistance, unrecorded_charge
+from .lsq import LsqResult, fit_parameters
+from .specs import ConstantForm, Guess, LookupForm, PolyForm, param_spec
+
+MODES = ("paper", "constant", "lookup")
+#: models whose parameters the paper fits as 6th-degree SOC polynomials
+PAPER_POLY_NUMBERS = range(1, 7)
+#: warnings: relative standard error above this (positive parameters) flags a non-identifiable parameter
+REL_STDERR_WARN = 1.0
+#: |correlation| above this flags a pair
+CORR_WARN = 0.99
+
+
+@dataclass(frozen=True, eq=False)
+class FitResult:
+    """A fitted parameter set and how well determined it is.
+
+    ``rmse_v`` is over the fitted samples (the compressed record, ``n_samples`` of them). ``stderr`` maps each fitted
+    quantity (``R0``, or ``R0@z=0.500`` for a node of an SOC function) to its standard error in physical units;
+    ``corr`` is the correlation matrix of the fitted θ in the order ``corr_names``.
+    """
+
+    name: str
+    params: ModelParams
+    rmse_v: float
+    stderr: dict
+    corr: np.ndarray
+    corr_names: tuple
+    warnings: list
+    seconds: float
+    n_samples: int
+    mode: str = "paper"
+    values: dict = field(default_factory=dict)
+    lsq: LsqResult | None = field(default=None, repr=False)
+
+    def fit_summary(self) -> dict:
+        """The ``"fit"`` block of a PARAMS.json file."""
+        return {
+            "mode": self.mode,
+            "rmse_v": self.rmse_v,
+            "n_samples": self.n_samples,
+            "seconds": self.seconds,
+            "values": self.values,
+            "stderr": self.stderr,
+            "warnings": list(self.warnings),
+            "success": bool(self.lsq.success) if self.lsq is not None else None,
+        }
+
+
+# ------------------------------------------------------------------------------------------------ model probing
+def _dummy_ocv() -> OCVCurve:
+    return OCVCurve([0.0, 1.0], [3.0, 4.0], "probe")
+
+
+def reference_params(name: str) -> ModelParams | None:
+    """The model's reference set (Table 3 or its stand-in), or None."""
+    from ..models.paper import paper_params
+
+    try:
+        return paper_params(name)
+    except Exception:  # no reference set shipped for this model
+        return None
+
+
+def model_parameter_names(name: str, options: dict | None = None) -> tuple:
+    """Parameter names model ``name`` needs with ``options`` (from an instance built on its reference set)."""
+    cls = model_class(name)
+    ref = reference_params(name)
+    values = dict(ref.values) if ref is not None else {p: Constant(1.0) for p in getattr(cls, "param_names", ())}
+    probe = ModelParams(capacity_ah=1.0, ocv=_dummy_ocv(), values=values, options=dict(options or {}))
+    try:
+        return tuple(cls(probe).required_params())
+    except Exception:
+        names = tuple(getattr(cls, "param_names", ()))
+        if not names:
+            raise ConfigError(f"cannot tell which parameters model '{name}' needs") from None
+        return names
+
+
+def _rc_branches(names) -> int:
+    return sum(1 for n in names if n[:1] == "R" and n[1:].isdigit() and int(n[1:]) >= 1)
+
+
+def _reference_value(ref: ModelParams | None, pname: str) -> float | None:
+    if ref is None or pname not in ref.values:
+        return None
+    try:
+        return float(np.median(np.atleast_1d(ref.values[pname](np.linspace(0.05, 0.95, 19)))))
+    except Exception:
+        return None
+
+
+# ------------------------------------------------------------------------------------------------ the fit
+@dataclass(frozen=True, eq=False)
+class FitProblem:
+    """Everything :func:`fit_model` sets up before optimising (exposed for the benchmark and the diagnosis)."""
+
+    name: str
+    specs: tuple
+    forms: tuple
+    labels: tuple
+    slices: tuple
+    theta0: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    capacity_ah: float
+    ocv: OCVCurve
+    options: dict
+    soc0: float | None
+    soc_jumps: np.ndarray | None
+    guess: Guess
+    notes: tuple
+
+    def params(self, theta) -> ModelParams:
+        theta = np.asarray(theta, dtype=float)
+        values = {s.name: f.function(s, theta[..., sl]) for s, f, sl in zip(self.specs, self.forms, self.slices)}
+        return ModelParams(capacity_ah=self.capacity_ah, ocv=self.ocv, values=values, options=self.options,
+                           source="socbench fit", notes=self.notes)
+
+    def build(self, theta):
+        return model_class(self.name)(self.params(theta))
+
+
+def _forms_for(name: str, mode: str, n_params: int, knots) -> list:
+    if mode == "constant":
+        return [ConstantForm() for _ in range(n_params)]
+    if mode == "lookup":
+        return [LookupForm(knots) for _ in range(n_params)]
+    number = getattr(model_class(name), "paper_number", None)
+    if number in PAPER_POLY_NUMBERS:
+        return [PolyForm() for _ in range(n_params)]
+    return [ConstantForm() for _ in range(n_params)]
+
+
+def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | None = None,
+              capacity_ah: float | None = None, soc0: float | None = None, knots=None,
+              options: dict | None = None) -> FitProblem:
+    """Analyse the record and lay out θ (names, start, bounds, forms) for :func:`fit_model`."""
+    if mode not in MODES:
+        raise ConfigError(f"unknown fit mode '{mode}'; known: {', '.join(MODES)}")
+    if name not in model_names():
+        model_class(name)  # raises the ConfigError listing the known models
+    profile.require("voltage_v")
+    src = profile.meta.source or profile.name
+    notes = []
+    try:
+        analysis = analyze_hppc(profile, capacity_ah=capacity_ah)
+    except DataError as exc:
+        analysis = None
+        notes.append(f"no HPPC structure ({exc.message}); scales from current steps")
+    if analysis is not None:
+        med = analysis.medians()
+        q = analysis.capacity_ah
+        r_inst = med["r_inst"] if np.isfinite(med["r_inst"]) and med["r_inst"] > 0 else edge_resistance(profile)
+        r_pulse = med["r_pulse"] if np.isfinite(med["r_pulse"]) and med["r_pulse"] > r_inst else 2.0 * r_inst
+        tau = med["tau_s"] if np.isfinite(med["tau_s"]) and med["tau_s"] > 0 else 30.0
+        tau_slow = med["tau_slow_s"] if np.isfinite(med["tau_slow_s"]) and med["tau_slow_s"] > tau else 10.0 * tau
+        if ocv is None:
+            ocv = analysis.ocv(source=f"HPPC rest points of {src}")
+            notes.append(f"OCV from {analysis.ocv_soc.size} HPPC rest points")
+        if soc0 is None:
+            soc0 = float(analysis.soc[0])
+        extra = unrecorded_charge(profile)
+        jumps = -extra / q if np.any(extra) else None
+        if jumps is not None:
+            notes.append(f"{int(np.count_nonzero(extra))} record gaps: {float(np.sum(extra)):.4g} Ah not in the "
+                         "current column added to SOC from the reference")
+        level_knots = np.unique(np.clip(np.round(analysis.level_soc, 3), 0.0, 1.0))
+    else:
+        if ocv is None:
+            raise DataError("the record has no HPPC rest points to build an OCV curve from; pass an OCV curve",
+                            file=src)
+        q = capacity_ah or profile.meta.capacity_ah
+        if not q:
+            raise DataError("unknown capacity: pass capacity_ah or give the profile meta.capacity_ah", file=src)
+        r_inst = abs(edge_resistance(profile))
+        r_pulse, tau, tau_slow, jumps, level_knots = 2.0 * r_inst, 30.0, 300.0, None, np.array([])
+    q = float(capacity_ah) if capacity_ah else float(q)
+    zg = np.linspace(0.05, 0.95, 19)
+    slope = float(np.mean(ocv.slope(zg)))
+    guess = Guess(r_inst=float(r_inst), r_pulse=float(r_pulse), tau=float(tau), tau_slow=float(tau_slow), capacity_ah=q,
+                  ocv_slope=max(slope, 1e-3))
+    if knots is None:
+        knots = level_knots if level_knots.size >= 3 else np.linspace(0.0, 1.0, 11)
+        if knots.size > 21:
+            knots = knots[np.linspace(0, knots.size - 1, 21).round().astype(int)]
+    options = dict(options or {})
+    pnames = model_parameter_names(name, options)
+    ref = reference_params(name)
+    n_br = _rc_branches(pnames)
+    units = dict(getattr(model_class(name), "param_units", {}) or {})
+    specs = [param_spec(p, guess, n_br, _reference_value(ref, p), units.get(p)) for p in pnames]
+    forms = _forms_for(name, mode, len(specs), knots)
+    labels, slices, th0, lo, hi = [], [], [], [], []
+    k = 0
+    for s, f in zip(specs, forms):
+        labels += f.labels(s.name)
+        slices.append(slice(k, k + f.size))
+        k += f.size
+        th0.append(f.theta0(s))
+        lo += [s.theta_bounds[0]] * f.size
+        hi += [s.theta_bounds[1]] * f.size
+    notes.append(f"fitted by socbench.identify ({mode} mode) on {src}")
+    return FitProblem(name, tuple(specs), tuple(forms), tuple(labels), tuple(slices), np.concatenate(th0),
+                      np.asarray(lo), np.asarray(hi), q, ocv, options, soc0, jumps, guess, tuple(notes))
+
+
+def _warnings(prob: FitProblem, res: LsqResult, values: dict, stderr: dict) -> list:
+    out = []
+    if not res.success:
+        out.append(f"optimiser did not converge: {res.message}")
+    spec_of = {}
+    for s, f in zip(prob.specs, prob.forms):
+        for lab in f.labels(s.name):
+            spec_of[lab] = s
+    for lab in prob.labels:
+        s, val, se = spec_of[lab], values[lab], stderr[lab]
+        if not np.isfinite(se):
+            out.append(f"{lab}: not identifiable (infinite standard error)")
+        elif s.log and se > REL_STDERR_WARN * abs(val):
+            out.append(f"{lab}: poorly identifiable (stderr {100 * se / abs(val):.0f} % of {val:.4g} {s.unit})")
+        elif not s.log and se > max(abs(val), 1e-3):
+            out.append(f"{lab}: poorly identifiable (stderr {se:.3g} {s.unit} on {val:.4g} {s.unit})")
+    for lab in res.at_bounds:
+        out.append(f"{lab}: at a bound of its search range ({values[lab]:.4g} {spec_of[lab].unit})")
+    c = res.corr
+    iu = np.argwhere(np.triu(np.abs(c) > CORR_WARN, 1))
+    for a, b in iu[:20]:
+        out.append(f"{prob.labels[a]} and {prob.labels[b]} correlated ({c[a, b]:+.3f})")
+    if len(iu) > 20:
+        out.append(f"... and {len(iu) - 20} more parameter pairs with |corr| > {CORR_WARN}")
+    return out
+
+
+def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | None = None,
+              capacity_ah: float | None = None, soc0: float | None = None, *, knots=None, options: dict | None = None,
+              compress: bool | dict = True, warm_start: bool = True, max_nfev: int | None = None) -> FitResult:
+    """Fit model ``name`` to ``profile`` (see the module docstring). Returns a :class:`FitResult`."""
+    t0 = _time.perf_counter()
+    prob = setup_fit(name, profile, mode, ocv, capacity_ah, soc0, knots, options)
+    theta0 = prob.theta0.copy()
+    if warm_start and any(not isinstance(f, ConstantForm) for f in prob.forms):
+        const = setup_fit(name, profile, "constant", prob.ocv, prob.capacity_ah, prob.soc0, None, prob.options)
+        cres = fit_parameters(const.build, profile, const.theta0, const.lower, const.upper, names=const.labels,
+                              soc0=prob.soc0, soc_jumps=prob.soc_jumps, compress=compress, max_nfev=max_nfev)
+        for sl, ct in zip(prob.slices, cres.theta):  # one constant per parameter, in the same order
+            theta0[sl] = ct
+        theta0 = np.clip(theta0, prob.lower, prob.upper)
+    res = fit_parameters(prob.build, profile, theta0, prob.lower, prob.upper, names=prob.labels, soc0=prob.soc0,
+                         soc_jumps=prob.soc_jumps, compress=compress, max_nfev=max_nfev)
+    params = prob.params(res.theta)
+    values, stderr = {}, {}
+    for s, f, sl in zip(prob.specs, prob.forms, prob.slices):
+        for lab, th, se in zip(f.labels(s.name), res.theta[sl], res.stderr[sl]):
+            val = float(s.from_theta(th))
+            values[lab] = val
+            stderr[lab] = float(abs(val) * se) if s.log else float(se)  # delta method through exp
+    warnings = _warnings(prob, res, values, stderr)
+    return FitResult(name=name, params=params, rmse_v=res.rmse, stderr=stderr, corr=res.corr,
+                     corr_names=prob.labels, warnings=warnings, seconds=_time.perf_counter() - t0,
+                     n_samples=res.n_samples, mode=mode, values=values, lsq=res)

@@ -1,0 +1,293 @@
+"""The generic fitting building block: bounded least squares of a model's voltage against a measured profile.
+
+``fit_parameters(build, profile, theta0, lower, upper)`` minimises ``Σ_k (y_model,k(θ) − y_meas,k)²`` over the
+samples of ``profile`` with :func:`scipy.optimize.least_squares` (trust-region reflective, bounds on θ). ``build(θ)``
+returns a :class:`~socbench.models.base.Model`; positivity is the caller's choice of parametrisation (bounds, or
+``θ = log p``).
+
+Speed. The Jacobian is a forward difference in every parameter, and all ``P + 1`` parameter variants run as **one
+batched simulation**: ``build`` is called once with a ``(P + 1, P)`` array and must return a model whose parameters
+carry that leading batch axis (the SOC functions in :mod:`socbench.models.params` broadcast it against the state
+batch). Row 0 is the unperturbed θ. Because the time loop's per-step overhead dominates, the batch costs about as
+much as a single run, so *every* residual evaluation runs the whole batch: when the optimiser accepts the point, its
+Jacobian is already there, and a fit costs about one simulation per iteration. A ``build`` that cannot take a batch
+(or returns a model whose batched output differs from the one-at-a-time output — checked once on a short prefix) is run
+one variant at a time instead; the result says which path was taken (``batched``) and how many simulations ran.
+
+Uncertainty. At the optimum, with ``s² = Σr²/(N − P)``, ``cov = (JᵀJ)⁻¹ s²``; ``stderr = √diag(cov)`` and
+``corr = cov / (σ σᵀ)``. The inverse is taken through an SVD of the column-scaled ``J``; directions with a singular
+value below ``1e-12`` of the largest get a huge variance instead of being dropped, so a non-identifiable parameter
+shows up as a huge standard error rather than a deceptively small one. The residuals of a voltage fit are
+autocorrelated, so these standard errors are optimistic lower bounds; use them to rank identifiability, not as
+confidence intervals.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..errors import ConfigError, DataError
+from ..profile import Profile
+from .compress import compress_profile
+
+#: residual substituted for a non-finite model voltage (V): keeps the optimiser away from unstable parameters
+NONFINITE_RESIDUAL = 10.0
+#: largest SOC change of one merged (compressed) step
+MAX_SOC_STEP = 5e-3
+
+
+@dataclass(frozen=True, eq=False)
+class LsqResult:
+    """Outcome of :func:`fit_parameters` (θ-space: the caller maps θ to physical parameters)."""
+
+    theta: np.ndarray
+    stderr: np.ndarray
+    corr: np.ndarray
+    cov: np.ndarray
+    names: tuple
+    rmse: float
+    residual: np.ndarray
+    jac: np.ndarray
+    success: bool
+    message: str
+    nfev: int
+    njev: int
+    nsim: int
+    n_samples: int
+    seconds: float
+    batched: bool
+    at_bounds: tuple = ()
+    profile: Profile | None = field(default=None, repr=False)
+
+    def as_dict(self) -> dict:
+        return dict(zip(self.names, self.theta.tolist()))
+
+
+def simulate_voltage(model, time_s, current, temp=None, x0=None, soc_jumps=None) -> np.ndarray:
+    """Open-loop output ``y_k = h(x_k, I_k)``, ``x_{k+1} = f(x_k, I_k, dt_k)``, batched over ``x0``'s leading axes.
+
+    ``soc_jumps[k]`` (optional, length T) is added to the SOC state *after* the step into sample ``k``: charge that the
+    current column does not carry (a gap in the record whose amp-hours are known from a reference).
+    """
+    x = np.array(x0, dtype=float)
+    T = time_s.size
+    dts = np.diff(time_s)
+    y = np.empty(x.shape[:-1] + (T,))
+    for k in range(T):
+        tk = None if temp is None else temp[k]
+        y[..., k] = model.output(x, current[k], tk)[0]
+        if k + 1 < T:
+            x = model.step(x, current[k], dts[k], tk)[0]
+            if soc_jumps is not None and soc_jumps[k + 1] != 0.0:
+                x[..., 0] += soc_jumps[k + 1]
+    return y
+
+
+def _initial_soc(model, profile: Profile, soc0):
+    if soc0 is not None:
+        return float(soc0)
+    if profile.soc_ref is not None:
+        return float(profile.soc_ref[0])
+    return float(np.clip(model.ocv.inverse(profile.voltage_v[0]), 0.0, 1.0))
+
+
+def covariance(jac: np.ndarray, residual: np.ndarray, n_params: int):
+    """``(cov, stderr, corr)`` from ``(JᵀJ)⁻¹ s²`` via an SVD of the column-scaled Jacobian (see the module doc)."""
+    n = residual.size
+    dof = max(n - n_params, 1)
+    s2 = float(residual @ residual) / dof
+    scale = np.linalg.norm(jac, axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    js = jac / scale
+    _, sv, vt = np.linalg.svd(js, full_matrices=False)
+    floor = max(sv.max(initial=0.0), 1e-300) * 1e-12
+    inv2 = 1.0 / np.maximum(sv, floor) ** 2
+    cov_s = (vt.T * inv2) @ vt
+    cov = cov_s / np.outer(scale, scale) * s2
+    var = np.diag(cov).copy()
+    stderr = np.sqrt(np.maximum(var, 0.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(stderr, stderr)
+    corr = np.clip(np.nan_to_num(corr), -1.0, 1.0)
+    np.fill_diagonal(corr, 1.0)
+    return cov, stderr, corr
+
+
+def fit_parameters(
+    build: Callable[[np.ndarray], object],
+    profile: Profile,
+    theta0: Sequence[float],
+    lower: Sequence[float],
+    upper: Sequence[float],
+    *,
+    names: Sequence[str] | None = None,
+    soc0: float | None = None,
+    x0=None,
+    soc_jumps: np.ndarray | None = None,
+    weights: np.ndarray | None = None,
+    compress: bool | dict = True,
+    batch: bool = True,
+    diff_step: float = 1e-6,
+    max_nfev: int | None = None,
+    ftol: float = 1e-6,
+    xtol: float = 1e-6,
+    gtol: float = 1e-8,
+) -> LsqResult:
+    """Fit θ so that ``build(θ).simulate(profile)`` matches the measured voltage (see the module docstring).
+
+    Parameters
+    ----------
+    build : callable
+        ``θ (P,) -> Model``; called with ``(B, P)`` for the batched Jacobian when ``batch`` (falls back if it cannot).
+    profile : Profile
+        Plain profile with a voltage column. Compressed first (``compress=True`` or a dict of
+        :func:`~socbench.identify.compress.compress_profile` options); ``False`` fits every sample.
+    theta0, lower, upper : array-like (P,)
+        Start and bounds (``±inf`` allowed). ``theta0`` is clipped into the bounds.
+    soc0, x0 :
+        Initial SOC (default: ``soc_ref[0]``, else the OCV inverse of the first voltage) or a full initial state.
+    soc_jumps : array (T,) on the *original* samples, optional
+        SOC added after the step into a sample (unrecorded charge at gaps; see :func:`simulate_voltage`).
+    weights : array (T,) on the original samples, optional
+        Residual weights (e.g. to mask samples with 0).
+    diff_step : float
+        Forward-difference step, relative to ``max(1, |θ_j|)``.
+    """
+    t_start = _time.perf_counter()
+    if profile.batched:
+        raise DataError("fit_parameters needs a plain profile (one run)", file=profile.meta.source or profile.name)
+    profile.require("voltage_v")
+    theta0 = np.asarray(theta0, dtype=float).ravel()
+    lower = np.broadcast_to(np.asarray(lower, dtype=float), theta0.shape).copy()
+    upper = np.broadcast_to(np.asarray(upper, dtype=float), theta0.shape).copy()
+    P = theta0.size
+    if np.any(lower >= upper):
+        raise ConfigError("fit_parameters: every lower bound must be below its upper bound")
+    names = tuple(names) if names is not None else tuple(f"theta{j}" for j in range(P))
+    if len(names) != P:
+        raise ConfigError(f"fit_parameters: {len(names)} names for {P} parameters")
+    span = upper - lower
+    inner = np.where(np.isfinite(span), 1e-9 * span, 1e-9)
+    theta0 = np.clip(theta0, lower + inner, upper - inner)
+
+    model0 = build(theta0)
+    # ---- the data the residual is computed on
+    if compress:
+        opts = dict(compress) if isinstance(compress, dict) else {}
+        opts.setdefault("max_ah", MAX_SOC_STEP * float(getattr(model0, "capacity_ah", 0.0) or 0.0) or None)
+        comp = compress_profile(profile, **opts)
+        prof, idx = comp.profile, comp.index
+    else:
+        prof, idx = profile, np.arange(profile.n)
+    jumps = None
+    if soc_jumps is not None:
+        sj = np.asarray(soc_jumps, dtype=float)
+        cum = np.concatenate([[0.0], np.cumsum(sj)])  # jumps landing in (idx_{j-1}, idx_j] are applied at idx_j
+        jumps = np.diff(cum[idx + 1], prepend=0.0)
+        jumps[0] = 0.0
+    w = None if weights is None else np.asarray(weights, dtype=float)[idx]
+    v_meas = prof.voltage_v
+    temp = prof.temperature_c
+    t, cur = prof.time_s, prof.current_a
+
+    z0 = None if x0 is not None else _initial_soc(model0, prof, soc0)
+
+    def start_state(model, n_batch):
+        if x0 is not None:
+            base = np.asarray(x0, dtype=float)
+            return np.broadcast_to(base, ((n_batch,) if n_batch else ()) + base.shape[-1:]).copy()
+        return model.x0(z0, (n_batch,) if n_batch else ())
+
+    def residual_of(y):
+        r = y - v_meas
+        r = np.where(np.isfinite(r), r, NONFINITE_RESIDUAL)
+        return r * w if w is not None else r
+
+    def simulate_one(theta):
+        model = build(theta)
+        return simulate_voltage(model, t, cur, temp, start_state(model, 0), jumps)
+
+    def simulate_many(thetas):
+        if use_batch[0]:
+            model = build(thetas)
+            return simulate_voltage(model, t, cur, temp, start_state(model, thetas.shape[0]), jumps)
+        return np.stack([simulate_one(th) for th in thetas])
+
+    # ---- decide once, on a short prefix, whether the batched path is available and agrees with the plain one
+    use_batch = [False]
+    if batch and P > 0:
+        n_probe = min(t.size, 64)
+        step = np.where(theta0 + 1e-3 * np.minimum(span, 1.0) < upper, 1e-3, -1e-3) * np.minimum(span, 1.0)
+        probe = np.stack([theta0, theta0 + step])
+        try:
+            models = [build(probe), build(probe[0]), build(probe[1])]
+            args = (t[:n_probe], cur[:n_probe], None if temp is None else temp[:n_probe])
+            jp = None if jumps is None else jumps[:n_probe]
+            yb = simulate_voltage(models[0], *args, start_state(models[0], 2), jp)
+            y0 = simulate_voltage(models[1], *args, start_state(models[1], 0), jp)
+            y1 = simulate_voltage(models[2], *args, start_state(models[2], 0), jp)
+            tol = 1e-9 * (1.0 + np.abs(y0))
+            ok = yb.shape == (2, n_probe) and bool(np.all(np.abs(yb[0] - y0) <= tol)
+                                                  and np.all(np.abs(yb[1] - y1) <= tol))
+        except Exception:  # a build that cannot take a parameter batch: run variants one at a time
+            ok = False
+        use_batch[0] = ok
+
+    # Every residual evaluation also simulates the P perturbed variants when batching (the batch costs about as much
+    # as one run, the per-step overhead dominates), so the Jacobian at an accepted point is already there.
+    cache: dict = {}
+    counts = {"njev": 0, "nsim": 0}
+
+    def steps_for(theta):
+        h = diff_step * np.maximum(1.0, np.abs(theta))
+        return np.where(theta + h > upper, -h, h)
+
+    def evaluate(theta, need_jac):
+        key = theta.tobytes()
+        hit = cache.get(key)
+        if hit is not None and (hit[1] is not None or not need_jac):
+            return hit
+        counts["nsim"] += 1
+        if use_batch[0] or need_jac:
+            h = steps_for(theta)
+            y = simulate_many(np.vstack([theta, theta + np.diag(h)]))
+            r = np.stack([residual_of(row) for row in y])
+            entry = (r[0], ((r[1:] - r[0]) / h[:, None]).T)
+        else:
+            entry = (residual_of(simulate_one(theta)), None)
+        cache.clear()
+        cache[key] = entry
+        return entry
+
+    def fun(theta):
+        return evaluate(theta, False)[0]
+
+    def jac(theta):
+        counts["njev"] += 1
+        return evaluate(theta, True)[1]
+
+    if P == 0:
+        r = fun(theta0)
+        J = np.zeros((r.size, 0))
+        res_x, success, message, nfev = theta0, True, "no parameters", 1
+    else:
+        sol = least_squares(fun, theta0, jac=jac, bounds=(lower, upper), method="trf", x_scale="jac",
+                            ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev)
+        res_x, success, message, nfev = sol.x, bool(sol.success), str(sol.message), int(sol.nfev)
+        r = fun(res_x)
+        J = jac(res_x)
+    cov, stderr, corr = covariance(J, r, P)
+    rmse = float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
+    rel = np.where(np.isfinite(span), 1e-4 * span, 0.0)
+    at_bounds = tuple(n for n, th, lo, hi, tol in zip(names, res_x, lower, upper, rel)
+                      if (np.isfinite(lo) and th - lo <= tol) or (np.isfinite(hi) and hi - th <= tol))
+    return LsqResult(theta=np.asarray(res_x, dtype=float), stderr=stderr, corr=corr, cov=cov, names=names, rmse=rmse,
+                     residual=r, jac=J, success=success, message=message, nfev=nfev, njev=counts["njev"],
+                     nsim=counts["nsim"],
+                     n_samples=int(r.size), seconds=_time.perf_counter() - t_start, batched=bool(use_batch[0]),
+                     at_bounds=at_bounds, profile=prof)
