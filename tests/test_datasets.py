@@ -135,6 +135,10 @@ def test_panasonic_corrupted_copies(small_pan, tmp_path):
     with pytest.raises(DataError) as e:
         load(write("shuffled", shuffled))
     assert (e.value.column, e.value.row) == ("Time", 12)
+    flipped = dict(small_pan, Current=-small_pan["Current"])
+    with pytest.raises(DataError) as e:
+        load(write("flipped", flipped))
+    assert e.value.column == "Current" and "Ah counter" in e.value.message
     path = write("trunc", small_pan)
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2])
@@ -191,7 +195,9 @@ def test_calce_corrupted_copies(calce_dir, tmp_path):
     cases["swapped"] = df.rename(columns={"Current_A": "Voltage_V", "Voltage_V": "Current_A"})[
         ["Test_Time_s", "Current_A", "Voltage_V"]].to_csv(index=False)
     cases["milliamps"] = df.assign(Current_A=df.Current_A * 1000).to_csv(index=False)
-    expected = {"truncated": ("Voltage_V", 500), "nan": ("Voltage_V", 300), "shuffled": ("Test_Time_s", 201),
+    cases["flipped"] = df.assign(Current_A=-df.Current_A).to_csv(index=False)
+    expected = {"flipped": ("Current_A", None),
+                "truncated": ("Voltage_V", 500), "nan": ("Voltage_V", 300), "shuffled": ("Test_Time_s", 201),
                 "swapped": ("Voltage_V", None), "milliamps": ("Current_A", None)}
     for name, body in cases.items():
         path = tmp_path / f"{name}.csv"
@@ -356,6 +362,19 @@ def test_canonical_structural_damage(canonical_us06, tmp_path):
     header_only.write_text("time_s,current_a,voltage_v\n")
     with pytest.raises(DataError, match="no data rows"):
         load(header_only)
+
+
+def test_canonical_flipped_constant_current_discharge(small_pan, tmp_path):
+    """No SOC column and a single current step: only the voltage trend under constant current can tell the sign."""
+    frame = pd.DataFrame({"time_s": small_pan["Time"], "current_a": -small_pan["Current"],
+                          "voltage_v": small_pan["Voltage"]})
+    good = _write(tmp_path / "cc.csv", frame, {"capacity_ah": 2.8})
+    assert load(good).n == frame.shape[0]
+    bad = _write(tmp_path / "cc_flipped.csv", frame.assign(current_a=-frame.current_a), {"capacity_ah": 2.8})
+    with pytest.raises(DataError) as e:
+        load(bad)
+    assert e.value.column == "current_a" and "constant-current" in e.value.message
+    assert 1 <= e.value.row <= 5  # the 1C discharge starts at once
 
 
 def test_cli_simulate_on_corrupt_file_exits_2_with_one_line(canonical_us06, tmp_path, capsys):

@@ -27,6 +27,7 @@ import pandas as pd
 
 from ..errors import DataError
 from ..profile import Profile, ProfileMeta
+from .canonical import check_current_sign
 from .counting import soc_between_full_charges
 
 CAPACITY_AH = 1.0652
@@ -134,6 +135,7 @@ def load_calce(path) -> Profile:
         dropped = int((~keep).sum())
         t, i_raw, v = t[keep], i_raw[keep], v[keep]
     current = -i_raw
+    check_current_sign(t, current, v, src=src, column="Current_A", convention="CALCE convention: negative = discharge")
     soc, cap, info = soc_between_full_charges(
         t, current, v, capacity_ah=CAPACITY_AH, v_full=V_FULL,
         start_full=(layout == "drive" and abs(i_raw[0]) < 0.01 and v[0] >= V_REST_FULL))

@@ -45,6 +45,7 @@ TEMPERATURE_RANGE = (-60.0, 150.0)
 #: sign checks need this much evidence before they speak
 MIN_SOC_SWING = 0.02
 MIN_STEPS = 5
+CC_STRETCH_S = 600.0
 
 
 def sniff(path) -> bool:
@@ -167,31 +168,50 @@ def _check_units(cols: dict, meta: ProfileMeta, src: str) -> None:
             raise DataError(f"SOC {s[k]:g} is not a fraction in [0, 1]{hint}", file=src, column="soc_ref", row=k + 1)
 
 
-def _check_sign(cols: dict, meta: ProfileMeta, src: str) -> None:
-    t, i, v = cols["time_s"], cols["current_a"], cols["voltage_v"]
-    if t.size < 3 or np.any(np.diff(t) <= 0):
+def check_current_sign(t, i, v, soc=None, *, src: str, column: str = "current_a", n_series: int = 1,
+                       convention: str = "canonical convention: positive = discharge") -> None:
+    """Raise a :class:`DataError` when the current (positive = discharge) looks flipped. Three independent tells:
+
+    * the reference SOC moves against the counted charge (``Δsoc ≈ −∫i dt / C`` must have a positive ``1/C``);
+    * the voltage jumps *up* when the discharge current steps up (the ohmic drop), at most large current steps;
+    * the voltage *rises* over long constant-current stretches the current calls discharge (and falls under charge).
+
+    Each needs enough evidence (a SOC swing, :data:`MIN_STEPS` steps or stretches) and a clear majority before it
+    speaks, so a clean record is never refused on noise. Time must already be strictly increasing.
+    """
+    def flipped(why, k):
+        raise DataError(f"current sign looks flipped: {why} ({convention})", file=src, column=column, row=k + 1)
+
+    dt = np.diff(t)
+    if t.size < 3 or np.any(dt <= 0):
         return  # the Profile reports the time problem itself
-    if "soc_ref" in cols:
-        s = cols["soc_ref"]
-        q = np.r_[0.0, np.cumsum(-i[:-1] * np.diff(t))] / 3600.0  # charge in [Ah]
-        ds = s - s[0]
-        if np.ptp(s) >= MIN_SOC_SWING and np.dot(q, q) > 0:
-            slope = float(np.dot(q, ds) / np.dot(q, q))  # ds ≈ q / C, so the slope must be positive
-            if slope < 0:
-                wrong = (np.sign(q) == -np.sign(ds)) & (q != 0) & (np.abs(ds) >= MIN_SOC_SWING / 2)
-                k = int(np.argmax(wrong)) if wrong.any() else 0
-                raise DataError("current sign looks flipped: soc_ref rises while the current says discharge "
-                                "(canonical convention: positive = discharge)", file=src, column="current_a",
-                                row=k + 1)
+    if soc is not None:
+        q = np.r_[0.0, np.cumsum(-i[:-1] * dt)] / 3600.0  # charge in [Ah]
+        ds = soc - soc[0]
+        if np.ptp(soc) >= MIN_SOC_SWING and np.dot(q, q) > 0 and np.dot(q, ds) < 0:  # Δsoc ≈ q/C needs C > 0
+            wrong = (np.sign(q) == -np.sign(ds)) & (q != 0) & (np.abs(ds) >= MIN_SOC_SWING / 2)
+            flipped("the reference SOC rises while the current says discharge", int(np.argmax(wrong)))
     di, dv = np.diff(i), np.diff(v)
-    big = np.abs(di) > 0.2 * max(float(np.max(np.abs(i))), 1e-9)
+    big = (np.abs(di) > 0.2 * max(float(np.max(np.abs(i))), 1e-9)) & (dv != 0)
     if big.sum() >= MIN_STEPS:
         agree = np.sign(di[big]) == -np.sign(dv[big])  # more discharge -> lower voltage
         if agree.mean() < 0.2:
             k = int(np.nonzero(big)[0][np.argmax(~agree)])
-            raise DataError("current sign looks flipped: the voltage jumps up when the discharge current steps up "
-                            f"at {int((~agree).sum())} of {int(big.sum())} current steps "
-                            "(canonical convention: positive = discharge)", file=src, column="current_a", row=k + 2)
+            flipped(f"the voltage jumps up when the discharge current steps up at {int((~agree).sum())} of "
+                    f"{int(big.sum())} current steps", k + 1)
+    # constant-current stretches: |Δi| within 2 % of the level, level above 5 % of the peak, 10 min or longer
+    level = np.abs(i[:-1])
+    same = (np.abs(di) <= 0.02 * np.maximum(level, 1e-12)) & (level > 0.05 * np.max(np.abs(i)))
+    edges = np.diff(np.r_[0, same.astype(np.int8), 0])
+    starts, stops = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]  # samples starts..stops (inclusive)
+    long = (t[stops] - t[starts]) >= CC_STRETCH_S
+    votes = []
+    for a, b in zip(starts[long], stops[long]):  # a few long stretches per record
+        rise = (v[b] - v[a]) / n_series
+        if abs(rise) >= 0.02:
+            votes.append((a, np.sign(rise) == -np.sign(i[a])))
+    if len(votes) >= 1 and not any(ok for _, ok in votes) and (len(votes) >= 2 or soc is None):
+        flipped(f"the voltage moves the wrong way over {len(votes)} long constant-current stretch(es)", votes[0][0])
 
 
 def load_canonical(path) -> Profile:
@@ -210,7 +230,8 @@ def load_canonical(path) -> Profile:
     cols = {c: _numeric(df, c, src) for c in REQUIRED + OPTIONAL if c in df.columns}
     meta = _meta(path)
     _check_units(cols, meta, src)
-    _check_sign(cols, meta, src)
+    check_current_sign(cols["time_s"], cols["current_a"], cols["voltage_v"], cols.get("soc_ref"), src=src,
+                       n_series=meta.n_series)
     return Profile(
         cols["time_s"], cols["current_a"], cols["voltage_v"], cols.get("temperature_c"), cols.get("soc_ref"), meta
     )

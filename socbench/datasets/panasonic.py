@@ -206,6 +206,19 @@ def _check_ranges(cols: dict[str, np.ndarray], src: str) -> None:
                         column="Current", row=k + 1)
 
 
+def _check_sign_against_counter(cols: dict[str, np.ndarray], src: str) -> None:
+    """The tester's Ah counter falls while it discharges: a current whose sign disagrees with it was flipped."""
+    d_ah = np.diff(cols["Ah"])
+    i_next = cols["Current"][1:]
+    votes = (np.abs(d_ah) > 1e-5) & (np.abs(i_next) > 0.05)
+    if votes.sum() >= 20:
+        agree = np.sign(d_ah[votes]) == np.sign(i_next[votes])
+        if agree.mean() < 0.2:
+            k = int(np.nonzero(votes)[0][np.argmax(~agree)]) + 1
+            raise DataError("current sign disagrees with the Ah counter (this dataset: negative = discharge)",
+                            file=src, column="Current", row=k + 1)
+
+
 def _drop_repeated_stamps(cols: dict[str, np.ndarray], src: str) -> int:
     t = cols["Time"]
     dt = np.diff(t)
@@ -245,6 +258,7 @@ def load_panasonic(path) -> Profile:
     src = str(path)
     cols = _read_struct(path)
     _check_ranges(cols, src)
+    _check_sign_against_counter(cols, src)
     dropped = _drop_repeated_stamps(cols, src)
     ah = cols["Ah"]
     capacity, cap_note = capacity_for(path, ah)
