@@ -62,6 +62,7 @@ def test_panasonic_us06_roundtrip(pan):
     assert 2.45 <= p.voltage_v.min() and p.voltage_v.max() <= 4.25
     assert p.temperature_c is not None and 20 < np.median(p.temperature_c) < 35
     assert p.meta.n_series == 1 and p.meta.chemistry and p.meta.extra["test"] == "US06"
+    assert p.meta.extra["format"] == "panasonic-mat" and p.meta.source == str(path)
 
 
 def test_panasonic_hppc_runs_full_to_empty_and_drops_repeated_stamps(pan):

@@ -63,9 +63,11 @@ def load(path, fmt: str = "auto") -> Profile:
     if fmt == "auto":
         fmt = detect_format(p)
     try:
-        return _loader(fmt)(p)
+        profile = _loader(fmt)(p)
     except DataError as exc:
         raise exc.with_file(text) from None
+    profile.meta.extra.setdefault("format", fmt)  # which loader read it (auto says what it picked)
+    return profile
 
 
 def builtin_profile(name: str) -> Profile:
