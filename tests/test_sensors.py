@@ -194,3 +194,13 @@ def test_bad_sensor_tables_name_the_key(bad, key):
         SensorSpec.from_table({"current": bad}, "x.toml")
     msg = str(e.value)
     assert "x.toml" in msg and f"'{key}'" in msg and "\n" not in msg
+
+
+def test_sample_rate_decimates_the_truth():
+    base = load_scenario("clean")
+    slow = base.with_sensors(dt=5.0)
+    p1, p5 = base.realize([0]), slow.realize([0])
+    assert np.all(np.diff(p5.time_s) == 5.0)
+    assert p5.n == (p1.n + 4) // 5
+    assert np.array_equal(p5.voltage_v[0], p1.voltage_v[0, ::5])
+    assert slow.sensor_noise().dt == 5.0

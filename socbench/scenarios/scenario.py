@@ -10,7 +10,7 @@ measured by the same sensors without their timed faults (a lab test, at the HPPC
 from __future__ import annotations
 
 import zlib
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from functools import lru_cache
 
 import numpy as np
@@ -21,7 +21,7 @@ from ..estimators.noise import SensorNoise
 from ..profile import Profile, ProfileMeta
 from .config import require
 from .mission import Mission, Vehicle, fly
-from .schedule import Record, Schedule, prepare, rest, run_current
+from .schedule import Record, Schedule, lab_schedule, prepare, run_current
 from .sensors import SensorSpec, apply_channel, initial_soc_guess, jitter_offsets
 from .truth import TEMP, TruthCell, TruthParams, Z
 
@@ -51,13 +51,16 @@ class ReplaySpec:
 
 @dataclass(frozen=True)
 class HppcSpec:
-    """The characterisation test (socbench.loads.hppc at 1 s): 1 C pulses, 10 % SOC steps, rests."""
+    """The characterisation test (socbench.loads.hppc at 1 s): 1 C pulses, 10 % SOC steps, rests.
+
+    Defaults keep it under 10 000 samples (9 900) so that fits are quick: 8.7 min rests leave ≈ 12 % of the slow RC
+    branch (τ2 = 240 s), a few mV at the OCV points."""
 
     c_rate: float = 1.0
     pulse_s: float = 10.0
-    rest_pulse_s: float = 30.0
+    rest_pulse_s: float = 20.0
     charge_ratio: float = 0.75
-    rest_s: float = 540.0
+    rest_s: float = 520.0
     ambient_c: float = 25.0
 
     def __post_init__(self):
@@ -98,33 +101,28 @@ def _prepared(truth: TruthParams, schedule: Schedule):
 @lru_cache(maxsize=32)
 def _load_record(kind: str, truth: TruthParams, schedule: Schedule, mission: Mission, vehicle: Vehicle,
                  replay: ReplaySpec) -> Record:
-    """True signals of the recorded part: the end of the rest, the load until its stop, the rest after."""
-    cell = TruthCell(truth)
-    x = _prepared(truth, schedule)
-    amb = schedule.ambient_c
-    parts = []
-    if schedule.rest_record_s > 0:
-        parts.append(rest(cell, x, schedule.rest_record_s, TRUTH_DT, amb))
-        x = parts[-1].last_state
+    """True signals of the recorded part of the lab schedule (the end of the rest, the load, the rest after)."""
     if kind == "mission":
-        load = fly(cell, x, mission, vehicle, TRUTH_DT, amb)
+        def load(cell, x, dt, amb):
+            return fly(cell, x, mission, vehicle, dt, amb)
     else:
-        from .replay import data_pattern, template_pattern
+        def load(cell, x, dt, amb):
+            return _replay(cell, x, replay, dt, amb)
+    return lab_schedule(TruthCell(truth), schedule, load, TRUTH_DT, x0=_prepared(truth, schedule))
 
-        rates, phases = (template_pattern(TRUTH_DT) if replay.source == "template"
-                         else data_pattern(list(replay.segments), TRUTH_DT))
-        reps = max(int(np.ceil(replay.max_duration_s / (rates.size * TRUTH_DT))), 1)
-        period = rates.size * TRUTH_DT
-        load = run_current(cell, x, np.tile(rates, reps)[: int(replay.max_duration_s / TRUTH_DT)] * truth.capacity_ah,
-                           TRUTH_DT, amb, stop_uv=True, reserve_soc=replay.reserve_soc,
-                           phases=[(n, t + r * period) for r in range(reps) for n, t in phases])
-        load.phases = [p for p in load.phases if p[1] <= load.time[-1]]
-    parts.append(load)
-    if schedule.rest_after_s > 0:
-        after = rest(cell, load.last_state, schedule.rest_after_s, TRUTH_DT, amb)
-        after.stop_reason = load.stop_reason
-        parts.append(after)
-    return Record.concat(parts)
+
+def _replay(cell: TruthCell, x, replay: ReplaySpec, dt: float, amb: float) -> Record:
+    """The replayed flight current (at C-rate on the truth pack), repeated until UV, the reserve or the time limit."""
+    from .replay import data_pattern, template_pattern
+
+    rates, phases = template_pattern(dt) if replay.source == "template" else data_pattern(list(replay.segments), dt)
+    period = rates.size * dt
+    reps = max(int(np.ceil(replay.max_duration_s / period)), 1)
+    current = np.tile(rates, reps)[: int(replay.max_duration_s / dt)] * cell.params.capacity_ah
+    rec = run_current(cell, x, current, dt, amb, stop_uv=True, reserve_soc=replay.reserve_soc,
+                      phases=[(n, t + r * period) for r in range(reps) for n, t in phases])
+    rec.phases = [p for p in rec.phases if p[1] <= rec.time[-1]]
+    return rec
 
 
 @lru_cache(maxsize=8)
@@ -187,6 +185,17 @@ class Scenario:
 
     def __repr__(self) -> str:
         return f"Scenario({self.name!r}, kind={self.kind!r})"
+
+    def to_dict(self) -> dict:
+        """Everything that defines the scenario's data, JSON-ready (studies fingerprint it to key their results)."""
+        d = asdict(self.spec)
+        d["truth"]["ocv"] = self.spec.truth.ocv.to_dict()
+        d.pop("file", None)
+        if self.kind == "replay" and self.spec.replay.source == "template":
+            from .replay import load_template
+
+            d["replay"]["template"] = load_template().to_csv(index=False)
+        return d
 
     # ------------------------------------------------------------------ truth
     def truth_record(self) -> Record:

@@ -183,3 +183,24 @@ def prepare(cell: TruthCell, schedule: Schedule, batch: int = 1) -> tuple[np.nda
     if schedule.start_temp_c is not None:
         x[..., TEMP] = schedule.start_temp_c  # e.g. a pack charged in the lab and cold-soaked before the flight
     return x, charge
+
+
+def lab_schedule(cell: TruthCell, schedule: Schedule, load, dt: float = 1.0, x0=None) -> Record:
+    """The paper's schedule: CC-CV charge and rest (unrecorded), then at ``dt`` the recorded end of the rest
+    (``rest_record_s``), the load until it stops (UV, reserve SOC or its end) and the recorded rest after.
+
+    ``load(cell, x, dt, ambient_c) -> Record`` applies the flight pattern; ``x0`` is a state already prepared by
+    :func:`prepare` (to reuse a cached charge)."""
+    x = prepare(cell, schedule)[0] if x0 is None else np.array(x0, dtype=float)
+    amb = schedule.ambient_c
+    parts = []
+    if schedule.rest_record_s > 0:
+        parts.append(rest(cell, x, schedule.rest_record_s, dt, amb))
+        x = parts[-1].last_state
+    flight = load(cell, x, dt, amb)
+    parts.append(flight)
+    if schedule.rest_after_s > 0:
+        after = rest(cell, flight.last_state, schedule.rest_after_s, dt, amb)
+        after.stop_reason = flight.stop_reason
+        parts.append(after)
+    return Record.concat(parts)
