@@ -54,3 +54,15 @@ def convergence_time(time_s, soc_error, band: float = 0.02) -> float:
     if k >= err.size:
         return float("inf")
     return float(time_s[k] - time_s[0])
+
+
+def normalized_error_squared(error, variance, floor: float = 1e-18):
+    """``e² / max(var, floor)``: NEES of a scalar state or NIS of a scalar innovation (finite whenever e is)."""
+    e = np.asarray(error, dtype=float)
+    return e * e / np.maximum(np.asarray(variance, dtype=float), floor)
+
+
+def fraction_within(error, sd, k: float = 3.0, axis=-1):
+    """Fraction of samples with ``|error| ≤ k·sd`` along ``axis``."""
+    inside = np.abs(np.asarray(error, dtype=float)) <= k * np.asarray(sd, dtype=float)
+    return np.mean(inside, axis=axis)

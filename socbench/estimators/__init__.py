@@ -1,0 +1,63 @@
+"""SOC estimators: coulomb counting, EKF, UKF and a particle filter as batched numpy engines, plus filterpy references.
+
+``make_estimator(name, model, noise=None, **options)`` builds one; ``estimator.run(profile, soc0=None, P0=None,
+seed=None) -> Estimate`` runs it over every Monte Carlo run of the profile at once; ``scoring.score(estimate,
+profile)`` scores it. A new filter is one module plus one registry line here.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from ..errors import ConfigError
+from .base import Estimator
+from .estimate import Estimate
+from .noise import DEFAULT_NOISE, SensorNoise
+
+#: name -> "module:Class" (imported on first use)
+ESTIMATORS: dict[str, str] = {
+    "coulomb": "socbench.estimators.coulomb:CoulombCounter",
+    "ekf": "socbench.estimators.ekf:EKF",
+    "ukf": "socbench.estimators.ukf:UKF",
+    "pf": "socbench.estimators.pf:ParticleFilter",
+}
+
+
+def estimator_names() -> list[str]:
+    return list(ESTIMATORS)
+
+
+def estimator_class(name: str):
+    """The class registered as ``name``; a :class:`ConfigError` listing the known names otherwise."""
+    try:
+        module, cls = ESTIMATORS[name].split(":")
+    except (KeyError, AttributeError):
+        raise ConfigError(f"unknown estimator '{name}'; known: {', '.join(ESTIMATORS)}") from None
+    return getattr(importlib.import_module(module), cls)
+
+
+def make_estimator(name: str, model, noise: SensorNoise | None = None, **options) -> Estimator:
+    """Estimator ``name`` on ``model`` with sensor noise ``noise`` (default :data:`DEFAULT_NOISE`) and options."""
+    return estimator_class(name)(model, noise, **options)
+
+
+def make_reference(name: str, model, noise: SensorNoise | None = None, **options) -> Estimator:
+    """The filterpy reference backend of ``name`` (``ekf``, ``ukf``, ``pf``): one trajectory at a time."""
+    from .reference import REFERENCES
+
+    if name not in REFERENCES:
+        raise ConfigError(f"no reference backend for '{name}'; known: {', '.join(REFERENCES)}")
+    return REFERENCES[name](model, noise, **options)
+
+
+__all__ = [
+    "ESTIMATORS",
+    "DEFAULT_NOISE",
+    "Estimate",
+    "Estimator",
+    "SensorNoise",
+    "estimator_class",
+    "estimator_names",
+    "make_estimator",
+    "make_reference",
+]

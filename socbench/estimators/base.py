@@ -1,0 +1,238 @@
+"""The Estimator protocol and the plumbing every filter shares: inputs, initial conditions, output recording.
+
+``Estimator(model, noise=None, **options)`` — configuration only (scikit-learn style); ``run(profile, soc0=None,
+P0=None, seed=None) -> Estimate`` does the work, batched over the profile's Monte Carlo runs. A filter subclass writes
+its time loop in ``_run(inputs, x0, P0, seed)`` with the equations next to the code; this module holds what is not
+specific to one filter:
+
+* :class:`Inputs`   the profile as ``(R, T)`` arrays (current, voltage, temperature), the step lengths;
+* initial state     ``x0 = model.x0(soc0)``; ``soc0`` scalar or ``(R,)`` (default: OCV inverse of the first voltage);
+                    ``P0`` scalar (SOC variance), ``(n,)`` diagonal, ``(n, n)`` or ``(R, n, n)``; by default
+                    ``diag(soc0_sd², state0_sd², …)`` or the model's ``initial_sd`` if it declares one;
+* :class:`Recorder` preallocated outputs, with the freeze of failed runs (outputs repeat their last finite values).
+
+Options common to all filters (all keyword): ``Q``, ``R`` (overrides, see :class:`~.noise.NoiseModel`),
+``gate_alpha`` (χ² gate tail probability, None = off), ``gate_release``, ``var_max``, ``nis_max``, ``psd_floor``,
+``psd_rel_floor``, ``soc0_sd``, ``state0_sd``, ``store_states``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from ..errors import ConfigError, DataError
+from ..profile import Profile
+from .estimate import Estimate
+from .noise import NoiseModel, SensorNoise
+
+COMMON_OPTIONS: dict = {
+    "Q": None,
+    "R": None,
+    "gate_alpha": 1e-6,
+    "gate_release": 10,
+    "var_max": 1.0,
+    "nis_max": 1e10,
+    "psd_floor": 1e-15,
+    "psd_rel_floor": 1e-12,
+    "soc0_sd": 0.1,
+    "state0_sd": 0.01,
+    "store_states": False,
+}
+
+
+@dataclass(frozen=True, eq=False)
+class Inputs:
+    """A profile as the filters consume it: every signal ``(R, T)``; ``temp`` None when the profile has none."""
+
+    time_s: np.ndarray
+    dt: np.ndarray  # (T-1,)
+    current: np.ndarray
+    voltage: np.ndarray
+    temp: np.ndarray | None
+    name: str
+
+    @property
+    def n_runs(self) -> int:
+        return int(self.current.shape[0])
+
+    @property
+    def n(self) -> int:
+        return int(self.time_s.size)
+
+    def temp_at(self, k: int):
+        return None if self.temp is None else self.temp[:, k]
+
+    @classmethod
+    def from_profile(cls, profile: Profile) -> Inputs:
+        if not isinstance(profile, Profile):
+            raise ConfigError(f"expected a Profile, got {type(profile).__name__}")
+        profile.require("voltage_v")
+        R = profile.n_runs
+        T = profile.n
+
+        def full(a):
+            return None if a is None else np.ascontiguousarray(np.broadcast_to(a, (R, T)), dtype=float)
+
+        return cls(profile.time_s, profile.dt, full(profile.current_a), full(profile.voltage_v),
+                   full(profile.temperature_c), profile.name)
+
+
+class Estimator:
+    """Base class: configuration in ``__init__``, work in :meth:`run`."""
+
+    name: ClassVar[str] = ""
+    #: filter-specific options and their defaults (the common ones are in COMMON_OPTIONS)
+    defaults: ClassVar[dict] = {}
+
+    def __init__(self, model, noise: SensorNoise | None = None, **options):
+        for attr in ("step", "output", "n_states", "x0"):
+            if not hasattr(model, attr):
+                raise ConfigError(f"{type(model).__name__} is not a Model (no '{attr}')")
+        known = {**COMMON_OPTIONS, **self.defaults}
+        unknown = sorted(set(options) - set(known))
+        if unknown:
+            raise ConfigError(f"{self.name}: unknown option '{unknown[0]}'; known: {', '.join(sorted(known))}")
+        self.model = model
+        self.options = {**known, **options}
+        self.n = int(model.n_states)
+        self.noise = NoiseModel(noise, self.n, self.options["Q"], self.options["R"])
+        for key in ("var_max", "nis_max", "soc0_sd", "state0_sd"):
+            if not self.options[key] > 0:
+                raise ConfigError(f"{self.name}: option {key} must be > 0, got {self.options[key]!r}")
+        if self.options["gate_alpha"] is not None and not 0 < self.options["gate_alpha"] < 1:
+            raise ConfigError(f"{self.name}: gate_alpha must be in (0, 1) or None")
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(model={getattr(self.model, 'name', '?')!r})"
+
+    # ------------------------------------------------------------------ the one verb
+    def run(self, profile: Profile, soc0=None, P0=None, seed=None) -> Estimate:
+        """Estimate SOC over every run of ``profile`` (see the module docstring for ``soc0`` and ``P0``)."""
+        inputs = Inputs.from_profile(profile)
+        x0 = self.initial_state(inputs, soc0)
+        P0 = self.initial_cov(inputs.n_runs, P0)
+        return self._run(inputs, x0, P0, seed)
+
+    def _run(self, inputs: Inputs, x0: np.ndarray, P0: np.ndarray, seed) -> Estimate:  # pragma: no cover
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ initial conditions
+    def initial_state(self, inputs: Inputs, soc0) -> np.ndarray:
+        R = inputs.n_runs
+        if soc0 is None:
+            soc0 = np.clip(self.model.ocv.inverse(inputs.voltage[:, 0]), 0.0, 1.0)
+        soc0 = np.asarray(soc0, dtype=float)
+        if soc0.ndim > 1 or (soc0.ndim == 1 and soc0.size not in (1, R)):
+            raise ConfigError(f"soc0 must be a scalar or have one value per run ({R}), got shape {soc0.shape}")
+        if not np.all(np.isfinite(soc0)) or np.any((soc0 < 0) | (soc0 > 1)):
+            raise DataError(f"initial SOC must be a fraction in [0, 1], got {soc0.ravel()[0]:g}", column="soc0")
+        return self.model.x0(np.broadcast_to(soc0, (R,)), (R,))
+
+    def initial_cov(self, R: int, P0) -> np.ndarray:
+        n = self.n
+        sd = getattr(self.model, "initial_sd", None)
+        if sd is None:
+            sd = np.full(n, self.options["state0_sd"])
+            sd[0] = self.options["soc0_sd"]
+        base = np.diag(np.asarray(sd, dtype=float) ** 2)
+        if P0 is None:
+            P = base
+        else:
+            P = np.asarray(P0, dtype=float)
+            if P.ndim == 0:
+                P = base.copy()
+                P[0, 0] = float(P0)
+            elif P.shape == (n,):
+                P = np.diag(P)
+            elif P.shape not in ((n, n), (R, n, n)):
+                raise ConfigError(f"P0 must be a scalar, ({n},), ({n}, {n}) or ({R}, {n}, {n}); got {P.shape}")
+        if not np.all(np.isfinite(P)):
+            raise ConfigError("P0 must be finite")
+        P = 0.5 * (P + np.swapaxes(P, -1, -2))
+        if np.min(np.linalg.eigvalsh(P)) <= 0:
+            raise ConfigError("P0 must be positive definite")
+        return np.ascontiguousarray(np.broadcast_to(P, (R, n, n)))
+
+
+class Recorder:
+    """Preallocated ``(R, T)`` outputs; rows of failed runs repeat their last recorded values from failure on."""
+
+    def __init__(self, inputs: Inputs, n_states: int, store_states: bool, soc0, std0):
+        R, T = inputs.n_runs, inputs.n
+        self.inputs = inputs
+        self.soc = np.empty((R, T))
+        self.soc_std = np.empty((R, T))
+        self.v_pred = np.empty((R, T))
+        self.innovation = np.empty((R, T))
+        self.innovation_var = np.empty((R, T))
+        self.clamped = np.zeros((R, T), dtype=bool)
+        self.gated = np.zeros((R, T), dtype=bool)
+        self.x = np.empty((R, T, n_states)) if store_states else None
+        self.P_diag = np.empty((R, T, n_states)) if store_states else None
+        self.failed = np.zeros(R, dtype=bool)
+        self.failed_at = np.full(R, -1)
+        self._soc0 = np.asarray(soc0, dtype=float)
+        self._std0 = np.asarray(std0, dtype=float)
+        self._x0 = None
+
+    def fail(self, k: int, bad: np.ndarray) -> np.ndarray:
+        """Mark runs ``bad`` failed at sample ``k``; returns the (R,) mask of all failed runs."""
+        new = bad & ~self.failed
+        if new.any():
+            self.failed_at[new] = k
+            self.failed |= new
+        return self.failed
+
+    def record(self, k, soc, soc_std, v_pred, innovation, innovation_var, clamped, gated, x=None, P_diag=None):
+        self.soc[:, k] = soc
+        self.soc_std[:, k] = soc_std
+        self.v_pred[:, k] = v_pred
+        self.innovation[:, k] = innovation
+        self.innovation_var[:, k] = innovation_var
+        self.clamped[:, k] = clamped
+        self.gated[:, k] = gated
+        if self.x is not None:
+            self.x[:, k] = x
+            self.P_diag[:, k] = P_diag
+        dead = self.failed
+        if dead.any():
+            self._freeze(k, dead)
+
+    def _freeze(self, k: int, dead: np.ndarray) -> None:
+        if k > 0:
+            for a in (self.soc, self.soc_std, self.v_pred, self.innovation, self.innovation_var):
+                a[dead, k] = a[dead, k - 1]
+            if self.x is not None:
+                self.x[dead, k] = self.x[dead, k - 1]
+                self.P_diag[dead, k] = self.P_diag[dead, k - 1]
+        else:  # failed on the very first sample: the initial guess, a zero innovation
+            self.soc[dead, 0] = np.broadcast_to(self._soc0, dead.shape)[dead]
+            self.soc_std[dead, 0] = np.broadcast_to(self._std0, dead.shape)[dead]
+            self.v_pred[dead, 0] = self.inputs.voltage[dead, 0]
+            self.innovation[dead, 0] = 0.0
+            self.innovation_var[dead, 0] = 1.0
+            if self.x is not None:
+                self.x[dead, 0] = 0.0
+                self.x[dead, 0, 0] = self.soc[dead, 0]
+                self.P_diag[dead, 0] = 0.0
+                self.P_diag[dead, 0, 0] = self.soc_std[dead, 0] ** 2
+        self.clamped[dead, k] = False
+        self.gated[dead, k] = False
+
+    def finish(self, estimator: str, model, info: dict | None = None) -> Estimate:
+        return Estimate(
+            time_s=self.inputs.time_s, soc=self.soc, soc_std=self.soc_std, v_pred=self.v_pred,
+            innovation=self.innovation, innovation_var=self.innovation_var, failed=self.failed.copy(),
+            failed_at=self.failed_at.copy(), clamped=self.clamped, gated=self.gated, x=self.x, P_diag=self.P_diag,
+            estimator=estimator, model=getattr(model, "name", type(model).__name__),
+            state_names=tuple(model.state_names), info=dict(info or {}),
+        )
+
+
+def restore(values: np.ndarray, good: np.ndarray, failed: np.ndarray) -> None:
+    """In place: rows of failed runs take their last good (finite) values, so the batch keeps computing cleanly."""
+    if failed.any():
+        values[failed] = good[failed]

@@ -1,0 +1,143 @@
+"""Sensor noise and the filter covariances derived from it, so nobody tunes Q and R by trial and error.
+
+A current sensor with white noise ``n_k ~ N(0, σ_I²)`` (and a constant offset ``b ~ N(0, σ_b²)``) and a voltage
+sensor with white noise ``v_k ~ N(0, σ_V²)`` enter the model through the input. With the measured current
+``I_m = I + n`` the truth follows ``x_{k+1} = f(x_k, I_m − n_k) ≈ f(x_k, I_m) − B_k n_k`` and
+``y_k = h(x_k, I_m − n_k) + v_k ≈ h(x_k, I_m) − D_k n_k + v_k`` with ``B = ∂f/∂I``, ``D = ∂h/∂I``. Hence::
+
+    Q_k = (σ_I² + σ_b²) · B_k B_kᵀ  +  diag(σ_walk²) · dt_k / dt          (process noise per step)
+    R_k = σ_V² + (σ_I² + σ_b²) · D_k²                                      (measurement noise)
+
+For every model ``B[0] = −η·dt/(3600 Q)`` (= −η κ), so the SOC entry is ``(κ σ_I)²`` per step: the random walk of
+coulomb counting; the RC entries are ``(b_j σ_I)²`` with ``b_j = R_j(1 − e^{−dt/τ_j})``, fully correlated with the SOC
+entry (one noise source). Two approximations, said out loud:
+
+* the same ``n_k`` also enters ``y_k`` (``E[w_k e_kᵀ] = B D σ_I²``); this cross-covariance is ignored, it is
+  ``O(R0·κ)`` and far below ``σ_V``;
+* a constant offset is not white: here it only widens Q and R like extra white noise. The coulomb counter carries its
+  exact growth ``(σ_b · Σ η dt / 3600 Q)²``; filters that must track a real offset need the ``current_bias`` effect.
+
+``soc_walk_sd`` / ``state_walk_sd`` are optional allowances for model error (per sample period ``dt``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ConfigError
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """Sensor noise of a measurement chain (standard deviations per sample).
+
+    voltage_sd       V, white noise on the terminal-voltage reading
+    current_sd       A, white noise on the current reading
+    dt               s, the sample period the walk allowances refer to
+    current_bias_sd  A, standard deviation of a constant current offset
+    soc_walk_sd      SOC random walk per ``dt`` for model error (fraction; 0 = none)
+    state_walk_sd    random walk per ``dt`` on every other state (model units; 0 = none)
+    """
+
+    voltage_sd: float
+    current_sd: float
+    dt: float = 1.0
+    current_bias_sd: float = 0.0
+    soc_walk_sd: float = 0.0
+    state_walk_sd: float = 0.0
+
+    def __post_init__(self):
+        for name in ("voltage_sd", "current_sd", "current_bias_sd", "soc_walk_sd", "state_walk_sd"):
+            v = getattr(self, name)
+            if not np.isfinite(v) or v < 0:
+                raise ConfigError(f"SensorNoise.{name} must be a finite number >= 0, got {v!r}")
+        if not np.isfinite(self.dt) or self.dt <= 0:
+            raise ConfigError(f"SensorNoise.dt must be > 0, got {self.dt!r}")
+        if self.voltage_sd == 0 and self.current_sd == 0:
+            raise ConfigError("SensorNoise needs voltage_sd > 0 or current_sd > 0 (R would be 0)")
+
+    # ------------------------------------------------------------------ derived quantities
+    @property
+    def input_var(self) -> float:
+        """Variance with which the current reading enters Q and R (white noise plus offset)."""
+        return self.current_sd**2 + self.current_bias_sd**2
+
+    @property
+    def has_walk(self) -> bool:
+        return self.soc_walk_sd > 0 or self.state_walk_sd > 0
+
+    def walk_var(self, n_states: int, dt) -> np.ndarray:
+        """Diagonal random-walk allowance ``(…, n)`` for steps ``dt``."""
+        sd = np.full(n_states, self.state_walk_sd)
+        sd[0] = self.soc_walk_sd
+        return sd**2 * (np.asarray(dt, dtype=float)[..., None] / self.dt)
+
+    def process_cov(self, B, dt, input_var: float | None = None) -> np.ndarray:
+        """``Q_k = σ² B Bᵀ + walk``: ``B`` is ``(…, n)``, the result ``(…, n, n)``."""
+        B = np.asarray(B, dtype=float)
+        var = self.input_var if input_var is None else input_var
+        Q = var * B[..., :, None] * B[..., None, :]
+        if self.has_walk:
+            w = self.walk_var(B.shape[-1], dt)
+            idx = np.arange(B.shape[-1])
+            Q[..., idx, idx] += w
+        return Q
+
+    def measurement_var(self, D) -> np.ndarray:
+        """``R_k = σ_V² + σ² D²`` (shape of ``D``)."""
+        D = np.asarray(D, dtype=float)
+        return self.voltage_sd**2 + self.input_var * D * D
+
+
+#: Used when an estimator is given no noise spec: a 10 mV voltage reading and a 0.1 A current reading.
+DEFAULT_NOISE = SensorNoise(voltage_sd=0.01, current_sd=0.1)
+
+
+class NoiseModel:
+    """Q and R for one estimator: derived from a :class:`SensorNoise`, or overridden.
+
+    ``Q`` override: an ``(n, n)`` array (per step, constant) or a callable ``Q(B, dt) -> (…, n, n)``.
+    ``R`` override: a scalar variance [V²] or a callable ``R(D) -> (…)``.
+    """
+
+    def __init__(self, noise: SensorNoise | None, n_states: int, Q=None, R=None):
+        self.sensor = noise if noise is not None else DEFAULT_NOISE
+        if not isinstance(self.sensor, SensorNoise):
+            raise ConfigError(f"noise must be a SensorNoise, got {type(noise).__name__}")
+        self.n = n_states
+        if Q is not None and not callable(Q):
+            Q = np.asarray(Q, dtype=float)
+            if Q.shape != (n_states, n_states) or not np.all(np.isfinite(Q)):
+                raise ConfigError(f"Q must be a finite ({n_states}, {n_states}) array, got shape {Q.shape}")
+            if np.min(np.linalg.eigvalsh(0.5 * (Q + Q.T))) < -1e-12 * max(np.abs(Q).max(), 1e-300):
+                raise ConfigError("Q must be positive semi-definite")
+        if R is not None and not callable(R):
+            R = float(R)
+            if not np.isfinite(R) or R <= 0:
+                raise ConfigError(f"R must be a variance > 0 [V²], got {R!r}")
+        self.Q_override = Q
+        self.R_override = R
+
+    @property
+    def needs_B(self) -> bool:
+        return self.Q_override is None or callable(self.Q_override)
+
+    @property
+    def needs_D(self) -> bool:
+        return self.R_override is None or callable(self.R_override)
+
+    def Q(self, B, dt) -> np.ndarray:
+        if self.Q_override is None:
+            return self.sensor.process_cov(B, dt)
+        if callable(self.Q_override):
+            return np.asarray(self.Q_override(B, dt), dtype=float)
+        return self.Q_override
+
+    def R(self, D, shape=()) -> np.ndarray:
+        if self.R_override is None:
+            return self.sensor.measurement_var(D)
+        if callable(self.R_override):
+            return np.asarray(self.R_override(D), dtype=float)
+        return np.full(shape, self.R_override)

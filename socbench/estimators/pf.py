@@ -1,0 +1,219 @@
+"""Bootstrap particle filter with systematic resampling and roughening, batched: runs × particles in one model call.
+
+Each run carries ``N`` particles ``X_j`` with weights ``w_j`` (Gordon, Salmond & Smith 1993). For each sample k::
+
+    update    Y_j = h(X_j, I_k),  R_j = σ_V² + σ_I² D_j²
+              ŷ = Σ w_j Y_j,   S = Σ w_j (Y_j − ŷ)² + Σ w_j R_j,   e = v_k − ŷ,   NIS = e²/S
+              w_j ← w_j · N(v_k; Y_j, R_j) / Σ(…)          (in the log domain; skipped when the χ² gate rejects)
+              report ẑ = Σ w_j z_j, soc_std² = Σ w_j (z_j − ẑ)²
+    resample  where N_eff = 1/Σ w_j² < threshold·N: systematic resampling, positions (u + i)/N with one uniform u
+              per run, particle i ← the first j with cumsum(w)_j > (u + i)/N; then w_j = 1/N and roughening
+              X_j += K·E·N^(−1/d)·ε  (E = per-state spread max − min of the particles, d = n; Gordon et al. 1993)
+    predict   X_j ← f(X_j, I_k + σ_I ε_j, dt_k)  (+ additive walk or Q-override noise);  z clamped to [0, 1]
+
+The current-noise draw ``ε_j`` makes the process noise exactly the one the sensor spec describes (no Gaussian
+approximation of B·σ_I). With a ``Q`` override the process noise is additive ``N(0, Q)`` instead.
+
+Random numbers are counter-based: everything sample k needs comes from ``default_rng([seed, k + 1])`` in a fixed
+order (u (R,), ε_I (R, N), ε_Q (R, N, n) if additive noise, ε_rough (R, N, n) if any run resamples — always last), the
+initial particles from ``default_rng([seed, 0])``. So a per-run reference (``reference.ReferencePF``) can regenerate
+exactly the numbers of its run without replaying the others.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import ConfigError
+from .base import Estimator, Recorder, restore
+from .estimate import Estimate
+from .safety import Gate, diverged
+
+
+def systematic_indices(weights: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Batched systematic resampling: ``(M, N)`` normalised weights and ``(M,)`` uniforms → ``(M, N)`` indices.
+
+    ``idx[i] = min{j : cumsum(w)_j > (u + i)/N}`` — the rule of ``filterpy.monte_carlo.systematic_resample``,
+    computed with one stable sort per row (exact comparisons, no loop): ``idx[i] = #{j : cumsum_j ≤ pos_i}``.
+    """
+    M, N = weights.shape
+    cum = np.cumsum(weights, axis=1)
+    pos = (u[:, None] + np.arange(N)) / N
+    order = np.argsort(np.concatenate([cum, pos], axis=1), axis=1, kind="stable")  # ties: cumsum entries first
+    is_cum = order < N
+    counts = np.cumsum(is_cum, axis=1)
+    idx = counts[~is_cum].reshape(M, N)  # positions are increasing, so they come out in their own order
+    return np.minimum(idx, N - 1)  # cumsum may end a rounding below 1
+
+
+def roughening_sd(X: np.ndarray, K: float) -> np.ndarray:
+    """``K · (max − min) · N^(−1/d)`` per run and state: ``(…, N, n)`` → ``(…, n)``."""
+    N, d = X.shape[-2], X.shape[-1]
+    return K * (X.max(axis=-2) - X.min(axis=-2)) * N ** (-1.0 / d)
+
+
+def weighted_mean_root(X: np.ndarray, w: np.ndarray):
+    """Weighted mean ``(…, n)`` and a symmetric square root ``(…, n, n)`` of the weighted covariance."""
+    mean = np.einsum("...p,...pi->...i", w, X)
+    d = X - mean[..., None, :]
+    V = np.einsum("...p,...pi,...pj->...ij", w, d, d)
+    lam, U = np.linalg.eigh(0.5 * (V + np.swapaxes(V, -1, -2)))
+    root = (U * np.sqrt(np.maximum(lam, 0.0))[..., None, :]) @ np.swapaxes(U, -1, -2)
+    return mean, root
+
+
+def shrink(X: np.ndarray, mean: np.ndarray, root: np.ndarray, h: float, eps: np.ndarray) -> np.ndarray:
+    """Kernel jitter with shrinkage (Liu & West 2001): ``a X + (1 − a) x̄ + h V^½ ε``, ``a = √(1 − h²)``.
+
+    Keeps the cloud's mean and covariance while giving resampled duplicates distinct values.
+    """
+    a = np.sqrt(1.0 - h * h)
+    return a * X + (1.0 - a) * mean[..., None, :] + h * np.einsum("...ij,...pj->...pi", root, eps)
+
+
+class StepDraws:
+    """Counter-based random numbers of the particle filter (see the module docstring for the order)."""
+
+    def __init__(self, seed, n_runs: int, n_particles: int, n_states: int, perturb_current: bool, additive: bool):
+        if seed is None:
+            seed = int(np.random.SeedSequence().entropy % (2**63))
+        self.seed = int(seed)
+        self.shape = (n_runs, n_particles)
+        self.n = n_states
+        self.perturb_current = perturb_current
+        self.additive = additive
+
+    def initial(self) -> np.ndarray:
+        return np.random.default_rng([self.seed, 0]).standard_normal(self.shape + (self.n,))
+
+    def step(self, k: int):
+        """``(generator, u, eps_current, eps_additive)`` of sample k; draw ε_rough from the generator last."""
+        g = np.random.default_rng([self.seed, k + 1])
+        u = g.random(self.shape[0])
+        eps_i = g.standard_normal(self.shape) if self.perturb_current else None
+        eps_q = g.standard_normal(self.shape + (self.n,)) if self.additive else None
+        return g, u, eps_i, eps_q
+
+    def roughening(self, g) -> np.ndarray:
+        return g.standard_normal(self.shape + (self.n,))
+
+
+class ParticleFilter(Estimator):
+    """Batched bootstrap particle filter."""
+
+    name = "pf"
+    defaults = {"n_particles": 500, "resample_threshold": 0.5, "roughening": 0.2, "kernel_h": 0.0}
+
+    def __init__(self, model, noise=None, **options):
+        super().__init__(model, noise, **options)
+        o = self.options
+        if int(o["n_particles"]) < 2:
+            raise ConfigError("pf: n_particles must be >= 2")
+        if not 0 <= o["resample_threshold"] <= 1:
+            raise ConfigError("pf: resample_threshold must be in [0, 1] (a fraction of n_particles)")
+        if not o["roughening"] >= 0:
+            raise ConfigError("pf: roughening must be >= 0")
+        if not 0 <= o["kernel_h"] < 1:
+            raise ConfigError("pf: kernel_h must be in [0, 1)")
+        if callable(self.noise.Q_override):
+            raise ConfigError("pf: Q must be an (n, n) array for the particle filter (no callable)")
+        self.n_particles = int(o["n_particles"])
+
+    # ------------------------------------------------------------------ process noise
+    def process_noise(self):
+        """``(σ_current or None, additive square root (…, n, n) function of dt or None)``."""
+        sensor, Qo = self.noise.sensor, self.noise.Q_override
+        if Qo is not None:
+            w, V = np.linalg.eigh(0.5 * (Qo + Qo.T))
+            root = V * np.sqrt(np.maximum(w, 0.0))
+            return None, (lambda dt: root)
+        sd_i = np.sqrt(sensor.input_var) if sensor.input_var > 0 else None
+        if sensor.has_walk:
+            return sd_i, (lambda dt: np.diag(np.sqrt(sensor.walk_var(self.n, dt))))
+        return sd_i, None
+
+    def draws(self, seed, n_runs: int) -> StepDraws:
+        sd_i, additive = self.process_noise()
+        return StepDraws(seed, n_runs, self.n_particles, self.n, sd_i is not None, additive is not None)
+
+    # ------------------------------------------------------------------ the time loop
+    def _run(self, inputs, x0, P0, seed=None) -> Estimate:
+        m, opt, noise = self.model, self.options, self.noise
+        R, T, n, N = inputs.n_runs, inputs.n, self.n, self.n_particles
+        sd_i, additive = self.process_noise()
+        draws = self.draws(seed, R)
+        L0 = np.linalg.cholesky(P0)
+        X = x0[:, None, :] + np.einsum("rij,rpj->rpi", L0, draws.initial())
+        pending_clamp = _clamp_particles(X)
+        w = np.full((R, N), 1.0 / N)
+        X_good, w_good = X.copy(), w.copy()
+        rec = Recorder(inputs, n, opt["store_states"], x0[:, 0], np.sqrt(P0[:, 0, 0]))
+        gate = Gate(R, opt["gate_alpha"], opt["gate_release"])
+        threshold = opt["resample_threshold"] * N
+        K_rough, h = opt["roughening"], opt["kernel_h"]
+        resampled = np.zeros(R, dtype=int)
+        with np.errstate(all="ignore"):
+            for k in range(T):
+                g, u, eps_i, eps_q = draws.step(k)
+                ik, tk = inputs.current[:, k], inputs.temp_at(k)
+                tk_p = None if tk is None else tk[:, None]
+                # ---------------------------------------------------------------- update
+                Y, _, D = m.output(X, ik[:, None], tk_p, jac=noise.needs_D)
+                Rk = noise.R(D, (R, N))
+                yhat = np.sum(w * Y, axis=1)
+                S = np.sum(w * (Y - yhat[:, None]) ** 2, axis=1) + np.sum(w * Rk, axis=1)
+                vk = inputs.voltage[:, k]
+                e = vk - yhat
+                nis = e * e / S
+                gated = gate(nis)
+                r = vk[:, None] - Y
+                lw = np.log(w) - 0.5 * r * r / Rk - 0.5 * np.log(Rk)
+                lw -= np.max(lw, axis=1, keepdims=True)
+                w_new = np.exp(lw)
+                w_new /= np.sum(w_new, axis=1, keepdims=True)
+                w = np.where(gated[:, None], w, w_new)
+                mean = np.einsum("rp,rpi->ri", w, X)
+                var = np.einsum("rp,rpi->ri", w, (X - mean[:, None, :]) ** 2)
+                failed = rec.fail(k, diverged(mean, var[:, 0], nis, opt["var_max"], opt["nis_max"]))
+                restore(X, X_good, failed)
+                restore(w, w_good, failed)
+                rec.record(k, mean[:, 0], np.sqrt(var[:, 0]), yhat, e, S, pending_clamp, gated, mean, var)
+                if k + 1 == T:
+                    break
+                # ---------------------------------------------------------------- resample
+                ess = 1.0 / np.sum(w * w, axis=1)
+                rs = (ess < threshold) & ~failed
+                if rs.any():
+                    Xr = X[rs]
+                    if h > 0:
+                        mean_r, root_r = weighted_mean_root(Xr, w[rs])
+                    idx = systematic_indices(w[rs], u[rs])
+                    Xr = np.take_along_axis(Xr, idx[:, :, None], axis=1)
+                    w[rs] = 1.0 / N
+                    resampled += rs
+                    if h > 0:
+                        Xr = shrink(Xr, mean_r, root_r, h, draws.roughening(g)[rs])
+                    elif K_rough > 0:
+                        Xr += roughening_sd(Xr, K_rough)[:, None, :] * draws.roughening(g)[rs]
+                    X[rs] = Xr
+                # ---------------------------------------------------------------- predict
+                i_p = ik[:, None] if sd_i is None else ik[:, None] + sd_i * eps_i
+                X = m.step(X, i_p, inputs.dt[k], tk_p)[0]
+                if additive is not None:
+                    X += np.einsum("ij,rpj->rpi", additive(inputs.dt[k]), eps_q)
+                pending_clamp = _clamp_particles(X)
+                failed = rec.fail(k + 1, ~np.all(np.isfinite(X), axis=(1, 2)))
+                restore(X, X_good, failed)
+                np.copyto(X_good, X, where=~failed[:, None, None])
+                np.copyto(w_good, w, where=~failed[:, None])
+        return rec.finish(self.name, m, {"gate_threshold": gate.threshold, "n_particles": N,
+                                         "resampled": resampled, "seed": draws.seed})
+
+
+def _clamp_particles(X: np.ndarray) -> np.ndarray:
+    """Clip every particle's SOC into [0, 1]; (R,) flag of the runs where it acted."""
+    z = X[..., 0]
+    out = (z < 0.0) | (z > 1.0)
+    if out.any():
+        np.clip(z, 0.0, 1.0, out=z)
+    return out.any(axis=-1)

@@ -1,0 +1,123 @@
+"""Unscented Kalman filter with Merwe scaled sigma points, batched: runs × sigma points in one model call per step.
+
+Sigma points of ``(x, P)`` in ``n`` dimensions (Van der Merwe 2004; filterpy's ``MerweScaledSigmaPoints``)::
+
+    λ = α² (n + κ) − n,   L Lᵀ = (n + λ) P   (Cholesky)
+    X_0 = x,   X_i = x + L[:, i−1],   X_{n+i} = x − L[:, i−1]                         i = 1 … n
+    Wm_0 = λ/(n + λ),   Wc_0 = Wm_0 + 1 − α² + β,   Wm_i = Wc_i = 1/(2(n + λ))
+
+For each sample k::
+
+    update   X = σ(x⁻, P⁻),  Y_i = h(X_i, I_k)          ŷ = Σ Wm_i Y_i
+             S = Σ Wc_i (Y_i − ŷ)² + R_k                 P_xy = Σ Wc_i (X_i − x⁻)(Y_i − ŷ)
+             K = P_xy / S  (0 when gated)               x⁺ = x⁻ + K e,   P⁺ = P⁻ − K S Kᵀ
+             symmetrise, PSD repair, clamp, divergence check
+    predict  X = σ(x⁺, P⁺),  X_i⁻ = f(X_i, I_k, dt_k)   x⁻ = Σ Wm_i X_i⁻
+             P⁻ = Σ Wc_i (X_i⁻ − x⁻)(X_i⁻ − x⁻)ᵀ + Q_k,  symmetrise, PSD repair
+
+``R_k`` and ``Q_k`` come from ``D`` and ``B`` at the mean (sigma point 0), as in the EKF. The update draws fresh sigma
+points from the prior, exactly as filterpy's ``UnscentedKalmanFilter.predict`` leaves them. Defaults α = 1, β = 2,
+κ = 0 keep every weight but Wm_0 positive (small α makes Wc_0 ≈ −1/α², which breaks PSD on 2–5 state models).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import ConfigError
+from .base import Estimator, Recorder, restore
+from .estimate import Estimate
+from .safety import Gate, clamp_soc, diverged, repair_psd, symmetrise
+
+
+def merwe_weights(n: int, alpha: float, beta: float, kappa: float):
+    """``(λ, Wm (2n+1,), Wc (2n+1,))`` of the Merwe scaled sigma points."""
+    lam = alpha**2 * (n + kappa) - n
+    c = 0.5 / (n + lam)
+    Wm = np.full(2 * n + 1, c)
+    Wc = np.full(2 * n + 1, c)
+    Wm[0] = lam / (n + lam)
+    Wc[0] = lam / (n + lam) + (1.0 - alpha**2 + beta)
+    return lam, Wm, Wc
+
+
+def sigma_points(x: np.ndarray, P: np.ndarray, lam: float) -> np.ndarray:
+    """``(…, 2n+1, n)`` sigma points; the offsets are the columns of the lower Cholesky factor of ``(n+λ)P``."""
+    n = x.shape[-1]
+    try:
+        L = np.linalg.cholesky((n + lam) * P)
+    except np.linalg.LinAlgError:  # only reachable after a failed repair: fall back to a symmetric square root
+        w, V = np.linalg.eigh((n + lam) * P)
+        L = V * np.sqrt(np.maximum(w, 0.0))[..., None, :]
+    offsets = np.swapaxes(L, -1, -2)  # row i = column i of L
+    X = np.empty(x.shape[:-1] + (2 * n + 1, n))
+    X[..., 0, :] = x
+    X[..., 1 : n + 1, :] = x[..., None, :] + offsets
+    X[..., n + 1 :, :] = x[..., None, :] - offsets
+    return X
+
+
+class UKF(Estimator):
+    """Batched unscented Kalman filter (Merwe scaled sigma points α, β, κ)."""
+
+    name = "ukf"
+    defaults = {"alpha": 1.0, "beta": 2.0, "kappa": 0.0}
+
+    def __init__(self, model, noise=None, **options):
+        super().__init__(model, noise, **options)
+        n = self.n
+        a, b, kp = self.options["alpha"], self.options["beta"], self.options["kappa"]
+        if not a > 0 or not n + kp > 0:
+            raise ConfigError(f"ukf: need alpha > 0 and n + kappa > 0 (n={n}, alpha={a}, kappa={kp})")
+        self.lam, self.Wm, self.Wc = merwe_weights(n, a, b, kp)
+
+    def _run(self, inputs, x0, P0, seed=None) -> Estimate:
+        m, opt, noise = self.model, self.options, self.noise
+        R, T, n = inputs.n_runs, inputs.n, self.n
+        lam, Wm, Wc = self.lam, self.Wm, self.Wc
+        x, P = x0.copy(), P0.copy()
+        x_good, P_good = x.copy(), P.copy()
+        rec = Recorder(inputs, n, opt["store_states"], x0[:, 0], np.sqrt(P0[:, 0, 0]))
+        gate = Gate(R, opt["gate_alpha"], opt["gate_release"])
+        floors = (opt["psd_floor"], opt["psd_rel_floor"])
+        with np.errstate(all="ignore"):
+            for k in range(T):
+                ik, tk = inputs.current[:, k], inputs.temp_at(k)
+                ik_s = ik[:, None]
+                tk_s = None if tk is None else tk[:, None]
+                # ---------------------------------------------------------------- update
+                X = sigma_points(x, P, lam)
+                Y, _, D = m.output(X, ik_s, tk_s, jac=noise.needs_D)
+                Rk = noise.R(None if D is None else D[:, 0], (R,))
+                yhat = Y @ Wm
+                dY = Y - yhat[:, None]
+                S = (dY * dY) @ Wc + Rk
+                Pxy = np.einsum("rsi,rs->ri", X - x[:, None, :], dY * Wc)
+                e = inputs.voltage[:, k] - yhat
+                nis = e * e / S
+                gated = gate(nis)
+                K = np.where(gated[:, None], 0.0, Pxy / S[:, None])
+                x = x + K * e[:, None]
+                P = P - S[:, None, None] * (K[:, :, None] * K[:, None, :])
+                P, _ = repair_psd(symmetrise(P), *floors)
+                clamped = clamp_soc(x)
+                failed = rec.fail(k, diverged(x, P, nis, opt["var_max"], opt["nis_max"]))
+                restore(x, x_good, failed)
+                restore(P, P_good, failed)
+                rec.record(k, x[:, 0], np.sqrt(P[:, 0, 0]), yhat, e, S, clamped, gated, x, np.diagonal(P, 0, -2, -1))
+                if k + 1 == T:
+                    break
+                # ---------------------------------------------------------------- predict
+                X = sigma_points(x, P, lam)
+                Xf, _, B = m.step(X, ik_s, inputs.dt[k], tk_s, jac=noise.needs_B)
+                Q = noise.Q(None if B is None else B[:, 0], inputs.dt[k])
+                x = np.einsum("s,rsi->ri", Wm, Xf)
+                dX = Xf - x[:, None, :]
+                P = np.einsum("rsi,rsj->rij", dX * Wc[:, None], dX) + Q
+                P, _ = repair_psd(symmetrise(P), *floors)
+                failed = rec.fail(k + 1, diverged(x, P, None, np.inf, np.inf))
+                restore(x, x_good, failed)
+                restore(P, P_good, failed)
+                np.copyto(x_good, x, where=~failed[:, None])
+                np.copyto(P_good, P, where=~failed[:, None, None])
+        return rec.finish(self.name, m, {"gate_threshold": gate.threshold, "lambda": lam})
