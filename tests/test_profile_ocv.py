@@ -114,3 +114,16 @@ def test_voltage_error_stats_definitions():
 def test_chi2_band_contains_its_mean():
     lo, hi = chi2_band(1, 100)
     assert lo < 1.0 < hi and hi - lo < 1.0
+
+
+def test_voltage_level_check_refuses_a_cell_file_against_pack_parameters():
+    from socbench.checks import check_voltage_level
+    from socbench.models import paper_params
+
+    pack = paper_params("thevenin")  # 6S pack, OCV ≈ 16–24.6 V
+    cell = Profile(np.arange(3.0), np.ones(3), np.full(3, 3.7), meta=ProfileMeta(name="cell", source="cell.csv"))
+    with pytest.raises(DataError) as e:
+        check_voltage_level(cell, pack)
+    assert e.value.column == "voltage_v" and e.value.file == "cell.csv"
+    packdata = Profile(np.arange(3.0), np.ones(3), np.full(3, 22.5), meta=ProfileMeta(name="pack"))
+    check_voltage_level(packdata, pack)  # a pack-level file passes

@@ -9,6 +9,7 @@ import json
 
 import pandas as pd
 
+from ..checks import check_voltage_level
 from ..datasets import load
 from ..errors import DataError
 from ..io import atomic_write_frame, atomic_write_text
@@ -39,6 +40,7 @@ def run(args) -> int:
     name, params = resolve_params(args.params)
     if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
         raise DataError(f"--soc0 must be in [0, 1], got {args.soc0}")
+    check_voltage_level(profile, params, f"the '{args.params}' parameter set")
     model = make_model(name, params)
     sim = model.simulate(profile, soc0=args.soc0)
     stats = voltage_error_stats(profile.voltage_v, sim.voltage_v)
