@@ -114,6 +114,8 @@ def load_scenario(name_or_path) -> Scenario:
             kw[key] = d[key]
     for key, cls in SECTIONS.items():
         if key in d:
+            if not isinstance(d[key], dict):
+                raise ConfigError(f"{label}: key '{key}': must be a table")
             table = dict(d[key])
             if key == "replay" and isinstance(table.get("segments"), list):
                 table["segments"] = tuple(table["segments"])

@@ -44,6 +44,8 @@ class ReplaySpec:
 
     def __post_init__(self):
         require(self.source in ("template", "data"), "source", f"must be 'template' or 'data', got {self.source!r}")
+        require(isinstance(self.segments, tuple) and all(isinstance(k, str) for k in self.segments), "segments",
+                f"must be a list of \"log_id#segment\" strings, got {self.segments!r}")
         require(self.source != "data" or len(self.segments) > 0, "segments", "source 'data' needs segment keys")
         require(0 <= self.reserve_soc < 1, "reserve_soc", f"must be in [0, 1), got {self.reserve_soc}")
         require(self.max_duration_s > 0, "max_duration_s", "must be > 0")

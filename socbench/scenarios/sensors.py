@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .config import FieldError, build, require
+from .config import build, require
 
 CHANNELS = ("current", "voltage", "temperature")
 FAULT_KINDS = ("noise", "offset", "gain", "drift", "dropout", "stuck")
@@ -131,19 +131,25 @@ class SensorSpec:
 
     @classmethod
     def from_table(cls, table: dict, file: str, section: str = "sensors") -> SensorSpec:
+        """Build from a TOML table; any problem is one ConfigError line naming ``file`` and the dotted key."""
+        from ..errors import ConfigError
+
+        if not isinstance(table, dict):
+            raise ConfigError(f"{file}: key '{section}': must be a table")
         table = dict(table)
         channels = {}
         for name in CHANNELS:
-            sub = dict(table.pop(name, {}) or {})
+            sub = table.pop(name, {})
             if not isinstance(sub, dict):
-                raise FieldError(name, "must be a table")
-            faults = []
-            for j, f in enumerate(sub.pop("faults", []) or []):
-                faults.append(build(Fault, f, f"{section}.{name}.faults[{j}]", file))
-            if "range" in sub:
-                rng = sub["range"]
-                sub["range"] = tuple(rng) if isinstance(rng, list) else rng
-            channels[name] = build(Channel, sub, f"{section}.{name}", file, skip=("faults",), faults=tuple(faults))
+                raise ConfigError(f"{file}: key '{section}.{name}': must be a table")
+            sub = dict(sub)
+            faults = sub.pop("faults", [])
+            if not isinstance(faults, list):
+                raise ConfigError(f"{file}: key '{section}.{name}.faults': must be an array of tables")
+            faults = tuple(build(Fault, f, f"{section}.{name}.faults[{j}]", file) for j, f in enumerate(faults))
+            if isinstance(sub.get("range"), list):
+                sub["range"] = tuple(sub["range"])
+            channels[name] = build(Channel, sub, f"{section}.{name}", file, skip=("faults",), faults=faults)
         return build(cls, table, section, file, skip=CHANNELS, **channels)
 
     def without_faults(self) -> SensorSpec:
