@@ -18,9 +18,11 @@ one fixed realisation per scenario (``gust_seed``) so that every Monte Carlo run
 Vehicle calibration (documented assumptions; the paper names no airframe): momentum theory gives P ∝ m^{3/2}, so a
 +10 kg payload that roughly doubles the current (ECM_SPEC §1) needs an all-up mass without payload of about 15–17 kg;
 a 10 kg hexacopter would draw 2^{3/2} ≈ 2.8× the power. Defaults: 16 kg including the 2.40 kg pack, six 30-inch
-(0.762 m) rotors, ρ = 1.225 kg/m³ (ISA sea level), FM = 0.70 (good small-rotor figure of merit, Leishman ch. 2:
-0.6–0.75), η_drive = 0.80 (motor × ESC, typical 0.85 × 0.95), avionics 40 W, CdA 0.25 m² frame + 0.10 m² payload,
-κ_cruise = 1.15 (Leishman's induced-power factor), cruise 8 m/s.
+(0.762 m) rotors, ρ = 1.225 kg/m³ (ISA sea level); assumed, not measured: FM = 0.70 (full-scale rotors reach
+0.7–0.8, small propellers are usually quoted at 0.5–0.7), η_drive = 0.80 (motor ≈ 0.85 × ESC ≈ 0.95), avionics 40 W,
+idle 60 W, CdA 0.25 m² frame + 0.10 m² payload, κ_cruise = 1.15 (a typical induced-power factor), cruise 8 m/s.
+On the truth pack at 25 °C this gives (measured, ``socbench scenarios --details``) 50.5 A mean for 24.6 min without
+payload and 111.5 A for 11.1 min with 10 kg: 2.2× the current, 0.45× the flight time.
 """
 
 from __future__ import annotations
