@@ -25,7 +25,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from .base import Model
-from .blocks import R_FLOOR, floor_value, integrator_coefficients, rc_coefficients, soc_step
+from .blocks import R_FLOOR, floor_value, integrator_coefficients, rc_coefficients, soc_rate, soc_step
 
 C0_DISABLED = "disabled"
 C0_AS_PRINTED = "as_printed"
@@ -101,7 +101,7 @@ class RCNetwork(Model):
         x, (i,) = self._broadcast(x, i)
         zp = x[..., 0] if z_params is None else np.broadcast_to(z_params, x.shape[:-1])
         d = np.empty_like(x)
-        d[..., 0] = -np.where(i >= 0, 1.0, self.eta_charge) * i / (3600.0 * self.capacity_ah)
+        d[..., 0] = soc_rate(i, self.capacity_ah, self.eta_charge)
         if self.has_integrator:
             d[..., 1] = i / self.p("C0", zp)[0] if self.c0_mode == C0_AS_PRINTED else 0.0
         for j in range(1, self._n + 1):
