@@ -46,6 +46,41 @@ def systematic_indices(weights: np.ndarray, u: np.ndarray) -> np.ndarray:
     return np.minimum(idx, N - 1)  # cumsum may end a rounding below 1
 
 
+def log_likelihood(v, Y, R):
+    """``log N(v; Y, R)`` up to the constant: ``−(v − Y)²/(2R) − ½ log R``."""
+    r = v - Y
+    return -0.5 * r * r / R - 0.5 * np.log(R)
+
+
+def normalise_log(lw: np.ndarray) -> np.ndarray:
+    """Log-weights shifted so that their exponentials sum to 1 along the last axis."""
+    lw = lw - np.max(lw, axis=-1, keepdims=True)
+    return lw - np.log(np.sum(np.exp(lw), axis=-1, keepdims=True))
+
+
+def ess(lw: np.ndarray) -> np.ndarray:
+    """Effective sample size ``1/Σ w²`` of normalised log-weights."""
+    return 1.0 / np.sum(np.exp(2.0 * lw), axis=-1)
+
+
+def temper_exponent(lw, ll, phi_max, accept, target, iters: int = 24):
+    """Per row: ``phi_max`` where ``ESS(lw + phi_max·ll) ≥ accept``; elsewhere the largest ``φ`` with
+    ``ESS(lw + φ·ll) ≥ target`` (bisection, at least ``phi_max/2^iters``)."""
+    phi = phi_max.copy()
+    bad = ess(normalise_log(lw + phi_max[:, None] * ll)) < accept
+    if not bad.any():
+        return phi
+    lwb, llb = lw[bad], ll[bad]
+    lo, hi = np.zeros(int(bad.sum())), phi_max[bad]
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        good = ess(normalise_log(lwb + mid[:, None] * llb)) >= target
+        lo = np.where(good, mid, lo)
+        hi = np.where(good, hi, mid)
+    phi[bad] = np.maximum(lo, phi_max[bad] * 0.5**iters)
+    return phi
+
+
 def roughening_sd(X: np.ndarray, K: float) -> np.ndarray:
     """``K · (max − min) · N^(−1/d)`` per run and state: ``(…, N, n)`` → ``(…, n)``."""
     N, d = X.shape[-2], X.shape[-1]
@@ -97,12 +132,18 @@ class StepDraws:
     def roughening(self, g) -> np.ndarray:
         return g.standard_normal(self.shape + (self.n,))
 
+    def stage(self, k: int, s: int):
+        """``(u (R,), ε (R, N, n))`` of tempering stage ``s`` at sample ``k`` (a stream of its own)."""
+        g = np.random.default_rng([self.seed, k + 1, s + 1])
+        return g.random(self.shape[0]), g.standard_normal(self.shape + (self.n,))
+
 
 class ParticleFilter(Estimator):
     """Batched bootstrap particle filter."""
 
     name = "pf"
-    defaults = {"n_particles": 500, "resample_threshold": 0.5, "roughening": 0.2, "kernel_h": 0.0}
+    defaults = {"n_particles": 500, "resample_threshold": 0.5, "roughening": 0.2, "kernel_h": 0.0,
+                "max_stages": 8, "temper_threshold": 0.2, "temper_h": 0.5}
 
     def __init__(self, model, noise=None, **options):
         super().__init__(model, noise, **options)
@@ -113,8 +154,8 @@ class ParticleFilter(Estimator):
             raise ConfigError("pf: resample_threshold must be in [0, 1] (a fraction of n_particles)")
         if not o["roughening"] >= 0:
             raise ConfigError("pf: roughening must be >= 0")
-        if not 0 <= o["kernel_h"] < 1:
-            raise ConfigError("pf: kernel_h must be in [0, 1)")
+        if not 0 <= o["kernel_h"] < 1 or not 0 <= o["temper_h"] < 1:
+            raise ConfigError("pf: kernel_h and temper_h must be in [0, 1)")
         if callable(self.noise.Q_override):
             raise ConfigError("pf: Q must be an (n, n) array for the particle filter (no callable)")
         self.n_particles = int(o["n_particles"])
@@ -136,6 +177,51 @@ class ParticleFilter(Estimator):
         sd_i, additive = self.process_noise()
         return StepDraws(seed, n_runs, self.n_particles, self.n, sd_i is not None, additive is not None)
 
+    # ------------------------------------------------------------------ measurement update with tempering
+    def assimilate(self, X, w, ll, gated, v, i, temp, stage_draws):
+        """Weights ``w ∝ w · L`` for the rows not gated, by progressive correction (Oudjane & Musso 2000).
+
+        When the full likelihood ``L = e^ll`` would leave fewer than ``temper_threshold·N`` effective particles (a
+        peaked likelihood on a wide cloud: a far-off start), it is applied in stages ``L^φ1 · L^φ2 ⋯`` (Σφ = 1): each
+        ``φ`` is the largest keeping ``N_eff ≥ resample_threshold·N`` (bisection), and between stages the cloud is
+        resampled (systematic) and spread by the shrinkage kernel (``temper_h``), then ``ll`` re-evaluated on the
+        moved particles. At most ``max_stages`` stages; the last takes what is left. Returns ``(X, w, stages (M,))``.
+        Rows are independent, so a per-run caller (the reference) gets the same numbers from a one-row slice.
+        """
+        opt, N = self.options, X.shape[1]
+        target = opt["resample_threshold"] * N
+        accept = opt["temper_threshold"] * N
+        lw = np.log(w)
+        left = np.where(gated, 0.0, 1.0)
+        stages = np.zeros(X.shape[0], dtype=int)
+        max_stages = max(int(opt["max_stages"]), 1)
+        for s in range(max_stages):
+            active = left > 0
+            if not active.any():
+                break
+            phi = left if s == max_stages - 1 else temper_exponent(lw, ll, left, accept, target)
+            phi = np.where(active, phi, 0.0)
+            lw = normalise_log(lw + phi[:, None] * ll)
+            left = left - phi
+            stages += active
+            part = left > 0
+            if part.any():
+                u, eps = stage_draws(s)
+                w = np.exp(lw)
+                mean, root = weighted_mean_root(X[part], w[part])
+                idx = systematic_indices(w[part], u[part])
+                Xp = shrink(np.take_along_axis(X[part], idx[:, :, None], axis=1), mean, root, opt["temper_h"],
+                            eps[part])
+                _clamp_particles(Xp)
+                X = X.copy()
+                X[part] = Xp
+                lw[part] = -np.log(N)
+                tp = None if temp is None else temp[part][:, None]
+                Yp, _, Dp = self.model.output(Xp, i[part][:, None], tp, jac=self.noise.needs_D)
+                ll = ll.copy()
+                ll[part] = log_likelihood(v[part][:, None], Yp, self.noise.R(Dp, Yp.shape))
+        return X, np.exp(lw), stages
+
     # ------------------------------------------------------------------ the time loop
     def _run(self, inputs, x0, P0, seed=None) -> Estimate:
         m, opt, noise = self.model, self.options, self.noise
@@ -152,6 +238,7 @@ class ParticleFilter(Estimator):
         threshold = opt["resample_threshold"] * N
         K_rough, h = opt["roughening"], opt["kernel_h"]
         resampled = np.zeros(R, dtype=int)
+        staged = np.zeros(R, dtype=int)
         with np.errstate(all="ignore"):
             for k in range(T):
                 g, u, eps_i, eps_q = draws.step(k)
@@ -166,12 +253,9 @@ class ParticleFilter(Estimator):
                 e = vk - yhat
                 nis = e * e / S
                 gated = gate(nis)
-                r = vk[:, None] - Y
-                lw = np.log(w) - 0.5 * r * r / Rk - 0.5 * np.log(Rk)
-                lw -= np.max(lw, axis=1, keepdims=True)
-                w_new = np.exp(lw)
-                w_new /= np.sum(w_new, axis=1, keepdims=True)
-                w = np.where(gated[:, None], w, w_new)
+                X, w, n_stages = self.assimilate(X, w, log_likelihood(vk[:, None], Y, Rk), gated, vk, ik, tk,
+                                                 lambda s, k=k: draws.stage(k, s))
+                staged += n_stages > 1
                 mean = np.einsum("rp,rpi->ri", w, X)
                 var = np.einsum("rp,rpi->ri", w, (X - mean[:, None, :]) ** 2)
                 failed = rec.fail(k, diverged(mean, var[:, 0], nis, opt["var_max"], opt["nis_max"]))
@@ -207,7 +291,7 @@ class ParticleFilter(Estimator):
                 np.copyto(X_good, X, where=~failed[:, None, None])
                 np.copyto(w_good, w, where=~failed[:, None])
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold, "n_particles": N,
-                                         "resampled": resampled, "seed": draws.seed})
+                                         "resampled": resampled, "tempered": staged, "seed": draws.seed})
 
 
 def _clamp_particles(X: np.ndarray) -> np.ndarray:

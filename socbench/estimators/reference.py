@@ -3,7 +3,8 @@
 * :class:`ReferenceEKF` — ``filterpy.kalman.ExtendedKalmanFilter`` with a nonlinear ``predict_x`` (the model's step,
   which also sets ``F`` and ``Q``), ``update(z, HJacobian, Hx, R)`` (filterpy's Joseph form);
 * :class:`ReferenceUKF` — ``filterpy.kalman.UnscentedKalmanFilter`` + ``MerweScaledSigmaPoints``;
-* :class:`ReferencePF` — a per-run bootstrap filter whose resampling is ``filterpy.monte_carlo.systematic_resample``.
+* :class:`ReferencePF` — a per-run bootstrap filter whose resampling is ``filterpy.monte_carlo.systematic_resample``
+  (the rare tempered updates reuse ``ParticleFilter.assimilate`` on a one-row slice: its rows are independent).
 
 Around filterpy's predict/update each reference applies the same safety rules as the batched engines (gate, clamp,
 symmetrise, PSD repair, divergence freeze: ``safety.py``) and records through the same :class:`~.base.Recorder`, so the
@@ -24,7 +25,7 @@ from filterpy.monte_carlo import resampling as fp_resampling
 
 from .base import Estimator, Inputs, Recorder
 from .estimate import Estimate
-from .pf import ParticleFilter, roughening_sd, shrink, weighted_mean_root
+from .pf import ParticleFilter, log_likelihood, roughening_sd, shrink, weighted_mean_root
 from .safety import Gate, clamp_soc, diverged, repair_psd, symmetrise
 from .ukf import UKF
 
@@ -212,10 +213,11 @@ class ReferencePF(ParticleFilter):
             S = np.sum(w * (Y - yhat) ** 2) + np.sum(w * Rk)
             e = v - yhat
             gated = gate(np.array([e * e / S]))
-            if not gated[0]:
-                lw = np.log(w) - 0.5 * (v - Y) ** 2 / Rk - 0.5 * np.log(Rk)
-                w = np.exp(lw - lw.max())
-                w /= np.sum(w)
+            temp_1 = None if temp is None else np.array([temp])
+            Xs, ws, _ = self.assimilate(X[None], w[None], log_likelihood(v, Y, Rk)[None], gated, np.array([v]),
+                                        np.array([i]), temp_1,
+                                        lambda s, k=k: tuple(a[r:r + 1] for a in draws.stage(k, s)))
+            X, w = Xs[0], ws[0]
             mean = w @ X
             var = w @ (X - mean) ** 2
             failed = rec.fail(k, diverged(mean[None], var[:1], np.array([e * e / S]), opt["var_max"], opt["nis_max"]))
