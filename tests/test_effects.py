@@ -130,6 +130,10 @@ def test_hysteresis_saturates_and_separates_rests_by_2M():
     assert hc[-1] == pytest.approx(1.0, abs=1e-5)
     assert sd.soc[-1] == pytest.approx(sc.soc[-1], abs=1e-9)
     assert sc.voltage_v[-1] - sd.voltage_v[-1] == pytest.approx(2 * M, abs=1e-6)
+    # relative to an OCV curve measured on the discharge branch (h_ref = −1): nothing to add after a discharge
+    on_dis = augment(base, [Hysteresis(M=M, M0=0.01, gamma=200.0, h0=0.0, h_ref=-1.0)])
+    y = on_dis.simulate(_profile(dis), soc0=0.6).voltage_v
+    assert y[-1] == pytest.approx(base.simulate(_profile(dis), soc0=0.6).voltage_v[-1], abs=1e-6)
 
 
 def test_capacity_and_coulombic_efficiency_scale_the_soc_change():

@@ -74,7 +74,8 @@ class Effect:
         unknown = sorted(set(values) - set(self.param_names) - set(self.settings))
         if unknown:
             raise ConfigError(f"effect '{self.name}' has no parameter '{unknown[0]}' (have {list(self.param_names)})")
-        self.values = {**self.defaults, **self.settings, **{k: float(v) for k, v in values.items()}}
+        # a value may carry a leading batch axis (one parameter variant per run): the fits simulate variants together
+        self.values = {k: np.asarray(v, dtype=float) for k, v in {**self.defaults, **self.settings, **values}.items()}
 
     def __getitem__(self, key):
         return self.values[key]
@@ -83,7 +84,7 @@ class Effect:
         return type(self)(**{**self.values, **values})
 
     def __repr__(self) -> str:
-        vals = ", ".join(f"{k}={v:.4g}" for k, v in self.values.items())
+        vals = ", ".join(f"{k}={np.array2string(v, precision=4)}" for k, v in self.values.items())
         return f"{type(self).__name__}({vals})"
 
     @property
@@ -184,6 +185,11 @@ class Hysteresis(Effect):
     Jacobians: ``∂h⁺/∂h = A_h``, ``∂h⁺/∂I = ∂A_h/∂I·(h + sgn I)`` with ``∂A_h/∂I = −A_h γ η dt sgn(I)/(3600 Q)``;
     ``∂y/∂h = M``, ``∂y/∂s = M0`` where the current is below Q/100 (else 0). Parameter ``h0`` is the initial ``h``
     (+1: the cell comes from a charge).
+
+    The base model's OCV curve was measured on some branch, so the term is taken relative to it:
+    ``y += M (h − h_ref) + M0 (s − s_ref)`` with the setting ``h_ref`` and ``s_ref = −h_ref``: −1 for rest points taken
+    after discharge steps (HPPC: ``h = −1``, ``s = +1`` there), 0 for the mean of a slow test's two branches.
+    Plett's form is ``h_ref = 0``.
     """
 
     name = "hysteresis"
@@ -191,13 +197,14 @@ class Hysteresis(Effect):
     discrete_states = ("s",)
     param_names = ("M", "M0", "gamma", "h0")
     defaults = {"M": 0.01, "M0": 0.0, "gamma": 50.0, "h0": 0.0}
+    settings = {"h_ref": 0.0}
 
     def bounds(self, model):
         n = n_cells(model)
         return {"M": (0.0, 0.1 * n), "M0": (-0.05 * n, 0.05 * n), "gamma": (1.0, 500.0), "h0": (-1.0, 1.0)}
 
     def initial(self):
-        return np.array([self["h0"], 0.0])
+        return np.stack([self["h0"], np.zeros_like(self["h0"])], axis=-1)
 
     def _decay(self, i, dt, base):
         eta = np.where(i >= 0.0, 1.0, base.eta_charge)
@@ -228,10 +235,10 @@ class Hysteresis(Effect):
     def output_term(self, e, z, i, temp, base, jac):
         moving = np.abs(i) > base.capacity_ah / 100.0
         s = np.where(moving, np.sign(i), e[..., 1])
-        dy = self["M"] * e[..., 0] + self["M0"] * s
+        dy = self["M"] * (e[..., 0] - self["h_ref"]) + self["M0"] * (s + self["h_ref"])
         if not jac:
             return dy, None, None, None
-        He = np.stack([np.full(dy.shape, self["M"]), np.where(moving, 0.0, self["M0"])], axis=-1)
+        He = np.stack([np.broadcast_to(self["M"], dy.shape), np.where(moving, 0.0, self["M0"])], axis=-1)
         return dy, He, np.zeros(dy.shape), np.zeros(dy.shape)
 
 
@@ -251,7 +258,7 @@ class Capacity(Effect):
         return {"cap0": (0.6, 1.6)}
 
     def initial(self):
-        return np.array([self["cap0"]])
+        return self["cap0"][..., None]
 
     def soc_gain(self, e, i, base):
         return e[..., 0], np.ones(e.shape)
@@ -278,7 +285,7 @@ class CurrentBias(Effect):
         return {"b0": (-0.05 * model.capacity_ah, 0.05 * model.capacity_ah)}
 
     def initial(self):
-        return np.array([self["b0"]])
+        return self["b0"][..., None]
 
     def current_offset(self, e):
         return e[..., 0]
@@ -305,11 +312,9 @@ class ExtraRC(Effect):
         return {"R": (1e-6, resistance_scale(model)), "log10_tau": (0.5, 4.0)}
 
     def _coef(self, dt, base):
-        R = max(self["R"], 1e-9)
+        R = np.maximum(self["R"], 1e-9)
         tau = 10.0 ** self["log10_tau"]
-        zero = np.zeros(np.shape(dt))
-        a, b, _, _ = rc_coefficients(np.full(np.shape(dt), R), zero, np.full(np.shape(dt), tau / R), zero, dt,
-                                     base.mode, name="RCx")
+        a, b, _, _ = rc_coefficients(R, 0.0, tau / R, 0.0, dt, base.mode, name="RCx")
         return a, b
 
     def advance(self, e, z, i, dt, temp, base, jac):

@@ -1,0 +1,269 @@
+"""Ranking, augmentation and refit: the forward search over the effects the model lacks.
+
+One round, on the current model ``m`` (the base model, then the base model with the effects added so far):
+
+1. simulate ``m`` on the training part and compute every effect's residual signature
+   (:mod:`socbench.diagnose.signatures`): evidence, and the starting guess of its parameters;
+2. for every candidate effect, fit its parameters — **together with the parameters of the effects already added**
+   (the refit) — inside their physical bounds (:meth:`~socbench.models.effects.Effect.bounds`) on the training part,
+   with :func:`socbench.identify.fit_parameters` (bounded least squares; the base model's parameters stay as fitted on
+   the fit data);
+3. judge it on the held-out part (simulated on the held-out records compressed by
+   :func:`~socbench.identify.compress_profile`, exact at the kept samples, each weighted by the time it stands for;
+   the reported before/after numbers are recomputed on every held-out sample):
+   ``score = ln(MSE_before / MSE_after) − 2·p / n_eff`` (AIC per effective sample, ``p`` the parameters the
+   effect adds, ``n_eff = N·(1 − ρ)/(1 + ρ)`` from the lag-1 autocorrelation ρ of the held-out residual,
+   at least 100 — neighbouring residuals of a voltage fit are far from independent);
+4. add the best-scoring effect if it lowers the held-out RMSE by at least ``min_gain`` (10 %); else stop.
+
+Every candidate gets its signature; the bounded fit (the expensive part) is run for the ``max_fits`` candidates whose
+signatures explain the most residual variance (at least ``MIN_SIGNATURE_R2``): an effect that leaves no trace in the
+residual cannot remove error from it. The others are reported with their signature and no score.
+
+The current-sensor bias gets one more piece of evidence from the data: where the record holds rests (at least
+``REST_MIN_S`` of steady current below C/20), the true current there is zero, so the measured rest current *is* the
+offset; ``b`` is then bounded to that mean ± 3 standard errors (± C/500 for the sensor's resolution).
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..identify import compress_profile, fit_parameters
+from ..models.effects import EFFECTS, augment, make_effect
+from .data import Split
+from .signatures import Trajectory, signatures
+
+#: a rest: at least this long, current below C/20 and steady (within C/200 of its mean)
+REST_MIN_S = 30.0
+MIN_N_EFF = 100.0
+#: a candidate whose signature explains less of the residual variance is not fitted
+MIN_SIGNATURE_R2 = 0.01
+#: compression of the held-out records for scoring and of the training record for the fits
+HELD_COMPRESS = {"max_step_s": 30.0}
+FIT_COMPRESS = {"max_step_s": 60.0}
+
+
+@dataclass
+class Candidate:
+    effect: str
+    score: float
+    rmse_before: float
+    rmse_after: float
+    params: dict
+    signature_r2: float
+    evidence: str
+    effects: tuple = ()  # the fitted effects (all of them) if this candidate were added
+    seconds: float = 0.0
+    held_residual: np.ndarray | None = field(default=None, repr=False)
+
+    def to_dict(self) -> dict:
+        return {"effect": self.effect, "score": round(float(self.score), 6), "evidence": self.evidence,
+                "signature_r2": round(float(self.signature_r2), 6), "rmse_v_before": self.rmse_before,
+                "rmse_v_after": self.rmse_after, "params": self.params, "seconds": round(self.seconds, 3)}
+
+
+def initial_soc(model, profile) -> float:
+    """The reference SOC at the start when the data carry one, else the OCV inverse of the first voltage."""
+    if profile.soc_ref is not None:
+        return float(profile.soc_ref[0])
+    return float(np.clip(model.ocv.inverse(profile.voltage_v[0]), 0.0, 1.0))
+
+
+def held_out(model, split: Split, compressed: bool = False):
+    """``(rmse, residual)`` of ``model`` on the held-out part (each profile simulated from its start).
+
+    ``compressed``: on the compressed records, each kept sample weighted by the time until the next one (the residual
+    returned is then the kept samples'); otherwise on every sample.
+    """
+    res, wts = [], []
+    for prof, k in split.held:
+        soc0 = initial_soc(model, prof)
+        if compressed:
+            comp = compress_profile(prof, **HELD_COMPRESS)
+            p, idx = comp.profile, comp.index
+            keep = idx >= k
+            w = np.append(np.diff(p.time_s), np.median(prof.dt))[keep]
+        else:
+            p, keep, w = prof, np.arange(prof.n) >= k, None
+        sim = model.simulate(p, soc0=soc0)
+        res.append((p.voltage_v - sim.voltage_v)[keep])
+        wts.append(np.ones(int(keep.sum())) if w is None else w)
+    r = np.concatenate(res)
+    w = np.concatenate(wts)
+    r = np.where(np.isfinite(r), r, 10.0)
+    return float(np.sqrt(np.sum(w * r * r) / np.sum(w))), r
+
+
+def effective_samples(r: np.ndarray) -> float:
+    """``N (1 − ρ)/(1 + ρ)`` with ρ the lag-1 autocorrelation, floored at :data:`MIN_N_EFF`."""
+    rc = r - r.mean()
+    den = float(rc @ rc)
+    rho = float(rc[1:] @ rc[:-1]) / den if den > 0 else 0.0
+    rho = min(max(rho, 0.0), 0.999999)
+    return float(min(r.size, max(MIN_N_EFF, r.size * (1 - rho) / (1 + rho))))
+
+
+def rest_current(profile, capacity_ah: float):
+    """``(mean, standard error, seconds)`` of the measured current over the rests, or None without rests."""
+    i = profile.current_a
+    quiet = np.abs(i) < capacity_ah / 20.0
+    edges = np.flatnonzero(np.diff(np.r_[0, quiet.astype(int), 0]))
+    vals, weights = [], []
+    for a, b in zip(edges[::2], edges[1::2]):
+        if b - a < 2:
+            continue
+        seg = i[a:b]
+        dur = profile.time_s[b - 1] - profile.time_s[a]
+        if dur >= REST_MIN_S and np.all(np.abs(seg - seg.mean()) < capacity_ah / 200.0):
+            vals.append(seg)
+            weights.append(dur)
+    if not vals:
+        return None
+    allv = np.concatenate(vals)
+    se = float(np.std(allv) / np.sqrt(allv.size)) if allv.size > 1 else 0.0
+    return float(allv.mean()), se, float(sum(weights))
+
+
+class Search:
+    """The forward search on one base model (see the module docstring)."""
+
+    def __init__(self, base, split: Split, t_ref: float, candidates=None, min_gain: float = 0.10,
+                 max_nfev: int = 20, max_steps: int = 3, max_fits: int = 4, h_ref: float = 0.0):
+        self.base = base
+        self.split = split
+        self.t_ref = float(t_ref)
+        self.candidates = list(candidates or EFFECTS)
+        self.min_gain = min_gain
+        self.max_nfev = max_nfev
+        self.max_steps = max_steps
+        self.max_fits = max_fits
+        self.h_ref = float(h_ref)
+        self.train = split.train
+        self.soc0 = initial_soc(base, self.train)
+        self.bounds = {name: EFFECTS[name]().bounds(base) for name in EFFECTS}
+        self.bias_rest = rest_current(self.train, base.capacity_ah)
+        if self.bias_rest is not None:
+            mean, se, _ = self.bias_rest
+            lo, hi = self.bounds["current_bias"]["b0"]
+            half = 3.0 * se + base.capacity_ah / 500.0
+            self.bounds["current_bias"] = {"b0": (max(lo, mean - half), min(hi, mean + half))}
+
+    # ------------------------------------------------------------------ pieces
+    def _settings(self, name):
+        if name == "temperature":
+            return {"t_ref": self.t_ref}
+        if name == "hysteresis":
+            return {"h_ref": self.h_ref}
+        return {}
+
+    def applicable(self, name: str) -> str | None:
+        """Why ``name`` cannot be a candidate here (None when it can)."""
+        if name == "temperature" and self.train.temperature_c is None:
+            return "no temperature column in the data"
+        try:
+            augment(self.base, [make_effect(name)])
+        except Exception as exc:  # a state the base model already has (e.g. hysteresis in ESC)
+            return str(exc)
+        return None
+
+    def fit(self, specs):
+        """Fit ``[(name, start_values)]`` jointly on the training part; returns ``(effects, LsqResult)``."""
+        names, theta0, lo, hi = [], [], [], []
+        layout = []
+        for name, start in specs:
+            cls = EFFECTS[name]
+            b = self.bounds[name]
+            for p in cls.param_names:
+                names.append(f"{name}.{p}")
+                theta0.append(start.get(p, cls.defaults[p]))
+                lo.append(b[p][0])
+                hi.append(b[p][1])
+            layout.append((name, cls.param_names))
+
+        def build(theta):
+            theta = np.asarray(theta, dtype=float)
+            effects, j = [], 0
+            for name, params in layout:
+                vals = {p: theta[..., j + m] for m, p in enumerate(params)}
+                effects.append(make_effect(name, **vals, **self._settings(name)))
+                j += len(params)
+            return augment(self.base, effects)
+
+        res = fit_parameters(build, self.train, theta0, lo, hi, names=names, soc0=self.soc0,
+                             compress=FIT_COMPRESS, max_nfev=self.max_nfev)
+        model = build(res.theta)
+        return model, res
+
+    # ------------------------------------------------------------------ the search
+    def run(self):
+        """``(final model, steps, rounds, before_rmse)``: steps = accepted candidates, rounds = every round's list."""
+        current = []  # [(name, fitted values)]
+        model = self.base
+        rmse_now, r_now = held_out(model, self.split, compressed=True)
+        before = rmse_now
+        steps, rounds = [], []
+        for _ in range(self.max_steps):
+            traj = Trajectory.simulate(model, self.train, self.soc0)
+            sigs = signatures(model, traj, self.bounds, self.t_ref)
+            n_eff = effective_samples(r_now)
+            cands, ready = [], []
+            for name in self.candidates:
+                if name in [c for c, _ in current]:
+                    continue
+                why = self.applicable(name)
+                if why is not None:
+                    cands.append(Candidate(name, -np.inf, rmse_now, rmse_now, {}, 0.0, f"not applicable: {why}"))
+                else:
+                    ready.append(name)
+            ready.sort(key=lambda n: sigs[n].r2 if n in sigs else 0.0, reverse=True)
+            for rank, name in enumerate(ready):
+                sig = sigs.get(name)
+                r2 = 0.0 if sig is None else sig.r2
+                if rank < self.max_fits and r2 >= MIN_SIGNATURE_R2:
+                    cands.append(self._try(name, current, sig, rmse_now, n_eff))
+                else:
+                    cands.append(Candidate(name, -np.inf, rmse_now, rmse_now, {}, r2,
+                                           f"residual signature {'' if sig is None else sig.regressor} explains "
+                                           f"{100 * r2:.1f} % of the training residual variance: not fitted"))
+            cands.sort(key=lambda c: (c.score, c.signature_r2), reverse=True)
+            rounds.append({"candidates": cands, "signatures": sigs, "trajectory": traj, "model": model})
+            best = cands[0] if cands else None
+            if best is None or not np.isfinite(best.score) or best.score <= 0 \
+                    or best.rmse_after > (1.0 - self.min_gain) * rmse_now:
+                break
+            steps.append(best)
+            current = [(e.name, {p: float(e[p]) for p in e.param_names}) for e in best.effects]
+            model = augment(self.base, best.effects)
+            rmse_now, r_now = best.rmse_after, best.held_residual
+        return model, steps, rounds, before
+
+    def _try(self, name, current, sig, rmse_now, n_eff) -> Candidate:
+        t0 = _time.perf_counter()
+        start = dict(sig.guess) if sig is not None else {}
+        try:
+            model, res = self.fit(current + [(name, start)])
+            rmse_after, r_after = held_out(model, self.split, compressed=True)
+        except Exception as exc:  # a failed fit scores nothing but is reported
+            return Candidate(name, -np.inf, rmse_now, rmse_now, {}, 0.0 if sig is None else sig.r2,
+                             f"fit failed: {type(exc).__name__}: {exc}", seconds=_time.perf_counter() - t0)
+        p = len(EFFECTS[name].param_names)
+        score = float(np.log(rmse_now**2 / max(rmse_after**2, 1e-30)) - 2.0 * p / n_eff)
+        eff = model.effect(name)
+        params = {k: float(eff[k]) for k in eff.param_names}
+        r2 = 0.0 if sig is None else sig.r2
+        regressor = "" if sig is None else sig.regressor
+        evidence = (f"residual signature {regressor}: explains {100 * r2:.0f} % of the training residual variance; "
+                    f"fitted in bounds ({_fmt(params)}): held-out RMSE {1000 * rmse_now:.1f} → "
+                    f"{1000 * rmse_after:.1f} mV ({100 * (1 - rmse_after / rmse_now):+.0f} %)")
+        if name == "current_bias" and self.bias_rest is not None:
+            evidence += f"; rests read {1000 * self.bias_rest[0]:.1f} mA (bounds b to it)"
+        return Candidate(name, score, rmse_now, rmse_after, params, r2, evidence, tuple(model.effects),
+                         _time.perf_counter() - t0, r_after)
+
+
+def _fmt(params: dict) -> str:
+    return ", ".join(f"{k}={v:.4g}" for k, v in params.items())
