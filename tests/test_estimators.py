@@ -126,7 +126,7 @@ def test_matched_truth_converges_and_is_consistent(matched, name):
 @pytest.mark.slow
 def test_pf_matched_truth_converges_and_is_nearly_consistent(matched):
     m, p = matched
-    p = p.slice(0, 900)
+    p = p.slice(0, 720)
     est = make_estimator("pf", m, NOISE, n_particles=200).run(p, soc0=0.7, P0=_p0(m), seed=7)
     assert not est.failed.any()
     err = np.abs(est.soc - p.soc_ref)
