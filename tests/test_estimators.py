@@ -3,6 +3,7 @@ numerical safety (gate, divergence freeze), coulomb counting, scoring, registry.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from unittest import mock
 
 import numpy as np
@@ -152,8 +153,7 @@ def test_mismatched_truth_is_overconfident_but_finite(truth_name, filter_name, n
 def test_wrong_capacity_is_detected_by_nees():
     truth = make_model("thevenin", paper_params("thevenin"))
     p = _realize(truth, 900, 30)
-    wrong = make_model("thevenin", paper_params("thevenin").__class__(
-        **{**paper_params("thevenin").__dict__, "capacity_ah": 22.0 * 1.25}))
+    wrong = make_model("thevenin", replace(paper_params("thevenin"), capacity_ah=22.0 * 1.25))  # 25 % too big
     est = make_estimator("ekf", wrong, NOISE).run(p, soc0=0.9, P0=_p0(wrong, 0.02))
     assert np.all(np.isfinite(est.soc))
     s = score(est, p, skip_s=300.0)
