@@ -20,6 +20,7 @@ from .errors import UserError
 COMMANDS: dict[str, tuple[str, str]] = {
     "models": ("socbench.commands.models", "list the model registry"),
     "simulate": ("socbench.commands.simulate", "simulate a model on a profile and score the voltage"),
+    "fit": ("socbench.commands.fit", "fit a model's parameters to a record (HPPC) and write PARAMS.json"),
     "estimate": ("socbench.commands.estimate", "estimate SOC with coulomb counting, EKF, UKF or PF and score it"),
     "scenarios": ("socbench.commands.scenarios", "list the scenario catalog"),
     "leaderboard": ("socbench.commands.leaderboard", "run the models × estimators × scenarios study and rank it"),

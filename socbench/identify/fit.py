@@ -43,6 +43,9 @@ PAPER_POLY_NUMBERS = range(1, 7)
 REL_STDERR_WARN = 1.0
 #: |correlation| above this flags a pair
 CORR_WARN = 0.99
+#: compression of the record before fitting (see :func:`~socbench.identify.compress.compress_profile`): kept samples
+#: 0, 1, 5, 21, 85, 341 s after every current change, then every 1200 s at most
+FIT_COMPRESSION = {"first_step_s": 1.0, "growth": 4.0, "max_step_s": 1200.0}
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,14 +71,18 @@ class FitResult:
     lsq: LsqResult | None = field(default=None, repr=False)
 
     def fit_summary(self) -> dict:
-        """The ``"fit"`` block of a PARAMS.json file."""
+        """The ``"fit"`` block of a PARAMS.json file (non-finite numbers written as null: strict JSON)."""
+
+        def num(x):
+            return float(x) if np.isfinite(x) else None
+
         return {
             "mode": self.mode,
-            "rmse_v": self.rmse_v,
+            "rmse_v": num(self.rmse_v),
             "n_samples": self.n_samples,
             "seconds": self.seconds,
-            "values": self.values,
-            "stderr": self.stderr,
+            "values": {k: num(v) for k, v in self.values.items()},
+            "stderr": {k: num(v) for k, v in self.stderr.items()},
             "warnings": list(self.warnings),
             "success": bool(self.lsq.success) if self.lsq is not None else None,
         }
@@ -271,6 +278,8 @@ def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
               compress: bool | dict = True, warm_start: bool = True, max_nfev: int | None = None) -> FitResult:
     """Fit model ``name`` to ``profile`` (see the module docstring). Returns a :class:`FitResult`."""
     t0 = _time.perf_counter()
+    if compress is True:
+        compress = dict(FIT_COMPRESSION)
     prob = setup_fit(name, profile, mode, ocv, capacity_ah, soc0, knots, options)
     theta0 = prob.theta0.copy()
     if warm_start and any(not isinstance(f, ConstantForm) for f in prob.forms):

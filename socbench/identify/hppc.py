@@ -281,8 +281,8 @@ def ocv_from_slow_test(profile: Profile, capacity_ah: float | None = None, n_poi
     """Pseudo-OCV branches of a slow (e.g. C/20) discharge and, when present, the following charge.
 
     SOC: the discharge branch runs from 1 (its start) to 0 (its end) over ``Q`` = its discharged charge (or
-    ``capacity_ah``); the charge branch starts at the SOC where the discharge ended and climbs with the charged Ah
-    (coulombic efficiency 1). Each branch is averaged into ``n_points`` SOC bins and made monotone. The mean curve is
+    ``capacity_ah``); the charge branch continues the same charge count, climbing with the charged Ah (coulombic
+    efficiency 1). Each branch is averaged into ``n_points`` SOC bins and made monotone. The mean curve is
     the average of the branches where both exist; above the top of the charge branch (a charge that stops at the
     voltage limit before the full capacity) it is the discharge branch shifted by half the gap at the top of the
     overlap.
@@ -307,8 +307,7 @@ def ocv_from_slow_test(profile: Profile, capacity_ah: float | None = None, n_poi
     charge = mean = None
     if chg.any():
         c0, c1 = max(_intervals(chg), key=lambda r: r[1] - r[0])
-        z_end = 1.0 - (ah[b - 1] - ah[a]) / q
-        z_c = z_end + (ah[c0] - ah[c0:c1]) / q
+        z_c = 1.0 - (ah[c0:c1] - ah[a]) / q  # the same charge count as the discharge branch
         zc, vc = monotone_points(*_binned(z_c, v[c0:c1], n_points))
         charge = OCVCurve(zc, vc, f"C/20 charge branch of {src}")
         grid = zd

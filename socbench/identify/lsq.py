@@ -31,11 +31,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..errors import ConfigError, DataError
+from ..errors import ConfigError, DataError, ModelError
 from ..profile import Profile
 from .compress import compress_profile
 
-#: residual substituted for a non-finite model voltage (V): keeps the optimiser away from unstable parameters
+#: residual substituted for a non-finite model voltage, or for parameters the model rejects (ModelError) [V]: keeps
+#: the optimiser away from unstable parameter regions
 NONFINITE_RESIDUAL = 10.0
 #: largest SOC change of one merged (compressed) step
 MAX_SOC_STEP = 5e-3
@@ -209,13 +210,19 @@ def fit_parameters(
         return r * w if w is not None else r
 
     def simulate_one(theta):
-        model = build(theta)
-        return simulate_voltage(model, t, cur, temp, start_state(model, 0), jumps)
+        try:
+            model = build(theta)
+            return simulate_voltage(model, t, cur, temp, start_state(model, 0), jumps)
+        except (ModelError, ConfigError, FloatingPointError):  # parameters outside the model's admissible region
+            return np.full(t.size, np.nan)
 
     def simulate_many(thetas):
         if use_batch[0]:
-            model = build(thetas)
-            return simulate_voltage(model, t, cur, temp, start_state(model, thetas.shape[0]), jumps)
+            try:
+                model = build(thetas)
+                return simulate_voltage(model, t, cur, temp, start_state(model, thetas.shape[0]), jumps)
+            except (ModelError, ConfigError, FloatingPointError):
+                pass  # one variant is inadmissible: run them one by one so that only it gets the penalty
         return np.stack([simulate_one(th) for th in thetas])
 
     # ---- decide once, on a short prefix, whether the batched path is available and agrees with the plain one

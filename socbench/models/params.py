@@ -72,8 +72,11 @@ class Constant(SocFunction):
         z = np.asarray(z, dtype=float)
         if np.ndim(self.value) == 0:
             return np.full(z.shape, self.value), np.zeros(z.shape)
-        shape = np.broadcast_shapes(z.shape, np.shape(self.value))
-        return np.broadcast_to(np.asarray(self.value, dtype=float), shape).copy(), np.zeros(shape)
+        value = np.asarray(self.value, dtype=float)
+        if value.shape == z.shape:  # the fitting hot path: one parameter variant per state row
+            return value.copy(), np.zeros(z.shape)
+        shape = np.broadcast_shapes(z.shape, value.shape)
+        return np.broadcast_to(value, shape).copy(), np.zeros(shape)
 
     def to_dict(self):
         return {"const": float(self.value)}
@@ -91,7 +94,9 @@ class Polynomial(SocFunction):
 
     def __post_init__(self):
         if np.ndim(self.coeffs) > 1:  # a parameter batch: (..., degree + 1), coefficients on the last axis
-            object.__setattr__(self, "coeffs", np.asarray(self.coeffs, dtype=float))
+            c = np.asarray(self.coeffs, dtype=float)
+            object.__setattr__(self, "coeffs", c)
+            object.__setattr__(self, "_columns", tuple(np.ascontiguousarray(c[..., j]) for j in range(c.shape[-1])))
         else:
             object.__setattr__(self, "coeffs", tuple(float(c) for c in self.coeffs))
 
@@ -103,12 +108,15 @@ class Polynomial(SocFunction):
         z = np.asarray(z, dtype=float)
         zp = np.clip(z, 0.0, 1.0)
         if self.batched:
-            c = np.moveaxis(self.coeffs, -1, 0)  # (degree + 1, *P): c[j] broadcasts against z
-            shape = np.broadcast_shapes(z.shape, c.shape[1:])
+            c = self._columns  # c[j] has the batch shape P and broadcasts against z
+            shape = z.shape if c[0].shape == z.shape else np.broadcast_shapes(z.shape, c[0].shape)
         else:
             c = self.coeffs
             shape = z.shape
-        v = np.full(shape, c[0]) if not self.batched else np.broadcast_to(c[0], shape).copy()
+        if not self.batched:
+            v = np.full(shape, c[0])
+        else:
+            v = c[0].copy() if c[0].shape == shape else np.broadcast_to(c[0], shape).copy()
         d = np.zeros(shape)
         for cj in c[1:]:  # Horner for the value and the derivative together
             d = d * zp + v
