@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from socbench.estimators import Estimate
 from socbench.models import make_model, paper_params
 from socbench.profile import Profile, ProfileMeta
 from socbench.study import Toolkit
@@ -102,18 +103,8 @@ class CountingEstimator:
                 failed[r] = True
                 soc[r, n // 2:] = np.nan  # a real diverged run; the study must not let this reach an aggregate
         innov = profile.voltage_v - vp
-        return _Est(profile.time_s, soc, std, vp, innov, np.full((R, n), 0.005**2), failed)
-
-
-@dataclass(frozen=True, eq=False)
-class _Est:
-    time_s: np.ndarray
-    soc: np.ndarray
-    soc_std: np.ndarray
-    v_pred: np.ndarray
-    innovation: np.ndarray
-    innovation_var: np.ndarray
-    failed: np.ndarray
+        return Estimate(profile.time_s, soc, std, vp, innov, np.full((R, n), 0.005**2), failed,
+                        np.where(failed, n // 2, -1), np.zeros((R, n), bool), np.zeros((R, n), bool))
 
 
 #: counts calls in this process (serial backend) so tests can see what was recomputed
@@ -295,6 +286,14 @@ def test_failed_runs_are_counted_and_no_aggregate_is_nan(tmp_path):
     csv = pd.read_csv(out / "leaderboard.csv")
     partial = csv[csv.failed_runs < csv.n_runs]
     assert len(partial) == 2 and np.isfinite(partial[metrics].to_numpy(dtype=float)).all()
+    # work that raised is kept for the report but retried next time: a fixed fit now succeeds, the thrower throws again
+    CALLS.update(fit=0, cell=0)
+    again = run_study(cfg, tmp_path / "store", toolkit=StandinToolkit(), progress=False)
+    assert CALLS["fit"] == 1  # rint only; thevenin's fit was fine and is reused
+    retried = {(r["row"]["model"], r["row"]["estimator"]) for r in again.cells if r["key"] in again.computed}
+    assert retried == {("rint", "count"), ("rint", "halfbad"), ("rint", "explode"), ("thevenin", "explode")}
+    assert again.frame().set_index(["model", "estimator"]).loc[("rint", "halfbad"), "failed_runs"] == 1
+
     # the stored records are strict JSON (no NaN tokens)
     def no_constants(c):
         raise AssertionError(f"a stored record holds {c}")

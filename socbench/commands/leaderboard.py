@@ -11,6 +11,7 @@ same command after an interrupt resumes where it stopped and recomputes nothing 
 
 from __future__ import annotations
 
+import signal
 import sys
 from pathlib import Path
 
@@ -52,6 +53,10 @@ def build_config(args, toolkit: Toolkit) -> StudyConfig:
     return StudyConfig(models=models, estimators=estimators, scenarios=scenarios, seeds=tuple(range(args.seeds)))
 
 
+def _terminate(signum, frame):
+    raise KeyboardInterrupt
+
+
 def run(args) -> int:
     from ..report import write_report
 
@@ -66,8 +71,12 @@ def run(args) -> int:
     print(f"leaderboard: {len(config.models)} models × {len(config.estimators)} estimators × "
           f"{len(config.scenarios)} scenarios × {len(config.seeds)} seeds = {config.n_cells} cells "
           f"({args.backend} backend) → {out}", flush=True)
-    result = run_study(config, store, backend=args.backend, jobs=args.jobs, scheduler=args.scheduler,
-                       toolkit=toolkit, log=lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
+    previous = signal.signal(signal.SIGTERM, _terminate)  # `kill` stops the study as cleanly as Ctrl-C does
+    try:
+        result = run_study(config, store, backend=args.backend, jobs=args.jobs, scheduler=args.scheduler,
+                           toolkit=toolkit, log=lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     report = write_report(result, out, figures=not args.no_figures)
     failed = sum(rec["row"]["failed_runs"] for rec in result.cells)
     runs = sum(rec["row"]["n_runs"] for rec in result.cells)

@@ -10,11 +10,11 @@ resource errors propagate.
 
 Aggregates of a cell (DESIGN.md leaderboard columns) pool every sample of every run that did not fail:
 
-* ``soc_rmse`` = √mean((ẑ − z)²), ``soc_max_abs`` = max|ẑ − z| over runs and time;
+* ``soc_rmse`` = √mean((ẑ − z)²), ``soc_max_abs`` = max|ẑ − z| over runs and time, ``nis_mean`` = mean(ν²/S),
+  ``nees_mean`` = mean((ẑ − z)²/σ²), ``frac_within_3sigma`` = share of samples with |ẑ − z| ≤ 3σ: from
+  :func:`socbench.estimators.scoring.score` on the runs that did not fail;
 * ``v_mean, v_rmse, v_sd, v_max``: the voltage error ``v_meas − v_pred`` (the filter's predicted voltage, before the
   update) with :func:`socbench.metrics.voltage_error_stats` (SD with N − 1, max = max|e|);
-* ``nis_mean`` = mean(ν²/S), ``nees_mean`` = mean((ẑ − z)²/σ²), ``frac_within_3sigma`` = share of samples with
-  |ẑ − z| ≤ 3σ;
 * ``us_per_step``: wall time of ``estimator.run`` on the batch divided by runs × steps, in µs.
 
 A run fails when the estimator flags it (``Estimate.failed``) or when any of its outputs is not finite. A metric with
@@ -24,6 +24,7 @@ nothing to average (every run failed, or the estimator defines no such quantity,
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -82,6 +83,11 @@ class Toolkit:
         from ..estimators import make_estimator
 
         return make_estimator(estimator, model, noise=noise, **options)
+
+    def score(self, estimate, profile) -> dict:
+        from ..estimators.scoring import score
+
+        return score(estimate, profile)
 
 
 # ---------------------------------------------------------------------- per-process caches
@@ -155,7 +161,7 @@ def compute_cell(toolkit: Toolkit, job: dict) -> dict:
         t1 = time.perf_counter()
         estimate = est.run(profile, soc0, seed=int(job["seed"]))
         elapsed = time.perf_counter() - t1
-        rec.update(reduce_cell(estimate, profile, elapsed))
+        rec.update(reduce_cell(estimate, profile, elapsed, toolkit.score))
         rec["row"] = {**row, **rec["row"]}
     except (KeyboardInterrupt, MemoryError):
         raise
@@ -186,25 +192,25 @@ def _as_runs(a, n_runs: int, T: int):
     return np.broadcast_to(a, (n_runs, T)) if a.ndim < 2 else a.reshape(n_runs, T)
 
 
-def reduce_cell(estimate, profile, elapsed_s: float) -> dict:
-    """One leaderboard row (metric columns + failed_runs), per-run SOC RMSE and a compact trace from a batch."""
+def reduce_cell(estimate, profile, elapsed_s: float, score=None) -> dict:
+    """One leaderboard row (metric columns + failed_runs), per-run SOC RMSE and a compact trace from a batch.
+
+    ``score`` is :func:`socbench.estimators.scoring.score` (SOC, NIS and NEES aggregates over the runs that did not
+    fail); the voltage columns come from :func:`socbench.metrics.voltage_error_stats` on the same runs.
+    """
+    if score is None:
+        from ..estimators.scoring import score
     T = profile.n
     R = profile.n_runs
     truth = _as_runs(profile.soc_ref, R, T)
     meas = _as_runs(profile.voltage_v, R, T)
     soc = _as_runs(estimate.soc, R, T)
-    std = _as_runs(getattr(estimate, "soc_std", None), R, T)
-    vpred = _as_runs(getattr(estimate, "v_pred", None), R, T)
-    nu = _as_runs(getattr(estimate, "innovation", None), R, T)
-    S = _as_runs(getattr(estimate, "innovation_var", None), R, T)
+    std = _as_runs(estimate.soc_std, R, T)
+    vpred = _as_runs(estimate.v_pred, R, T)
 
-    failed = np.zeros(R, dtype=bool)
-    flagged = getattr(estimate, "failed", None)
-    if flagged is not None:
-        failed |= np.broadcast_to(np.asarray(flagged, dtype=bool), (R,))
-    for arr in (soc, std, vpred, nu, S):
-        if arr is not None:
-            failed |= ~np.isfinite(arr).all(axis=1)
+    failed = np.broadcast_to(np.asarray(estimate.failed, dtype=bool), (R,)).copy()
+    for arr in (soc, std, vpred, _as_runs(estimate.innovation, R, T), _as_runs(estimate.innovation_var, R, T)):
+        failed |= ~np.isfinite(arr).all(axis=1)  # belt and braces: a non-finite output is a failed run
     ok = ~failed
 
     row = {c: None for c in METRIC_COLUMNS}
@@ -213,30 +219,21 @@ def reduce_cell(estimate, profile, elapsed_s: float) -> dict:
     run_rmse = [None] * R
     trace = None
     if ok.any():
-        err = soc[ok] - truth[ok]
-        row["soc_rmse"] = float(np.sqrt(np.mean(err * err)))
-        row["soc_max_abs"] = float(np.max(np.abs(err)))
-        for r, e in zip(np.nonzero(ok)[0], np.sqrt(np.mean(err * err, axis=1))):
-            run_rmse[int(r)] = float(e)
-        if vpred is not None and meas is not None:
-            vs = voltage_error_stats(meas[ok].ravel(), vpred[ok].ravel())
-            row.update(v_mean=vs["mean_v"], v_rmse=vs["rmse_v"], v_sd=vs["sd_v"], v_max=vs["max_v"])
-        if nu is not None and S is not None:
-            good = S[ok] > 0
-            if good.any():
-                row["nis_mean"] = float(np.mean(nu[ok][good] ** 2 / S[ok][good]))
-        if std is not None:
-            sd = std[ok]
-            good = sd > 0
-            if good.any():
-                row["nees_mean"] = float(np.mean(err[good] ** 2 / sd[good] ** 2))
-            row["frac_within_3sigma"] = float(np.mean(np.abs(err) <= 3.0 * sd))
+        with np.errstate(all="ignore"):  # failed runs may hold anything; they are masked out of every aggregate
+            sc = score(dataclasses.replace(estimate, failed=failed), profile)
+        for k in ("soc_rmse", "soc_max_abs", "nis_mean", "nees_mean", "frac_within_3sigma"):
+            row[k] = sc.get(k)
+        per_run = sc.get("runs", {}).get("soc_rmse")
+        if per_run is not None:
+            run_rmse = [float(per_run[r]) if ok[r] else None for r in range(R)]
+        vs = voltage_error_stats(meas[ok].ravel(), vpred[ok].ravel())
+        row.update(v_mean=vs["mean_v"], v_rmse=vs["rmse_v"], v_sd=vs["sd_v"], v_max=vs["max_v"])
         r0 = int(np.argmax(ok))
-        trace = make_trace(profile.time_s, soc[r0] - truth[r0], None if std is None else std[r0],
-                           None if meas is None else meas[r0], None if vpred is None else vpred[r0])
+        trace = make_trace(profile.time_s, soc[r0] - truth[r0], std[r0], meas[r0], vpred[r0])
         trace["run"] = r0
     row = {k: (v if k == "failed_runs" else _finite_or_none(v)) for k, v in row.items()}
-    return {"row": row, "trace": trace, "run_soc_rmse": run_rmse, "run_failed": failed.tolist()}
+    return {"row": row, "trace": trace, "run_soc_rmse": [_finite_or_none(x) for x in run_rmse],
+            "run_failed": failed.tolist()}
 
 
 def _compact(a) -> list[float]:

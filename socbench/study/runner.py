@@ -3,6 +3,8 @@
 Order of work: for every scenario the runner builds its characterisation test and fingerprints it; every (model,
 characterisation) pair not yet in the store becomes a fit task; as each fit lands (or is found in the store) the cells
 that need it are submitted. Finished cells are never recomputed: a cell whose key is in the store is reused as is.
+Work that raised (a fit that threw, a cell whose estimator threw) is stored for the report but retried by the next
+invocation, so a transient failure never sticks; runs an estimator flags as diverged are results and are kept.
 On an interrupt the runner stops the workers, records what this invocation computed, and re-raises.
 """
 
@@ -105,7 +107,7 @@ def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", 
     todo: list[tuple] = []
     for ckey, job in cells:
         rec = store.get_cell(ckey)
-        if rec is not None:
+        if rec is not None and not rec.get("error"):
             records[ckey] = rec
             reused.append(ckey)
         else:
@@ -115,7 +117,7 @@ def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", 
     need_fits = {job["fit_key"] for _, job in todo}
     for fkey in list(need_fits) + [k for k in set(fit_of.values()) if k not in need_fits]:
         rec = store.get_fit(fkey)
-        if rec is not None:
+        if rec is not None and rec.get("params") is not None:
             fits[fkey] = rec
     fit_tasks = [k for k in dict.fromkeys(job["fit_key"] for _, job in todo) if k not in fits]
     say(f"{len(cells)} cells: {len(reused)} in the store, {len(todo)} to run; {len(fit_tasks)} fits to compute")
