@@ -58,7 +58,8 @@ def markdown(result, figures: list[str]) -> str:
         f"{len(cfg.seeds)} seeds (seeds {cfg.seeds[0]}–{cfg.seeds[-1]}); models fitted on each scenario's own "
         f"characterisation test (mode '{cfg.fit_mode}'). Backend {result.backend} ({result.jobs} jobs), "
         f"{len(result.computed)} cells computed and {len(result.reused)} reused from the store in "
-        f"{result.seconds:.1f} s.",
+        f"{result.seconds:.1f} s." + (f" **{len(result.stale)} stored fits/cells were computed by other code** "
+                                      "(rerun with `--recompute-stale` to refresh them)." if result.stale else ""),
         "",
         "SOC errors in % of capacity, voltage errors (measured − the filter's predicted voltage before its update) in "
         "mV, pooled over the runs that did not fail. Ranked by failed runs, then SOC RMSE, then voltage RMSE. "

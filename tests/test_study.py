@@ -249,6 +249,21 @@ def test_interrupted_study_resumes_without_recomputing_finished_cells(tmp_path):
     pd.testing.assert_frame_equal(comparable(resumed.frame()), comparable(fresh.frame()))
 
 
+def test_results_of_other_code_are_reported_stale_and_recomputed_on_request(tmp_path):
+    store = tmp_path / "store"
+    first = run_study(small_config(), store, toolkit=StandinToolkit(), progress=False)
+    assert not first.stale
+    victim = store / "cells" / f"{first.computed[0]}.json"
+    rec = json.loads(victim.read_text())
+    victim.write_text(json.dumps({**rec, "code": "older code"}))  # as if a filter had been edited since
+    CALLS.update(fit=0, cell=0)
+    again = run_study(small_config(), store, toolkit=StandinToolkit(), progress=False)
+    assert again.stale == [first.computed[0]] and CALLS["cell"] == 0 and not again.computed
+    fresh = run_study(small_config(), store, toolkit=StandinToolkit(), progress=False, recompute_stale=True)
+    assert fresh.computed == [first.computed[0]] and CALLS["cell"] == 1 and not fresh.stale
+    assert json.loads(victim.read_text())["code"] != "older code"
+
+
 def test_a_corrupt_or_stray_store_file_is_ignored_and_recomputed(tmp_path):
     store = tmp_path / "store"
     first = run_study(small_config(), store, toolkit=StandinToolkit(), progress=False)

@@ -42,6 +42,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--scheduler", help="dask.distributed scheduler address (default: a LocalCluster)")
     parser.add_argument("--out", default=DEFAULT_OUT, help=f"output folder (default ./{DEFAULT_OUT})")
     parser.add_argument("--no-figures", action="store_true", help="skip the figures (tables only)")
+    parser.add_argument("--recompute-stale", action="store_true",
+                        help="recompute stored fits and cells that were computed by a different version of the code")
 
 
 def build_config(args, toolkit: Toolkit) -> StudyConfig:
@@ -74,7 +76,8 @@ def run(args) -> int:
     previous = signal.signal(signal.SIGTERM, _terminate)  # `kill` stops the study as cleanly as Ctrl-C does
     try:
         result = run_study(config, store, backend=args.backend, jobs=args.jobs, scheduler=args.scheduler,
-                           toolkit=toolkit, log=lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
+                           toolkit=toolkit, log=lambda msg: print(f"  {msg}", file=sys.stderr, flush=True),
+                           recompute_stale=args.recompute_stale)
     finally:
         signal.signal(signal.SIGTERM, previous)
     report = write_report(result, out, figures=not args.no_figures)
@@ -82,6 +85,8 @@ def run(args) -> int:
     runs = sum(rec["row"]["n_runs"] for rec in result.cells)
     print(f"{len(result.cells)} cells ({len(result.computed)} computed, {len(result.reused)} reused from the store) "
           f"in {result.seconds:.1f} s; {failed} of {runs} runs failed")
+    if result.stale:
+        print(f"  warning: {len(result.stale)} fits/cells come from other code (--recompute-stale refreshes them)")
     for sentence in report["best"]:
         print(f"  {sentence}")
     print(f"wrote {out / 'leaderboard.csv'}, {out / 'leaderboard.md'} and {len(report['figures'])} figures")

@@ -3,11 +3,11 @@
 A study has two kinds of work:
 
 * a **fit**: one model fitted on one characterisation test (``identify.fit_model(model, hppc, mode)``). Its key
-  hashes the model name, the fit mode, the characterisation's bytes and the fitting code, so scenarios that share a
+  hashes the model name, the fit mode and the characterisation's bytes, so scenarios that share a
   truth cell and a characterisation share the fit;
 * a **cell**: one estimator run on one model over every seed of one scenario, as one batch. Its key hashes the cell's
-  full configuration: model, estimator, scenario name and fingerprint, seeds, the fit key, the store schema, the
-  package version and a fingerprint of the code it runs. A cell is a deterministic function of that configuration
+  full configuration: model, estimator, scenario name and fingerprint, seeds, the fit key, the store schema and the
+  package version. A cell is a deterministic function of that configuration
   (the particle filter's random stream is seeded from the key), so the same key always means the same result, on any
   backend.
 """
@@ -42,8 +42,9 @@ CELL_CODE = ("models", "estimators", "scenarios", "metrics.py", "ocv.py", "profi
 def code_fingerprint(parts: tuple) -> str:
     """SHA-256 of the source and data files of the named parts of socbench.
 
-    Part of every key, so a store never hands back a result computed by other code: editing a filter invalidates the
-    cells (not the fits), editing the identification invalidates both.
+    Stored in every record (not in the key): a result computed by other code is reported as stale, and recomputed on
+    request (``recompute_stale``). Editing a filter makes the cells stale (not the fits); editing the identification
+    makes both stale. Not in the key, so that an edit elsewhere never throws away an interrupted study's progress.
     """
     root = Path(__file__).resolve().parents[1]
     h = hashlib.sha256()
@@ -139,15 +140,15 @@ class StudyConfig:
 
 def fit_config(model: str, char_hash: str, fit_mode: str, version: str) -> dict:
     """The configuration that determines a fit (its key is the hash of this)."""
-    return {"kind": "fit", "schema": STORE_SCHEMA, "version": version, "code": code_fingerprint(FIT_CODE),
-            "model": model, "mode": fit_mode, "characterisation": char_hash}
+    return {"kind": "fit", "schema": STORE_SCHEMA, "version": version, "model": model, "mode": fit_mode,
+            "characterisation": char_hash}
 
 
 def cell_config(model: str, estimator: str, scenario: str, scenario_fp: str, seeds, fit_key: str,
                 options: dict, version: str) -> dict:
     """The configuration that determines a cell (its key is the hash of this)."""
-    return {"kind": "cell", "schema": STORE_SCHEMA, "version": version, "code": code_fingerprint(CELL_CODE),
-            "model": model, "estimator": estimator,
+    return {"kind": "cell", "schema": STORE_SCHEMA, "version": version, "model": model,
+            "estimator": estimator,
             "scenario": scenario, "scenario_fingerprint": scenario_fp, "seeds": [int(s) for s in seeds],
             "fit": fit_key, "estimator_options": dict(options)}
 

@@ -22,7 +22,17 @@ from datetime import datetime, timezone
 from .. import __version__
 from .backends import make_backend
 from .cell import LEADERBOARD_COLUMNS, Toolkit, _scenario, compute_cell, compute_fit
-from .grid import StudyConfig, cell_config, fit_config, profile_fingerprint, seed_from_key, stable_hash
+from .grid import (
+    CELL_CODE,
+    FIT_CODE,
+    StudyConfig,
+    cell_config,
+    code_fingerprint,
+    fit_config,
+    profile_fingerprint,
+    seed_from_key,
+    stable_hash,
+)
 from .store import Store
 
 
@@ -35,6 +45,7 @@ class StudyResult:
     fits: dict = field(default_factory=dict)  # (scenario, model) -> fit record
     computed: list[str] = field(default_factory=list)
     reused: list[str] = field(default_factory=list)
+    stale: list[str] = field(default_factory=list)  # reused fits and cells computed by other code
     seconds: float = 0.0
     backend: str = "serial"
     jobs: int = 1
@@ -70,8 +81,12 @@ def _progress(total: int, enabled: bool | None):
 
 def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", jobs: int | None = None,
               scheduler: str | None = None, toolkit: Toolkit | None = None, progress: bool | None = None,
-              log=None) -> StudyResult:
-    """Run (or resume) ``config`` into ``store``; see the module docstring. ``log(msg)`` receives progress lines."""
+              log=None, recompute_stale: bool = False) -> StudyResult:
+    """Run (or resume) ``config`` into ``store``; see the module docstring. ``log(msg)`` receives progress lines.
+
+    Records computed by other code (see :func:`~.grid.code_fingerprint`) are reused and listed in ``stale``, or
+    recomputed when ``recompute_stale``.
+    """
     t_start = time.perf_counter()
     toolkit = toolkit or Toolkit()
     store = store if isinstance(store, Store) else Store(store)
@@ -102,25 +117,35 @@ def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", 
                        "options": opts, "seed": seed_from_key(ckey), "fit_key": fkey}
                 cells.append((ckey, job))
 
+    fit_code, cell_code = code_fingerprint(FIT_CODE), code_fingerprint(CELL_CODE)
     records: dict[str, dict] = {}
     reused: list[str] = []
+    stale: list[str] = []
     todo: list[tuple] = []
     for ckey, job in cells:
         rec = store.get_cell(ckey)
-        if rec is not None and not rec.get("error"):
+        if rec is not None and not rec.get("error") and not (recompute_stale and rec.get("code") != cell_code):
             records[ckey] = rec
             reused.append(ckey)
+            if rec.get("code") != cell_code:
+                stale.append(ckey)
         else:
             todo.append((ckey, job))
 
     fits: dict[str, dict] = {}
-    need_fits = {job["fit_key"] for _, job in todo}
-    for fkey in list(need_fits) + [k for k in set(fit_of.values()) if k not in need_fits]:
+    for fkey in dict.fromkeys(fit_of.values()):
         rec = store.get_fit(fkey)
         if rec is not None and rec.get("params") is not None:
+            if rec.get("code") != fit_code:
+                if recompute_stale and any(job["fit_key"] == fkey for _, job in todo):
+                    continue
+                stale.append(fkey)
             fits[fkey] = rec
     fit_tasks = [k for k in dict.fromkeys(job["fit_key"] for _, job in todo) if k not in fits]
     say(f"{len(cells)} cells: {len(reused)} in the store, {len(todo)} to run; {len(fit_tasks)} fits to compute")
+    if stale:
+        say(f"warning: {len(stale)} stored fits/cells were computed by other code; reusing them "
+            "(recompute them with --recompute-stale)")
 
     computed: list[str] = []
     waiting: dict[str, list] = {}  # fit key -> cells waiting for it
@@ -139,7 +164,7 @@ def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", 
     def write_log(interrupted: bool):
         store.write_run_log(run_id, {"run_id": run_id, "started": run_id, "interrupted": interrupted,
                                      "backend": backend, "jobs": None if bk is None else bk.jobs,
-                                     "computed": computed, "reused": reused,
+                                     "computed": computed, "reused": reused, "stale": stale,
                                      "seconds": time.perf_counter() - t_start})
 
     try:
@@ -156,13 +181,13 @@ def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", 
                     kind, key, info = pending.pop(handle)
                     result = bk.result(handle)
                     if kind == "fit":
-                        fits[key] = store.put_fit(key, {**result, "config": fit_cfg[key]})
+                        fits[key] = store.put_fit(key, {**result, "config": fit_cfg[key], "code": fit_code})
                         if result.get("error"):
                             say(f"fit of {info} failed: {result['error']}")
                         submit_cells(key)
                     else:
                         records[key] = store.put_cell(key, {**result, "config": {**info, "seeds": list(config.seeds)},
-                                                            "run_id": run_id,
+                                                            "run_id": run_id, "code": cell_code,
                                                             "finished": datetime.now(timezone.utc).isoformat()})
                         computed.append(key)
                     bar.update(1)
@@ -181,6 +206,6 @@ def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", 
 
     fits_by_cell = {sm: fits.get(k) for sm, k in fit_of.items()}
     return StudyResult(config=config, cells=[records[k] for k, _ in cells], fits=fits_by_cell, computed=computed,
-                       reused=reused, seconds=time.perf_counter() - t_start, backend=backend,
+                       reused=reused, stale=stale, seconds=time.perf_counter() - t_start, backend=backend,
                        jobs=1 if bk is None else bk.jobs)
 
