@@ -1,10 +1,12 @@
 """``diagnose``: fit a model on the fit data, find what its residual on the evaluation data lacks, add it, refit.
 
-1. **Fit** the base model on the fit data with :func:`socbench.identify.fit_model`. A fit record whose current never
-   exceeds C/10 is a slow OCV test: it gives the OCV curve (:func:`~socbench.identify.ocv_from_slow_test`, the mean of
-   the charge and discharge branches when both are there) and the capacity, and the model is fitted on the other
-   record(s) with that curve. Nothing is read from names or metadata except the declared capacity.
-2. **Prepare** the evaluation data (:mod:`socbench.diagnose.data`): bins of ≥ ``dt`` s, train / held-out split.
+1. **Fit** the base model on the fit data with :func:`socbench.identify.fit_model`. A fit record that moves most of
+   its charge below C/10 is a slow OCV test: it gives the OCV curve (:func:`~socbench.identify.ocv_from_slow_test`:
+   the mean of the charge and discharge branches when both are there, or with ``slow_ocv="discharge"`` the discharge
+   branch, the paper's convention of rest points taken after discharge steps) and the capacity, and the model is
+   fitted on the other record with that curve. Nothing is read from names or metadata but the declared capacity.
+2. **Prepare** the evaluation data (:mod:`socbench.diagnose.data`): bins of ≥ ``dt`` s — coarser where a record
+   would keep more than ``max_samples`` samples, which bounds the cost of every fit — and the train / held-out split.
 3. **Search** (:mod:`socbench.diagnose.search`): signatures, bounded fits on the training part, held-out scores, the
    forward steps while the held-out RMSE falls by ≥ 10 %.
 4. **SOC** (where the data carry a reference SOC): the EKF on the original and on the augmented model, scored on the
@@ -14,7 +16,7 @@
 from __future__ import annotations
 
 import time as _time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -76,13 +78,16 @@ def _capacity(profile: Profile) -> float | None:
 
 
 def is_slow_test(profile: Profile) -> bool:
-    """Data-only test: the current never exceeds C/10 (C declared, else the largest Ah excursion of the record)."""
+    """Data-only test: at least 80 % of the charge the record moves moves at |I| ≤ C/10 (a slow OCV test; a CV
+    top-off at its start may be faster). C is the declared capacity, else the largest Ah excursion of the record."""
     ah = profile.amp_hours()
     q = _capacity(profile) or float(np.ptp(ah)) or 1.0
-    return float(np.max(np.abs(profile.current_a))) <= SLOW_TEST_C_RATE * q
+    moved = np.abs(profile.current_a[:-1]) * profile.dt
+    slow = np.abs(profile.current_a[:-1]) <= SLOW_TEST_C_RATE * q
+    return bool(moved.sum() > 0 and moved[slow].sum() >= 0.8 * moved.sum())
 
 
-def fit_base(name: str, fit_profiles, mode: str = "constant"):
+def fit_base(name: str, fit_profiles, mode: str = "constant", slow_ocv: str = "mean"):
     """``(model, info)``: the base model fitted on the fit data (see the module docstring)."""
     fit_profiles = list(fit_profiles)
     slow = [p for p in fit_profiles if is_slow_test(p)]
@@ -94,12 +99,16 @@ def fit_base(name: str, fit_profiles, mode: str = "constant"):
     ocv = capacity = None
     info = {"records": [p.name for p in fit_profiles]}
     if slow:
-        s = ocv_from_slow_test(slow[0], capacity_ah=_capacity(slow[0]))
-        ocv = s.best
+        cur = np.abs(slow[0].current_a)
+        moving = cur[cur > 1e-3 * float(cur.max())]
+        # the branches are the runs at the test's typical (median) current, whatever a CV top-off did before
+        s = ocv_from_slow_test(slow[0], capacity_ah=_capacity(slow[0]), i_min=0.5 * float(np.median(moving)))
+        use_mean = slow_ocv == "mean" and s.mean is not None
+        ocv = s.mean if use_mean else s.discharge
         capacity = s.capacity_ah
-        info["ocv"] = f"slow test {slow[0].name}: " + ("mean of both branches" if s.mean is not None else "discharge")
+        info["ocv"] = f"slow test {slow[0].name}: " + ("mean of both branches" if use_mean else "discharge branch")
         # the hysteresis branch the curve lies on: the mean of both (0) or the discharge branch (−1)
-        info["ocv_branch"] = 0.0 if s.mean is not None else -1.0
+        info["ocv_branch"] = 0.0 if use_mean else -1.0
     else:
         info["ocv"] = "HPPC rest points (after discharge steps)"
         info["ocv_branch"] = -1.0
@@ -134,14 +143,23 @@ def soc_errors(model, split: Split, voltage_sd: float) -> dict | None:
     return {"soc_rmse": float(np.sqrt(sq / n))}
 
 
+def _coarse(profile: Profile, dt: float, max_samples: int) -> Profile:
+    """``profile`` on bins of ``dt`` s, coarser if that leaves more than ``max_samples`` samples (fit cost)."""
+    p = bin_average(profile, dt)
+    if p.n > max_samples:
+        p = bin_average(profile, dt * p.n / max_samples)
+    return p
+
+
 def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "constant", dt: float = 1.0,
              train_fraction: float = 0.5, candidates=None, min_gain: float = 0.10, max_steps: int = 3,
-             max_nfev: int = 20, max_fits: int = 4, soc: bool = True) -> Diagnosis:
+             max_nfev: int = 15, max_fits: int = 3, max_samples: int = 1500, slow_ocv: str = "mean",
+             soc: bool = True) -> Diagnosis:
     """Run the whole diagnosis (module docstring). Profiles are :class:`~socbench.profile.Profile` objects."""
     t0 = _time.perf_counter()
-    base, fit_info = fit_base(model_name, fit_profiles, mode)
+    base, fit_info = fit_base(model_name, fit_profiles, mode, slow_ocv)
     t_fit = _time.perf_counter()
-    evals = [bin_average(p, dt) for p in eval_profiles]
+    evals = [_coarse(p, dt, max_samples) for p in eval_profiles]
     for p in evals:
         p.require("voltage_v")
     split = make_split(evals, train_fraction)
@@ -151,10 +169,12 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "const
     # the reported numbers on every held-out sample (the search scored on the compressed records)
     before = held_out(base, split)[0]
     prev = before
+    exact = []
     for s in steps:
-        s.rmse_before, s.rmse_after = prev, held_out(augment(base, s.effects), split)[0]
-        prev = s.rmse_after
-    after = prev
+        now = held_out(augment(base, s.effects), split)[0]
+        exact.append(replace(s, rmse_before=prev, rmse_after=now))
+        prev = now
+    steps, after = exact, prev
     t_search = _time.perf_counter()
     soc_info = {}
     before_d, after_d = {"rmse_v": before}, {"rmse_v": after}

@@ -9,7 +9,7 @@ One round, on the current model ``m`` (the base model, then the base model with 
    with :func:`socbench.identify.fit_parameters` (bounded least squares; the base model's parameters stay as fitted on
    the fit data);
 3. judge it on the held-out part (simulated on the held-out records compressed by
-   :func:`~socbench.identify.compress_profile`, exact at the kept samples, each weighted by the time it stands for;
+   :func:`~socbench.identify.compress_profile`, exact at the kept samples, each weighted by the samples it stands for;
    the reported before/after numbers are recomputed on every held-out sample):
    ``score = ln(MSE_before / MSE_after) − 2·p / n_eff`` (AIC per effective sample, ``p`` the parameters the
    effect adds, ``n_eff = N·(1 − ρ)/(1 + ρ)`` from the lag-1 autocorrelation ρ of the held-out residual,
@@ -76,8 +76,8 @@ def initial_soc(model, profile) -> float:
 def held_out(model, split: Split, compressed: bool = False):
     """``(rmse, residual)`` of ``model`` on the held-out part (each profile simulated from its start).
 
-    ``compressed``: on the compressed records, each kept sample weighted by the time until the next one (the residual
-    returned is then the kept samples'); otherwise on every sample.
+    ``compressed``: on the compressed records, each kept sample weighted by the number of samples it stands for (up
+    to the next kept one), so that both estimate the same per-sample RMSE; otherwise on every sample.
     """
     res, wts = [], []
     for prof, k in split.held:
@@ -86,7 +86,7 @@ def held_out(model, split: Split, compressed: bool = False):
             comp = compress_profile(prof, **HELD_COMPRESS)
             p, idx = comp.profile, comp.index
             keep = idx >= k
-            w = np.append(np.diff(p.time_s), np.median(prof.dt))[keep]
+            w = np.diff(np.append(idx, prof.n))[keep].astype(float)
         else:
             p, keep, w = prof, np.arange(prof.n) >= k, None
         sim = model.simulate(p, soc0=soc0)
@@ -258,7 +258,7 @@ class Search:
         regressor = "" if sig is None else sig.regressor
         evidence = (f"residual signature {regressor}: explains {100 * r2:.0f} % of the training residual variance; "
                     f"fitted in bounds ({_fmt(params)}): held-out RMSE {1000 * rmse_now:.1f} → "
-                    f"{1000 * rmse_after:.1f} mV ({100 * (1 - rmse_after / rmse_now):+.0f} %)")
+                    f"{1000 * rmse_after:.1f} mV ({100 * (1 - rmse_after / rmse_now):.0f} % lower)")
         if name == "current_bias" and self.bias_rest is not None:
             evidence += f"; rests read {1000 * self.bias_rest[0]:.1f} mA (bounds b to it)"
         return Candidate(name, score, rmse_now, rmse_after, params, r2, evidence, tuple(model.effects),
