@@ -56,9 +56,11 @@ class SerialBackend:
         pass
 
 
-def _ignore_sigint() -> None:
-    # Workers leave Ctrl-C to the runner, which stops them itself after the store is consistent.
+def _worker_signals() -> None:
+    # Workers leave Ctrl-C to the runner, which stops them itself after the store is consistent; SIGTERM (how the
+    # runner stops them) must kill them outright, whatever handler a forked worker inherited from its parent.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 class ProcessBackend:
@@ -68,7 +70,7 @@ class ProcessBackend:
 
     def __init__(self, jobs: int | None = None):
         self.jobs = int(jobs or os.cpu_count() or 1)
-        self.pool = cf.ProcessPoolExecutor(max_workers=self.jobs, initializer=_ignore_sigint)
+        self.pool = cf.ProcessPoolExecutor(max_workers=self.jobs, initializer=_worker_signals)
 
     def submit(self, fn, *args):
         return self.pool.submit(fn, *args)
@@ -91,6 +93,9 @@ class ProcessBackend:
                 p.terminate()
         for p in procs:
             p.join(timeout=5)
+            if p.is_alive():
+                p.kill()
+                p.join(timeout=5)
 
 
 class DaskBackend:
