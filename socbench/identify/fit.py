@@ -275,7 +275,8 @@ def _warnings(prob: FitProblem, res: LsqResult, values: dict, stderr: dict) -> l
 
 def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | None = None,
               capacity_ah: float | None = None, soc0: float | None = None, *, knots=None, options: dict | None = None,
-              compress: bool | dict = True, warm_start: bool = True, max_nfev: int | None = None) -> FitResult:
+              compress: bool | dict = True, warm_start: bool = True, max_nfev: int | None = None,
+              time_weighted: bool = False, loss: str = "linear") -> FitResult:
     """Fit model ``name`` to ``profile`` (see the module docstring). Returns a :class:`FitResult`."""
     t0 = _time.perf_counter()
     if compress is True:
@@ -285,12 +286,14 @@ def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
     if warm_start and any(not isinstance(f, ConstantForm) for f in prob.forms):
         const = setup_fit(name, profile, "constant", prob.ocv, prob.capacity_ah, prob.soc0, None, prob.options)
         cres = fit_parameters(const.build, profile, const.theta0, const.lower, const.upper, names=const.labels,
-                              soc0=prob.soc0, soc_jumps=prob.soc_jumps, compress=compress, max_nfev=max_nfev)
+                              soc0=prob.soc0, soc_jumps=prob.soc_jumps, compress=compress, max_nfev=max_nfev,
+                              time_weighted=time_weighted, loss=loss)
         for sl, ct in zip(prob.slices, cres.theta):  # one constant per parameter, in the same order
             theta0[sl] = ct
         theta0 = np.clip(theta0, prob.lower, prob.upper)
     res = fit_parameters(prob.build, profile, theta0, prob.lower, prob.upper, names=prob.labels, soc0=prob.soc0,
-                         soc_jumps=prob.soc_jumps, compress=compress, max_nfev=max_nfev)
+                         soc_jumps=prob.soc_jumps, compress=compress, max_nfev=max_nfev, time_weighted=time_weighted,
+                         loss=loss)
     params = prob.params(res.theta)
     values, stderr = {}, {}
     for s, f, sl in zip(prob.specs, prob.forms, prob.slices):

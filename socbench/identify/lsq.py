@@ -132,7 +132,10 @@ def fit_parameters(
     soc_jumps: np.ndarray | None = None,
     weights: np.ndarray | None = None,
     compress: bool | dict = True,
+    time_weighted: bool = False,
+    loss: str = "linear",
     batch: bool = True,
+    f_scale: float = 0.01,
     diff_step: float = 1e-6,
     max_nfev: int | None = None,
     ftol: float = 1e-6,
@@ -156,6 +159,11 @@ def fit_parameters(
         SOC added after the step into a sample (unrecorded charge at gaps; see :func:`simulate_voltage`).
     weights : array (T,) on the original samples, optional
         Residual weights (e.g. to mask samples with 0).
+    time_weighted : bool
+        Weight each (compressed) sample by the time it stands for, as a fit of the uniformly sampled record would.
+    loss, f_scale :
+        :func:`scipy.optimize.least_squares` loss (``"linear"`` = least squares; ``"soft_l1"``, ``"huber"`` are
+        robust) and its residual scale [V].
     diff_step : float
         Forward-difference step, relative to ``max(1, |θ_j|)``.
     """
@@ -192,6 +200,13 @@ def fit_parameters(
         jumps = np.diff(cum[idx + 1], prepend=0.0)
         jumps[0] = 0.0
     w = None if weights is None else np.asarray(weights, dtype=float)[idx]
+    if time_weighted:
+        # each kept sample stands for the time until the next one: weight its squared residual by that span, as a
+        # fit of the uniformly sampled record would (normalised to a mean weight of 1)
+        last = np.median(np.diff(prof.time_s)) if prof.n > 1 else 1.0
+        dur = np.diff(prof.time_s, append=prof.time_s[-1] + last)
+        tw = np.sqrt(dur / dur.mean())
+        w = tw if w is None else w * tw
     v_meas = prof.voltage_v
     temp = prof.temperature_c
     t, cur = prof.time_s, prof.current_a
@@ -283,8 +298,8 @@ def fit_parameters(
         J = np.zeros((r.size, 0))
         res_x, success, message, nfev = theta0, True, "no parameters", 1
     else:
-        sol = least_squares(fun, theta0, jac=jac, bounds=(lower, upper), method="trf", x_scale="jac",
-                            ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev)
+        sol = least_squares(fun, theta0, jac=jac, bounds=(lower, upper), method="trf", x_scale="jac", loss=loss,
+                            f_scale=f_scale, ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev)
         res_x, success, message, nfev = sol.x, bool(sol.success), str(sol.message), int(sol.nfev)
         r = fun(res_x)
         J = jac(res_x)
