@@ -107,7 +107,7 @@ HIDDEN_CASES = [
 def test_diagnosis_names_the_hidden_effect_and_cuts_the_held_out_error(case):
     effect, base, load, magnitude, v_sd, i_sd, seed = case
     fit, ev = hidden_case(effect, base, load, magnitude, v_sd=v_sd, i_sd=i_sd, seed=seed)
-    assert effect not in (fit.name + ev.name + str(ev.meta))  # the metadata say nothing
+    assert effect not in fit.name + ev.name and not ev.meta.extra and not fit.meta.extra  # metadata silent
     d = diagnose(base, [fit], [ev], max_steps=1, soc=False)
     ranked = [c.effect for c in d.rounds[0]["candidates"]]
     assert d.effects_added == [effect], ranked

@@ -29,6 +29,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--train-fraction", type=float, default=0.5,
                         help="with one evaluation record: the share of its time the effects are fitted on")
     parser.add_argument("--effects", help="comma-separated candidate effects (default: all)")
+    parser.add_argument("--slow-ocv", default="mean", choices=("mean", "discharge"),
+                        help="OCV from a slow test in the fit data: mean of both branches, or the discharge branch")
     parser.add_argument("--no-soc", action="store_true", help="skip the EKF SOC comparison")
     parser.add_argument("--no-figures", action="store_true", help="skip the figures")
 
@@ -49,7 +51,7 @@ def run(args) -> int:
     fit = [load(p, args.format) for p in args.fit]
     evals = [load(p, args.format) for p in args.eval]
     diag = diagnose(args.model, fit, evals, mode=args.mode, dt=args.dt, train_fraction=args.train_fraction,
-                    candidates=candidates, soc=not args.no_soc)
+                    candidates=candidates, slow_ocv=args.slow_ocv, soc=not args.no_soc)
     write_report(diag, args.out, with_figures=not args.no_figures)
     b, a = diag.before, diag.after
     print(f"{args.model}: effects added: {', '.join(diag.effects_added) or 'none'}")

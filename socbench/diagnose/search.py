@@ -18,7 +18,9 @@ One round, on the current model ``m`` (the base model, then the base model with 
 
 Every candidate gets its signature; the bounded fit (the expensive part) is run for the ``max_fits`` candidates whose
 signatures explain the most residual variance (at least ``MIN_SIGNATURE_R2``): an effect that leaves no trace in the
-residual cannot remove error from it. The others are reported with their signature and no score.
+residual cannot remove error from it. Candidates whose signature ties with the last one fitted (R² within 0.01, and
+at least ``TIE_R2``) are fitted too: the SOC-drift effects share one regressor shape up to U(z)/U(1) and charge
+weighting, so their signatures cannot rank them. The others are reported with their signature and no score.
 
 The current-sensor bias gets one more piece of evidence from the data: where the record holds rests (at least
 ``REST_MIN_S`` of steady current below C/20), the true current there is zero, so the measured rest current *is* the
@@ -42,6 +44,8 @@ REST_MIN_S = 30.0
 MIN_N_EFF = 100.0
 #: a candidate whose signature explains less of the residual variance is not fitted
 MIN_SIGNATURE_R2 = 0.01
+#: candidates tied (within 0.01) with the last one fitted are fitted too when their R² is at least this
+TIE_R2 = 0.1
 #: compression of the held-out records for scoring and of the training record for the fits
 HELD_COMPRESS = {"max_step_s": 30.0}
 FIT_COMPRESS = {"max_step_s": 60.0}
@@ -220,10 +224,14 @@ class Search:
                 else:
                     ready.append(name)
             ready.sort(key=lambda n: sigs[n].r2 if n in sigs else 0.0, reverse=True)
+            r2s = [sigs[n].r2 if n in sigs else 0.0 for n in ready]
+            n_fit = min(self.max_fits, len(ready))
+            while n_fit < len(ready) and n_fit > 0 and r2s[n_fit] >= max(TIE_R2, r2s[n_fit - 1] - 0.01):
+                n_fit += 1  # collinear signatures (SOC drifts: capacity, bias, leak, efficiency) are fitted together
             for rank, name in enumerate(ready):
                 sig = sigs.get(name)
-                r2 = 0.0 if sig is None else sig.r2
-                if rank < self.max_fits and r2 >= MIN_SIGNATURE_R2:
+                r2 = r2s[rank]
+                if rank < n_fit and r2 >= MIN_SIGNATURE_R2:
                     cands.append(self._try(name, current, sig, rmse_now, n_eff))
                 else:
                     cands.append(Candidate(name, -np.inf, rmse_now, rmse_now, {}, r2,
