@@ -67,22 +67,25 @@ class OCVCurve:
         pchip = PchipInterpolator(z, v, extrapolate=False)
         # c[m, j]: coefficient of (z - x_j)^(3-m) on segment j
         object.__setattr__(self, "_coef", np.ascontiguousarray(pchip.c.T))  # (segments, 4)
+        object.__setattr__(self, "_inner", np.ascontiguousarray(z[1:-1]))
         d = pchip.derivative()
         object.__setattr__(self, "_slope_lo", float(d(z[0])))
         object.__setattr__(self, "_slope_hi", float(d(z[-1])))
 
     # ------------------------------------------------------------ evaluation
     def _segment(self, z: np.ndarray):
-        j = np.clip(np.searchsorted(self.soc, z, side="right") - 1, 0, self.soc.size - 2)
-        return j, z - self.soc[j]
+        # segment j of z: the interior breakpoints at or below z (= clip(searchsorted(soc) − 1, 0, segments − 1))
+        j = np.searchsorted(self._inner, z, side="right")
+        return j, z - np.take(self.soc, j)
 
     def value_and_slope(self, z) -> tuple[np.ndarray, np.ndarray]:
         """``(U_oc(z), dU_oc/dz)`` with linear extension outside the rest points."""
         z = np.asarray(z, dtype=float)
         j, s = self._segment(z)
-        c = self._coef[j]
-        v = ((c[..., 0] * s + c[..., 1]) * s + c[..., 2]) * s + c[..., 3]
-        dv = (3.0 * c[..., 0] * s + 2.0 * c[..., 1]) * s + c[..., 2]
+        c = np.take(self._coef, j, axis=0)  # (…, 4); np.take is much faster than fancy indexing here
+        c0, c1, c2 = c[..., 0], c[..., 1], c[..., 2]
+        v = ((c0 * s + c1) * s + c2) * s + c[..., 3]
+        dv = (3.0 * c0 * s + 2.0 * c1) * s + c2
         lo, hi = z < self.soc[0], z > self.soc[-1]
         if lo.any() or hi.any():
             v = np.where(lo, self.voltage[0] + self._slope_lo * (z - self.soc[0]), v)
@@ -90,8 +93,20 @@ class OCVCurve:
             dv = np.where(lo, self._slope_lo, np.where(hi, self._slope_hi, dv))
         return v, dv
 
+    def value(self, z) -> np.ndarray:
+        """``U_oc(z)`` alone (the same numbers as :meth:`value_and_slope`, without the slope's work)."""
+        z = np.asarray(z, dtype=float)
+        j, s = self._segment(z)
+        c = np.take(self._coef, j, axis=0)
+        v = ((c[..., 0] * s + c[..., 1]) * s + c[..., 2]) * s + c[..., 3]
+        lo, hi = z < self.soc[0], z > self.soc[-1]
+        if lo.any() or hi.any():
+            v = np.where(lo, self.voltage[0] + self._slope_lo * (z - self.soc[0]), v)
+            v = np.where(hi, self.voltage[-1] + self._slope_hi * (z - self.soc[-1]), v)
+        return v
+
     def __call__(self, z) -> np.ndarray:
-        return self.value_and_slope(z)[0]
+        return self.value(z)
 
     def slope(self, z) -> np.ndarray:
         return self.value_and_slope(z)[1]

@@ -29,7 +29,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..profile import Profile
 from .blocks import ROBUST, STRICT, GuardLog
-from .params import ModelParams
+from .params import ModelParams, Polynomial
 
 #: Reference temperature of the parameter sets [°C] when a profile carries none.
 T_REF_C = 25.0
@@ -75,6 +75,7 @@ class Model(ABC):
         missing = [p for p in self.required_params() if p not in params.values]
         if missing:
             raise ConfigError(f"model '{self.name}' needs parameter '{missing[0]}' (have {sorted(params.values)})")
+        self._plans = {}  # names -> _ParamPlan (a cache of the stacked polynomial coefficients; not model state)
         self.capacity_ah = float(params.capacity_ah)
         self.eta_charge = float(params.eta_charge)
         self.ocv = params.ocv
@@ -146,6 +147,19 @@ class Model(ABC):
         """Parameter ``name`` and its z-derivative at SOC ``z``."""
         return self.params[name].value_and_deriv(z)
 
+    def params_at(self, names: tuple, z, deriv: bool = True):
+        """``(values (m, …), derivatives (m, …) or None)``: the parameters ``names`` at SOC ``z``, stacked first.
+
+        One call per filter step instead of one per parameter: the plain polynomials (the paper's 6th-degree fits)
+        go through one Horner pass over an ``(m, …)`` array, bit-for-bit the values of :meth:`p`; other forms (and
+        parameter batches) are evaluated one by one. ``deriv=False`` skips the derivatives (steps without Jacobians).
+        The parameter axis comes first so that every inner loop runs over the contiguous batch.
+        """
+        plan = self._plans.get(names)
+        if plan is None:
+            plan = self._plans[names] = _ParamPlan([self.params[n] for n in names])
+        return plan(np.asarray(z, dtype=float), deriv)
+
     @staticmethod
     def _broadcast(x, *args):
         x = np.asarray(x, dtype=float)
@@ -187,3 +201,69 @@ class Model(ABC):
                 x = self.step(x, ik, dts[k], tk, guards=log)[0]
         log.samples += int(np.prod(batch, dtype=int)) * T
         return Simulation(profile.time_s, volts, states, self.state_names, log.fractions())
+
+
+class _ParamPlan:
+    """Stacked evaluation of SOC functions: polynomials of one degree (and one parameter-batch shape) share one
+    Horner pass; other forms are evaluated one by one.
+
+    Horner for the value and the derivative together on ``z_p = clip(z, 0, 1)``, derivative 0 outside [0, 1]: the
+    same floating-point operations, in the same order, as :meth:`~socbench.models.params.Polynomial.value_and_deriv`
+    (done in place: on particle clouds the temporaries are large and allocating them costs more than the arithmetic).
+    """
+
+    def __init__(self, funcs):
+        self.funcs = funcs
+        self.m = len(funcs)
+        groups: dict = {}
+        for k, f in enumerate(funcs):
+            if isinstance(f, Polynomial):
+                batch = f.coeffs.shape[:-1] if f.batched else ()
+                groups.setdefault((len(f._columns if f.batched else f.coeffs), batch), []).append(k)
+        # (member indices, batch shape P, coefficients (degree + 1, members, *P))
+        self.groups = [(ks, batch, np.stack([np.moveaxis(np.asarray(funcs[k].coeffs, dtype=float), -1, 0)
+                                             for k in ks], axis=1)) for (_, batch), ks in groups.items()]
+        self.other = [k for k in range(self.m) if not any(k in g[0] for g in self.groups)]
+
+    @staticmethod
+    def _horner(z, batch, coef, deriv):
+        shape = np.broadcast_shapes(z.shape, batch)
+        c = coef.reshape(coef.shape[:2] + (1,) * (len(shape) - len(batch)) + batch)  # c[j] broadcasts to (m, *shape)
+        zp = np.clip(z, 0.0, 1.0)
+        v = np.empty(coef.shape[1:2] + shape)
+        v[...] = c[0]
+        if not deriv:
+            for cj in c[1:]:
+                v *= zp
+                v += cj
+            return v, None
+        d = np.zeros(v.shape)
+        for cj in c[1:]:
+            d *= zp
+            d += v
+            v *= zp
+            v += cj
+        outside = (z < 0.0) | (z > 1.0)
+        if outside.any():
+            d[:, np.broadcast_to(outside, shape)] = 0.0
+        return v, d
+
+    def __call__(self, z, deriv: bool):
+        if len(self.groups) == 1 and not self.other:
+            _, batch, coef = self.groups[0]
+            return self._horner(z, batch, coef, deriv)
+        parts = [None] * self.m
+        for ks, batch, coef in self.groups:
+            v, d = self._horner(z, batch, coef, deriv)
+            for j, k in enumerate(ks):
+                parts[k] = (v[j], None if d is None else d[j])
+        for k in self.other:
+            parts[k] = self.funcs[k].value_and_deriv(z)
+        shape = np.broadcast_shapes(*(p[0].shape for p in parts))
+        out_v = np.empty((self.m,) + shape)
+        out_d = np.empty((self.m,) + shape) if deriv else None
+        for k, (v, d) in enumerate(parts):
+            out_v[k] = v
+            if deriv:
+                out_d[k] = d
+        return out_v, out_d

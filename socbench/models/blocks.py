@@ -76,36 +76,57 @@ def floor_value(p, dp, lower: float, mode: str, guards: GuardLog | None, name: s
     if guards is not None:
         guards.note(name, low)
     if mode == ROBUST and np.any(low):
-        return np.where(low, lower, p), np.where(low, 0.0, dp)
+        return np.where(low, lower, p), None if dp is None else np.where(low, 0.0, dp)
     return p, dp
 
 
 # ----------------------------------------------------------------------------------------------------------- B2
-def rc_coefficients(R, dR, C, dC, dt, mode: str = ROBUST, guards: GuardLog | None = None, name: str = "rc"):
+def rc_coefficients(R, dR, C, dC, dt, mode: str = ROBUST, guards: GuardLog | None = None, name="rc",
+                    derivatives: bool = True):
     """B2 coefficients ``(a, b, a_z, b_z)`` of ``U⁺ = a U + b I`` for branch ``R(z), C(z)`` with z-derivatives.
 
     ``τ = R C``, ``a = e^{−dt/τ}``, ``b = −R·expm1(−dt/τ)``,
     ``τ_z = R' C + R C'``, ``a_z = a·dt·τ_z/τ²``, ``b_z = R'(1 − a) − R a_z``.
     ``τ < 10⁻³ dt`` → algebraic limit ``a = 0, b = R``. ``τ ≤ 0``: strict raises, robust floors ``R ≥ 0, C ≥ 10³ F``.
+
+    Several branches at once: ``name`` a sequence of branch names, one per entry of the first axis of ``R, C``
+    (guards and errors then name the branch). ``derivatives=False`` returns ``a_z = b_z = None`` (``dR, dC`` unused).
     """
     R = np.asarray(R, dtype=float)
     C = np.asarray(C, dtype=float)
+    names = (name,) if isinstance(name, str) else tuple(name)
     bad = (R < 0) | (C <= 0)
     if np.any(bad):
+        which = [0] if len(names) == 1 else [j for j in range(len(names)) if np.any(bad[j])]
         if mode == STRICT:
-            raise ModelError(f"{name}: non-positive time constant (R={np.min(R):.3g} Ω, C={np.min(C):.3g} F)")
+            j = which[0]
+            Rj, Cj = (R, C) if len(names) == 1 else (R[j], C[j])
+            raise ModelError(f"{names[j]}: non-positive time constant (R={np.min(Rj):.3g} Ω, C={np.min(Cj):.3g} F)")
         if guards is not None:
-            guards.note(f"{name}_floor", bad)
-        R, dR = np.where(R < 0, R_FLOOR, R), np.where(R < 0, 0.0, dR)
-        lowC = C < C_FLOOR
-        C, dC = np.where(lowC & bad, C_FLOOR, C), np.where(lowC & bad, 0.0, dC)
+            for j in which:
+                guards.note(f"{names[j]}_floor", bad if len(names) == 1 else bad[j])
+        negR = R < 0
+        lowC = (C < C_FLOOR) & bad
+        R, C = np.where(negR, R_FLOOR, R), np.where(lowC, C_FLOOR, C)
+        if derivatives:
+            dR, dC = np.where(negR, 0.0, dR), np.where(lowC, 0.0, dC)
     tau = R * C
     dt = np.asarray(dt, dtype=float)
     algebraic = tau < TAU_ALGEBRAIC * dt
+    if not algebraic.any():  # the usual case: the same operations without the algebraic-limit selections
+        em = np.expm1(-dt / tau)
+        a = em + 1.0
+        b = -R * em
+        if not derivatives:
+            return a, b, None, None
+        a_z = a * dt * (dR * C + R * dC) / tau**2
+        return a, b, a_z, dR * (1.0 - a) - R * a_z
     safe_tau = np.where(algebraic, 1.0, tau)
     em = np.expm1(-dt / safe_tau)
     a = np.where(algebraic, 0.0, em + 1.0)
     b = np.where(algebraic, R, -R * em)
+    if not derivatives:
+        return a, b, None, None
     tau_z = dR * C + R * dC
     a_z = np.where(algebraic, 0.0, a * dt * tau_z / safe_tau**2)
     b_z = np.where(algebraic, dR, dR * (1.0 - a) - R * a_z)

@@ -45,6 +45,8 @@ class RCNetwork(Model):
             while f"R{n + 1}" in params.values:
                 n += 1
         self._n = n
+        self._branch_params = tuple(f"R{j}" for j in range(1, n + 1)) + tuple(f"C{j}" for j in range(1, n + 1))
+        self._branch_names = tuple(f"RC{j}" for j in range(1, n + 1))
         super().__init__(params, mode)
         self.c0_mode = params.options.get("c0", C0_DISABLED)
         if self.c0_mode not in (C0_DISABLED, C0_AS_PRINTED):
@@ -84,17 +86,20 @@ class RCNetwork(Model):
                 F[..., 1, 0] = g_z * i
                 F[..., 1, 1] = 1.0
                 B[..., 1] = g
-        for j in range(1, self._n + 1):
-            col = self._first_branch + j - 1
-            a, b, a_z, b_z = rc_coefficients(
-                *self.p(f"R{j}", z), *self.p(f"C{j}", z), dt, self.mode, guards, name=f"RC{j}"
-            )
-            u = x[..., col]
-            xn[..., col] = a * u + b * i
+        n = self._n
+        if n:  # every branch at once: parameters stacked on a first axis (n, …), one B2 evaluation
+            vals, ders = self.params_at(self._branch_params, z, deriv=jac)
+            a, b, a_z, b_z = rc_coefficients(vals[:n], None if ders is None else ders[:n], vals[n:],
+                                             None if ders is None else ders[n:], dt, self.mode, guards,
+                                             name=self._branch_names, derivatives=jac)
+            cols = slice(self._first_branch, self._first_branch + n)
+            u = np.moveaxis(x[..., cols], -1, 0)
+            np.moveaxis(xn[..., cols], -1, 0)[...] = a * u + b * i
             if jac:
-                F[..., col, 0] = a_z * u + b_z * i
-                F[..., col, col] = a
-                B[..., col] = b
+                idx = np.arange(self._first_branch, self._first_branch + n)
+                F[..., idx, 0] = np.moveaxis(a_z * u + b_z * i, 0, -1)
+                F[..., idx, idx] = np.moveaxis(a, 0, -1)
+                np.moveaxis(B[..., cols], -1, 0)[...] = b
         return (xn, F, B) if jac else (xn, None, None)
 
     def dxdt(self, x, i, temp=None, z_params=None):
@@ -110,14 +115,26 @@ class RCNetwork(Model):
             d[..., col] = -x[..., col] / (R * C) + i / C
         return d
 
+    @staticmethod
+    def _polarisation(x):
+        """``U0 + Σ Uj``, added column by column (a last-axis ``sum`` over 1–3 entries is slow on large batches)."""
+        if x.shape[-1] == 1:
+            return np.zeros(x.shape[:-1])
+        total = x[..., 1].copy()
+        for col in range(2, x.shape[-1]):
+            total += x[..., col]
+        return total
+
     def output(self, x, i, temp=None, jac=False, guards=None):
         x, (i,) = self._broadcast(x, i)
         z = x[..., 0]
+        if not jac:
+            r0 = floor_value(self.params_at(("R0",), z, deriv=False)[0][0], None, R_FLOOR, self.mode, guards,
+                             "R0_floor")[0]
+            return self.ocv.value(z) - r0 * i - self._polarisation(x), None, None
         u, du = self.ocv.value_and_slope(z)
         r0, dr0 = floor_value(*self.p("R0", z), R_FLOOR, self.mode, guards, "R0_floor")
-        y = u - r0 * i - x[..., 1:].sum(axis=-1)
-        if not jac:
-            return y, None, None
+        y = u - r0 * i - self._polarisation(x)
         H = np.full(x.shape, -1.0)
         H[..., 0] = du - dr0 * i
         return y, H, -r0
