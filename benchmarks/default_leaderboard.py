@@ -21,6 +21,23 @@ import time
 from pathlib import Path
 
 
+def breakdown(store: Path) -> dict:
+    """Worker time spent on fits and on cells, from the records in the store (complete or not)."""
+
+    def seconds(kind):
+        out = []
+        for p in (store / kind).glob("*.json"):
+            try:
+                out.append(float(json.loads(p.read_text()).get("seconds") or 0.0))
+            except (json.JSONDecodeError, OSError):
+                continue
+        return out
+
+    fits, cells = seconds("fits"), seconds("cells")
+    return {"fits": len(fits), "fit_seconds": sum(fits), "fit_max_seconds": max(fits, default=0.0),
+            "cells": len(cells), "cell_seconds": sum(cells)}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--backend", default=None, help="leaderboard --backend (default: the command's default)")
@@ -43,8 +60,13 @@ def main(argv=None) -> int:
     proc = subprocess.run(cmd)
     seconds = time.perf_counter() - t0
     load_after = os.getloadavg()
+    work = breakdown(out / "store")
+    print(f"work in the store: {work['fits']} fits, {work['fit_seconds']:.0f} s "
+          f"(max {work['fit_max_seconds']:.0f} s); {work['cells']} cells, {work['cell_seconds']:.0f} s "
+          f"(worker seconds, summed over workers)")
     if proc.returncode != 0:
-        print(f"leaderboard exited {proc.returncode} after {seconds:.1f} s", file=sys.stderr)
+        print(f"leaderboard exited {proc.returncode} after {seconds:.1f} s (rerun the same command to resume)",
+              file=sys.stderr)
         return proc.returncode
 
     logs = sorted((out / "store" / "runs").glob("*.json"), key=lambda p: p.stat().st_mtime)
@@ -64,6 +86,7 @@ def main(argv=None) -> int:
         "cpu_count": os.cpu_count(),
         "loadavg": {"before": load_before, "after": load_after},
         "out": str(out),
+        "work": work,
     }
     print(f"default leaderboard: {seconds:.1f} s wall ({result['backend']} backend, {result['jobs']} jobs, "
           f"{result['cells']} cells, {result['computed']} computed, {result['reused']} reused; "

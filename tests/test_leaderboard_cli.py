@@ -1,6 +1,6 @@
 """`socbench leaderboard` end to end on the real pieces: interrupt and resume, outputs, user errors.
 
-The grid is small (2 models × 2 estimators × 2 scenarios × 2 seeds) so the real fits and filters stay quick.
+The grid is small (2 models × 3 estimators × 1 scenario × 2 seeds); the two real fits are most of its time.
 """
 
 from __future__ import annotations
@@ -20,9 +20,8 @@ import pytest
 
 from socbench.cli import main
 
-GRID = ["--models", "rint,shepherd", "--estimators", "coulomb,ekf", "--scenarios", "flight-10kg,dji-m100-replay",
-        "--seeds", "2"]
-N_CELLS = 8
+GRID = ["--models", "rint,shepherd", "--estimators", "coulomb,ekf,ukf", "--scenarios", "flight-10kg", "--seeds", "2"]
+N_CELLS = 6
 COLUMNS = ["model", "estimator", "scenario", "n_runs", "soc_rmse", "soc_max_abs", "v_mean", "v_rmse", "v_sd", "v_max",
            "nis_mean", "nees_mean", "frac_within_3sigma", "us_per_step", "failed_runs"]
 REPO = Path(__file__).resolve().parents[1]
@@ -72,6 +71,7 @@ def interrupted_then_resumed(tmp_path_factory):
     return out, first, resumed
 
 
+@pytest.mark.slow
 def test_an_interrupted_study_resumes_without_recomputing_finished_cells(interrupted_then_resumed, tmp_path):
     out, first, resumed = interrupted_then_resumed
     assert 1 <= len(first) < N_CELLS, "the interrupt must land part-way"
@@ -109,7 +109,7 @@ def test_an_interrupted_study_resumes_without_recomputing_finished_cells(interru
     ok = table[table.failed_runs < table.n_runs]
     assert np.isfinite(ok[COLUMNS[4:]].to_numpy(dtype=float)).all()
     md = (fresh_out / "leaderboard.md").read_text()
-    for scen in ("flight-10kg", "dji-m100-replay"):
+    for scen in ("flight-10kg",):
         sub = ok[ok.scenario == scen].sort_values(["failed_runs", "soc_rmse"])
         best = sub.iloc[0]
         assert f"On {scen} the best combination is {best.model} + {best.estimator}" in md
