@@ -31,6 +31,16 @@ C0_DISABLED = "disabled"
 C0_AS_PRINTED = "as_printed"
 
 
+def _front(a):
+    """View of ``a`` with its last axis first (``np.moveaxis(a, -1, 0)`` without its per-call overhead)."""
+    return a.transpose((a.ndim - 1,) + tuple(range(a.ndim - 1)))
+
+
+def _back(a):
+    """View of ``a`` with its first axis last."""
+    return a.transpose(tuple(range(1, a.ndim)) + (0,))
+
+
 class RCNetwork(Model):
     """R0 in series with ``n_rc`` parallel RC branches, optionally a PNGV integrator ``C0``."""
 
@@ -47,6 +57,7 @@ class RCNetwork(Model):
         self._n = n
         self._branch_params = tuple(f"R{j}" for j in range(1, n + 1)) + tuple(f"C{j}" for j in range(1, n + 1))
         self._branch_names = tuple(f"RC{j}" for j in range(1, n + 1))
+        self._branch_cols = np.arange(n) + (2 if self.has_integrator else 1)
         super().__init__(params, mode)
         self.c0_mode = params.options.get("c0", C0_DISABLED)
         if self.c0_mode not in (C0_DISABLED, C0_AS_PRINTED):
@@ -93,13 +104,13 @@ class RCNetwork(Model):
                                              None if ders is None else ders[n:], dt, self.mode, guards,
                                              name=self._branch_names, derivatives=jac)
             cols = slice(self._first_branch, self._first_branch + n)
-            u = np.moveaxis(x[..., cols], -1, 0)
-            np.moveaxis(xn[..., cols], -1, 0)[...] = a * u + b * i
+            u = _front(x[..., cols])
+            _front(xn[..., cols])[...] = a * u + b * i
             if jac:
-                idx = np.arange(self._first_branch, self._first_branch + n)
-                F[..., idx, 0] = np.moveaxis(a_z * u + b_z * i, 0, -1)
-                F[..., idx, idx] = np.moveaxis(a, 0, -1)
-                np.moveaxis(B[..., cols], -1, 0)[...] = b
+                idx = self._branch_cols
+                F[..., idx, 0] = _back(a_z * u + b_z * i)
+                F[..., idx, idx] = _back(a)
+                _front(B[..., cols])[...] = b
         return (xn, F, B) if jac else (xn, None, None)
 
     def dxdt(self, x, i, temp=None, z_params=None):
