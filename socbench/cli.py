@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "estimate": ("socbench.commands.estimate", "estimate SOC with coulomb counting, EKF, UKF or PF and score it"),
     "scenarios": ("socbench.commands.scenarios", "list the scenario catalog"),
     "leaderboard": ("socbench.commands.leaderboard", "run the models × estimators × scenarios study and rank it"),
+    "bench": ("socbench.commands.bench", "time the batched engines against a loop of filterpy runs (--quick: < 1 min)"),
     "diagnose": ("socbench.commands.diagnose", "find the effect a model lacks from its residual, add it, refit"),
 }
 
