@@ -16,6 +16,7 @@ import os
 import re
 import sys
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 
@@ -155,11 +156,26 @@ def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", 
     bk = make_backend(backend, jobs, scheduler) if todo else None
     bar = _progress(len(todo) + len(fit_tasks), progress) if todo else None
     pending: dict = {}
+    # The backend only ever holds a few tasks, so that cells whose fit is done run before the remaining fits: results
+    # reach the store early (an interrupt loses little) while every worker stays busy.
+    ready_cells: deque = deque()
+    ready_fits: deque = deque(fit_tasks)
+    in_flight = 2 * bk.jobs if bk is not None else 0
 
     def submit_cells(fkey):
-        for ckey, job in waiting.pop(fkey, []):
-            task = {**job, "fit": fits[fkey]}
-            pending[bk.submit(compute_cell, toolkit, task)] = ("cell", ckey, job)
+        ready_cells.extend(waiting.pop(fkey, []))
+
+    def top_up():
+        while len(pending) < in_flight and (ready_cells or ready_fits):
+            if ready_cells:
+                ckey, job = ready_cells.popleft()
+                task = {**job, "fit": fits[job["fit_key"]]}
+                pending[bk.submit(compute_cell, toolkit, task)] = ("cell", ckey, job)
+            else:
+                fkey = ready_fits.popleft()
+                model = fit_cfg[fkey]["model"]
+                pending[bk.submit(compute_fit, toolkit, model, char_profiles[fkey], config.fit_mode)] = \
+                    ("fit", fkey, model)
 
     def write_log(interrupted: bool):
         store.write_run_log(run_id, {"run_id": run_id, "started": run_id, "interrupted": interrupted,
@@ -169,13 +185,10 @@ def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", 
 
     try:
         if bk is not None:
-            for fkey in fit_tasks:
-                model = fit_cfg[fkey]["model"]
-                pending[bk.submit(compute_fit, toolkit, model, char_profiles[fkey], config.fit_mode)] = \
-                    ("fit", fkey, model)
             for fkey in list(waiting):
                 if fkey in fits:
                     submit_cells(fkey)
+            top_up()
             while pending:
                 for handle in bk.wait(pending):
                     kind, key, info = pending.pop(handle)
@@ -191,6 +204,7 @@ def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", 
                                                             "finished": datetime.now(timezone.utc).isoformat()})
                         computed.append(key)
                     bar.update(1)
+                top_up()
     except BaseException:
         if bk is not None:
             bk.close(cancel=True)
