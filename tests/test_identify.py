@@ -211,9 +211,10 @@ def pana_hppc(data_dir):
 def test_real_hppc_analysis(pana_hppc):
     a = analyze_hppc(pana_hppc)
     assert a.ah_source == "soc_ref"  # the inter-pulse discharges are not in the file: SOC from the Ah counter
-    # 15 pulse sets (100, 95, 90, 80, ..., 10, 5, 0 %): OCV points decreasing with the discharged charge
-    assert len({p.level for p in a.pulses}) == 15
-    assert a.ocv_soc.size == 15
+    # 14 pulse sets in the file (SOC 1.0, 0.95, 0.90, 0.79, ..., 0.27, 0.22, 0.16, 0.11, 0.06, 0.01 by the Ah
+    # counter), one OCV point before each (the first from the record's initial rest after the full charge)
+    assert len({p.level for p in a.pulses}) == 14
+    assert a.ocv_soc.size == 14
     order = np.argsort(a.ocv_soc)
     assert np.all(np.diff(a.ocv_voltage[order]) > 0)
     assert a.ocv_voltage.max() == pytest.approx(4.175, abs=0.01) and a.ocv_voltage.min() < 3.3
@@ -223,13 +224,15 @@ def test_real_hppc_analysis(pana_hppc):
 
 @pytest.mark.realdata
 def test_every_registered_model_fits_the_real_hppc(pana_hppc):
-    # a smoke test of every model on real data, kept cheap: constant mode, a coarse compression, 3 evaluations
+    # a smoke test of every model on real data, kept cheap: constant mode, a coarse compression, 8 evaluations
     # (the full paper-mode fits and their timing are in benchmarks/fit_all_models.py and paper_reproduction.py)
     coarse = {"first_step_s": 2.0, "growth": 8.0, "max_step_s": 2400.0, "i_tol": 0.2}
     ocv = ocv_from_hppc(pana_hppc)
     for name in model_names():
-        res = fit_model(name, pana_hppc, mode="constant", ocv=ocv, compress=coarse, max_nfev=3)
-        assert np.isfinite(res.rmse_v) and res.rmse_v < 0.1, (name, res.rmse_v)
+        res = fit_model(name, pana_hppc, mode="constant", ocv=ocv, compress=coarse, max_nfev=8)
+        # eight evaluations must already improve on the start guessed from the pulse resistances
+        assert np.isfinite(res.rmse_v) and res.rmse_v < res.lsq.rmse_start, (name, res.rmse_v, res.lsq.rmse_start)
+        assert res.rmse_v < 0.2, (name, res.rmse_v)  # well inside the cell's 2.5-4.2 V window
         assert all(np.isfinite(v) for v in res.values.values()), name
         assert res.params.capacity_ah == pytest.approx(2.7728, rel=1e-3)  # the HPPC's own discharge
 

@@ -63,6 +63,7 @@ class LsqResult:
     seconds: float
     batched: bool
     at_bounds: tuple = ()
+    rmse_start: float = float("nan")  # at theta0 (how much the fit improved on its start)
     profile: Profile | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict:
@@ -293,6 +294,8 @@ def fit_parameters(
         counts["njev"] += 1
         return evaluate(theta, True)[1]
 
+    r0 = fun(theta0)
+    rmse_start = float(np.sqrt(np.mean(r0 * r0))) if r0.size else float("nan")
     if P == 0:
         r = fun(theta0)
         J = np.zeros((r.size, 0))
@@ -312,4 +315,4 @@ def fit_parameters(
                      residual=r, jac=J, success=success, message=message, nfev=nfev, njev=counts["njev"],
                      nsim=counts["nsim"],
                      n_samples=int(r.size), seconds=_time.perf_counter() - t_start, batched=bool(use_batch[0]),
-                     at_bounds=at_bounds, profile=prof)
+                     at_bounds=at_bounds, rmse_start=rmse_start, profile=prof)
