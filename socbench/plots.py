@@ -9,7 +9,6 @@ import matplotlib
 
 matplotlib.use("Agg")
 
-import matplotlib.patheffects  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -40,9 +39,10 @@ def heatmap(ax, values, row_labels, col_labels, title: str, unit: str, fmt: str 
         for j in range(arr.shape[1]):
             if not np.isfinite(arr[i, j]):
                 ax.text(j, i, "failed", ha="center", va="center", fontsize=7, color="#555555")
-            elif small:
-                ax.text(j, i, fmt.format(arr[i, j]), ha="center", va="center", fontsize=7, color="white",
-                        path_effects=[matplotlib.patheffects.withStroke(linewidth=1.5, foreground="black")])
+            elif small:  # dark text on the light (good) end of viridis_r, light text on the dark end
+                shade = float(im.norm(arr[i, j])) if finite.size > 1 else 0.0
+                ax.text(j, i, fmt.format(arr[i, j]), ha="center", va="center", fontsize=7,
+                        color="white" if shade > 0.55 else "black")
 
 
 def soc_error_band(ax, trace: dict, label: str, color=None) -> None:

@@ -45,6 +45,10 @@ def best_sentence(result, scenario: str) -> str:
             f"SOC RMSE {100 * best['soc_rmse']:.2f} %{v} over {best['n_runs']} runs ({failed}).")
 
 
+def _n(k: int, noun: str) -> str:
+    return f"{k} {noun}" + ("" if k == 1 else "s")
+
+
 def _fmt(x, scale=1.0, digits=2) -> str:
     return "—" if x is None else f"{scale * x:.{digits}f}"
 
@@ -54,9 +58,10 @@ def markdown(result, figures: list[str]) -> str:
     lines = [
         "# socbench leaderboard",
         "",
-        f"{len(cfg.models)} models × {len(cfg.estimators)} estimators × {len(cfg.scenarios)} scenarios × "
-        f"{len(cfg.seeds)} seeds (seeds {cfg.seeds[0]}–{cfg.seeds[-1]}); models fitted on each scenario's own "
-        f"characterisation test (mode '{cfg.fit_mode}'). Backend {result.backend} ({result.jobs} jobs), "
+        f"{_n(len(cfg.models), 'model')} × {_n(len(cfg.estimators), 'estimator')} × "
+        f"{_n(len(cfg.scenarios), 'scenario')} × {_n(len(cfg.seeds), 'seed')} (seeds {cfg.seeds[0]}–{cfg.seeds[-1]}); "
+        f"models fitted on each scenario's own characterisation test (mode '{cfg.fit_mode}'). "
+        f"Backend {result.backend} ({_n(result.jobs, 'job')}), "
         f"{len(result.computed)} cells computed and {len(result.reused)} reused from the store in "
         f"{result.seconds:.1f} s." + (f" **{len(result.stale)} stored fits/cells were computed by other code** "
                                       "(rerun with `--recompute-stale` to refresh them)." if result.stale else ""),
