@@ -472,6 +472,11 @@ def main(argv=None) -> int:
             for r in results.values():
                 r.setdefault("eval_n", n_eval)
         timing = json.loads(Path(args.timing).read_text()) if args.timing and Path(args.timing).exists() else None
+        if timing:
+            fig_times(ROOT / "docs" / "figures" / "paper_fit_times.png",
+                      {k: v["median_s"] for k, v in timing["models"].items()},
+                      f"Fit time per model on the 25 °C HPPC (median of {timing['repeats']}; "
+                      f"total {timing['total_median_s']:.1f} s)")
         hppc = load(files["hppc"], "panasonic-mat")
         slow = ocv_from_slow_test(load(files["c20"], "panasonic-mat"))
         write_report(Path(args.out), results, files, analyze_hppc(hppc), slow, timing, meta["wall_s"], meta["jobs"],
