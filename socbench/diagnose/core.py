@@ -166,6 +166,7 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "const
     search = Search(base, split, fit_info["t_ref_c"], candidates, min_gain=min_gain, max_nfev=max_nfev,
                     max_steps=max_steps, max_fits=max_fits, h_ref=fit_info["ocv_branch"])
     final, steps, rounds, _ = search.run()
+    fit_info["voltage_noise_sd"] = search.noise_sd
     # the reported numbers on every held-out sample (the search scored on the compressed records)
     before = held_out(base, split)[0]
     prev = before

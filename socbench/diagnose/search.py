@@ -14,7 +14,9 @@ One round, on the current model ``m`` (the base model, then the base model with 
    ``score = ln(MSE_before / MSE_after) − 2·p / n_eff`` (AIC per effective sample, ``p`` the parameters the
    effect adds, ``n_eff = N·(1 − ρ)/(1 + ρ)`` from the lag-1 autocorrelation ρ of the held-out residual,
    at least 100 — neighbouring residuals of a voltage fit are far from independent);
-4. add the best-scoring effect if it lowers the held-out RMSE by at least ``min_gain`` (10 %); else stop.
+4. add the best-scoring effect if it lowers the held-out RMSE by at least ``min_gain`` (10 %) and the model is not
+   already at the noise floor (held-out RMSE ≤ ``NOISE_FLOOR`` × the voltage noise measured in the data, see
+   :func:`voltage_noise`: what is left cannot be told from sensor noise); else stop.
 
 Every candidate gets its signature; the bounded fit (the expensive part) is run for the ``max_fits`` candidates whose
 signatures explain the most residual variance (at least ``MIN_SIGNATURE_R2``): an effect that leaves no trace in the
@@ -46,6 +48,8 @@ MIN_N_EFF = 100.0
 MIN_SIGNATURE_R2 = 0.01
 #: candidates tied (within 0.01) with the last one fitted are fitted too when their R² is at least this
 TIE_R2 = 0.1
+#: no effect is added once the held-out RMSE is within this factor of the measured voltage noise
+NOISE_FLOOR = 2.0
 #: compression of the held-out records for scoring and of the training record for the fits
 HELD_COMPRESS = {"max_step_s": 30.0}
 FIT_COMPRESS = {"max_step_s": 60.0}
@@ -65,7 +69,8 @@ class Candidate:
     held_residual: np.ndarray | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
-        return {"effect": self.effect, "score": round(float(self.score), 6), "evidence": self.evidence,
+        score = round(float(self.score), 6) if np.isfinite(self.score) else None  # None: not fitted (valid JSON)
+        return {"effect": self.effect, "score": score, "evidence": self.evidence,
                 "signature_r2": round(float(self.signature_r2), 6), "rmse_v_before": self.rmse_before,
                 "rmse_v_after": self.rmse_after, "params": self.params, "seconds": round(self.seconds, 3)}
 
@@ -111,6 +116,26 @@ def effective_samples(r: np.ndarray) -> float:
     return float(min(r.size, max(MIN_N_EFF, r.size * (1 - rho) / (1 + rho))))
 
 
+def voltage_noise(profiles) -> float:
+    """Voltage noise sd measured in the data: ``1.4826·MAD(Δ²v)/√6`` over samples where the current is the same at
+    the sample and both neighbours and the step is uniform (there the cell's own voltage is smooth, so the second
+    difference is noise). 0 when fewer than 50 such samples exist (e.g. a drive cycle)."""
+    d2 = []
+    for p in profiles:
+        i, v, t = p.current_a, p.voltage_v, p.time_s
+        if p.n < 3:
+            continue
+        tol = 1e-3 * float(np.max(np.abs(i))) + 1e-9
+        same = (np.abs(i[1:-1] - i[:-2]) <= tol) & (np.abs(i[2:] - i[1:-1]) <= tol)
+        dt = np.diff(t)
+        same &= np.abs(dt[1:] - dt[:-1]) <= 1e-6 * dt[1:]
+        d2.append((v[2:] - 2 * v[1:-1] + v[:-2])[same])
+    d2 = np.concatenate(d2) if d2 else np.zeros(0)
+    if d2.size < 50:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
+
+
 def rest_current(profile, capacity_ah: float):
     """``(mean, standard error, seconds)`` of the measured current over the rests, or None without rests."""
     i = profile.current_a
@@ -150,6 +175,7 @@ class Search:
         self.soc0 = initial_soc(base, self.train)
         self.bounds = {name: EFFECTS[name]().bounds(base) for name in EFFECTS}
         self.bias_rest = rest_current(self.train, base.capacity_ah)
+        self.noise_sd = voltage_noise([self.train] + [p for p, _ in split.held])
         if self.bias_rest is not None:
             mean, se, _ = self.bias_rest
             lo, hi = self.bounds["current_bias"]["b0"]
@@ -241,7 +267,7 @@ class Search:
             rounds.append({"candidates": cands, "signatures": sigs, "trajectory": traj, "model": model})
             best = cands[0] if cands else None
             if best is None or not np.isfinite(best.score) or best.score <= 0 \
-                    or best.rmse_after > (1.0 - self.min_gain) * rmse_now:
+                    or best.rmse_after > (1.0 - self.min_gain) * rmse_now or rmse_now <= NOISE_FLOOR * self.noise_sd:
                 break
             steps.append(best)
             current = [(e.name, {p: float(e[p]) for p in e.param_names}) for e in best.effects]
