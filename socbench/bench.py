@@ -14,7 +14,8 @@ What is measured (DESIGN.md, "Performance")::
 
 Each timing is repeated (the batched and the filterpy run alternate, so load on a shared machine hits both alike) and
 the medians are reported, with every repeat kept. ``fit_all_models_s`` fits every registered model (paper mode) to the
-Panasonic 25 °C HPPC when ``SOCBENCH_DATA_DIR`` is set, else to the built-in HPPC; ``default_leaderboard_s`` runs
+Panasonic 25 °C HPPC when ``SOCBENCH_DATA_DIR`` is set, else to the built-in HPPC (full effort in full mode; at most 2
+least-squares evaluations per model in quick mode, ``fit_effort`` says which); ``default_leaderboard_s`` runs
 ``socbench leaderboard`` with its defaults into a temporary folder (full mode only).
 """
 
@@ -50,13 +51,15 @@ class BenchSizes:
     ref_steps: int = 1200
     particles: int = 50
     repeats: int = 3
-    fit: str = "all"  # "all" models at full effort, or "tiny" (two models, two iterations: smoke tests only)
+    #: "full": every model at full effort; "capped": every model, at most 2 least-squares evaluations each (the
+    #: pipeline's fixed cost: analysis, compression, set-up); "tiny": two models capped (smoke tests only)
+    fit: str = "full"
     leaderboard: bool = True
     seed: int = 7
 
 
 FULL = BenchSizes()
-QUICK = BenchSizes(runs=50, steps=600, ref_runs=1, ref_steps=300, particles=32, leaderboard=False)
+QUICK = BenchSizes(runs=40, steps=400, ref_runs=1, ref_steps=200, particles=32, fit="capped", leaderboard=False)
 #: hidden ``--tiny`` option: a smoke test of the whole pipeline in seconds (tests only; the figures mean nothing)
 TINY = BenchSizes(runs=3, steps=20, ref_runs=2, ref_steps=20, particles=16, fit="tiny", leaderboard=False)
 TINY_FIT_MODELS = ("rint", "thevenin")
@@ -173,7 +176,7 @@ def hppc_profile():
     return load("builtin:hppc"), "builtin:hppc"
 
 
-def fit_all_models(profile, tiny: bool = False, log=print) -> dict:
+def fit_all_models(profile, effort: str = "full", log=print) -> dict:
     """Fit every registered model (paper mode) to ``profile``, one after the other; wall time and per-model figures.
 
     The recipe of benchmarks/fit_all_models.py: one OCV curve from the HPPC shared by every model (built once, not
@@ -185,11 +188,11 @@ def fit_all_models(profile, tiny: bool = False, log=print) -> dict:
     ocv = ocv_from_hppc(profile)
     per_model = {}
     t0 = time.perf_counter()
-    for name in TINY_FIT_MODELS if tiny else model_names():
-        res = fit_model(name, profile, mode="paper", ocv=ocv, max_nfev=2 if tiny else None)
+    for name in TINY_FIT_MODELS if effort == "tiny" else model_names():
+        res = fit_model(name, profile, mode="paper", ocv=ocv, max_nfev=None if effort == "full" else 2)
         per_model[name] = {"seconds": res.seconds, "rmse_v": float(res.rmse_v)}
     total = time.perf_counter() - t0
-    log(f"  fitted {len(per_model)} models in {total:.1f} s")
+    log(f"  fitted {len(per_model)} models in {total:.1f} s ({effort} effort)")
     return {"seconds": total, "models": per_model}
 
 
@@ -231,8 +234,9 @@ def run_bench(sizes: BenchSizes = FULL, mode: str = "full", estimators=ESTIMATOR
         result.update(bench_estimator(name, model, sizes, sweep, log))
     result["identical_results"] = all(result[f"{n}_identical"] for n in estimators)
     profile, label = hppc_profile()
-    fit = fit_all_models(profile, tiny=sizes.fit == "tiny", log=log)
-    result.update({"fit_all_models_s": fit["seconds"], "fit_data": label, "fit_models": fit["models"]})
+    fit = fit_all_models(profile, sizes.fit, log=log)
+    result.update({"fit_all_models_s": fit["seconds"], "fit_effort": sizes.fit, "fit_data": label,
+                   "fit_models": fit["models"]})
     if sizes.leaderboard:
         board = default_leaderboard(log)
         result.update({"default_leaderboard_s": board["seconds"], "default_leaderboard_summary": board["summary"]})

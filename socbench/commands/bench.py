@@ -1,7 +1,8 @@
 """``socbench bench [--quick] --json OUT.json``: batched engines against a loop of filterpy runs, side by side.
 
 Full mode: 200 Monte Carlo runs × 3600 steps per batched engine, the filterpy references on a subset, fitting every
-model, the default leaderboard. ``--quick`` (under a minute): a smaller sweep, no leaderboard. What is measured is in
+model, the default leaderboard. ``--quick`` (under a minute on an idle machine): a smaller sweep, every model fitted
+with at most 2 least-squares evaluations (the fitting pipeline's fixed cost), no leaderboard. What is measured is in
 :mod:`socbench.bench`; the figures and how to read them are in docs/performance.md.
 """
 
@@ -40,7 +41,8 @@ def run(args) -> int:
         print(f"{n:4}{result[f'{n}_batched_us_per_run_step']:>20.2f}{result[f'{n}_filterpy_us_per_step']:>18.1f}"
               f"{result[f'{n}_speedup']:>9.0f}×{result[f'{n}_max_abs_diff']:>12.1e}")
     board = result["default_leaderboard_s"]
-    print(f"fit all models: {result['fit_all_models_s']:.1f} s ({result['fit_data']}); default leaderboard: "
+    print(f"fit all models: {result['fit_all_models_s']:.1f} s ({result['fit_data']}, {result['fit_effort']} effort); "
+          "default leaderboard: "
           + ("skipped" if board is None else f"{board:.1f} s"))
     print(f"identical results (≤ {result['tolerance']:g}): {'yes' if result['identical_results'] else 'NO'}; "
           f"{m['cpu_count']} CPUs, numpy {m['numpy_version']}, Python {m['python_version']}, "
