@@ -218,8 +218,13 @@ def machine() -> dict:
             "loadavg": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
 
 
-def run_bench(sizes: BenchSizes = FULL, mode: str = "full", estimators=ESTIMATORS, log=print) -> dict:
-    """Run every measurement of ``sizes``; returns the JSON-ready result (keys in the module docstring)."""
+def run_bench(sizes: BenchSizes = FULL, mode: str = "full", estimators=ESTIMATORS, log=print, checkpoint=None) -> dict:
+    """Run every measurement of ``sizes``; returns the JSON-ready result (keys in the module docstring).
+
+    ``checkpoint(result)``, if given, is called after each stage with what is measured so far (``complete`` False), so
+    a run stopped during the long leaderboard stage still leaves its estimator and fitting figures behind.
+    """
+    checkpoint = checkpoint or (lambda partial: None)
     from .models import make_model, paper_params
 
     t_start = time.perf_counter()
@@ -230,13 +235,16 @@ def run_bench(sizes: BenchSizes = FULL, mode: str = "full", estimators=ESTIMATOR
     log(f"bench ({mode}): {sizes.model} on the paper pack, {sizes.runs} runs × {sizes.steps} steps batched, "
         f"filterpy on {min(sizes.ref_runs, sizes.runs)} × {min(sizes.ref_steps, sizes.steps)}, "
         f"{sizes.particles} particles, {sizes.repeats} repeats")
+    result["complete"] = False
     for name in estimators:
         result.update(bench_estimator(name, model, sizes, sweep, log))
+        checkpoint(result)
     result["identical_results"] = all(result[f"{n}_identical"] for n in estimators)
     profile, label = hppc_profile()
     fit = fit_all_models(profile, sizes.fit, log=log)
     result.update({"fit_all_models_s": fit["seconds"], "fit_effort": sizes.fit, "fit_data": label,
                    "fit_models": fit["models"]})
+    checkpoint(result)
     if sizes.leaderboard:
         board = default_leaderboard(log)
         result.update({"default_leaderboard_s": board["seconds"], "default_leaderboard_summary": board["summary"]})
@@ -244,6 +252,7 @@ def run_bench(sizes: BenchSizes = FULL, mode: str = "full", estimators=ESTIMATOR
         result["default_leaderboard_s"] = None  # skipped in quick mode
     result["machine"]["loadavg_after"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
     result["total_s"] = time.perf_counter() - t_start
+    result["complete"] = True
     return result
 
 

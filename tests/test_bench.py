@@ -37,7 +37,7 @@ def test_quick_bench_writes_every_required_key_finite_and_positive(quick_json):
     assert res["default_leaderboard_s"] is None  # quick mode skips the leaderboard
     m = res["machine"]
     assert m["cpu_count"] >= 1 and m["numpy_version"] == np.__version__ and m["python_version"].count(".") == 2
-    assert res["repeats"] >= 3
+    assert res["repeats"] >= 3 and res["complete"] is True
     for name in ("ekf", "ukf", "pf"):  # every repeat is kept, the figure is their median
         reps = res[f"{name}_repeats_s"]
         assert len(reps["batched"]) == len(reps["filterpy"]) == res["repeats"]

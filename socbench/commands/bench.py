@@ -33,8 +33,11 @@ def run(args) -> int:
     if unknown or not names:
         raise ConfigError(f"--estimators: unknown '{unknown[0] if unknown else ''}'; known: {', '.join(ESTIMATORS)}")
     sizes, mode = sizes_for(quick=args.quick, tiny=args.tiny, repeats=args.repeats)
-    result = run_bench(sizes, mode, names, log=lambda msg: print(msg, flush=True))
-    atomic_write_text(args.json, json.dumps(result, indent=2))
+    def save(partial):  # after every stage: an interrupted run keeps what it measured ("complete": false)
+        atomic_write_text(args.json, json.dumps(partial, indent=2))
+
+    result = run_bench(sizes, mode, names, log=lambda msg: print(msg, flush=True), checkpoint=save)
+    save(result)
     m = result["machine"]
     print(f"\n{'':4}{'batched µs/run-step':>20}{'filterpy µs/step':>18}{'speed-up':>10}{'max |diff|':>12}")
     for n in names:
