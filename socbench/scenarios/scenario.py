@@ -253,8 +253,11 @@ class Scenario:
         """The HPPC test of the same truth cell (1 s, at the HPPC ambient), measured by the same sensors without
         their timed faults; a plain (one-run) profile."""
         rec = _hppc_record(self.spec.truth, self.spec.hppc)
-        prof = self._measure(rec, self.spec.sensors.without_faults(), _seeds(seed), _key(self.name + "/hppc"),
-                             f"{self.name}/hppc")
+        sensors = self.spec.sensors.without_faults()
+        # keyed by what the test is (cell, HPPC schedule, sensors), not by the scenario's name: scenarios that share
+        # a truth cell and lab sensors share one characterisation test, hence one set of fitted models
+        key = _key("hppc/" + repr((self.spec.truth, self.spec.hppc, sensors)))
+        prof = self._measure(rec, sensors, _seeds(seed), key, f"{self.name}/hppc")
         return prof.run(0)
 
     def initial_soc(self, seeds) -> np.ndarray:
