@@ -57,6 +57,9 @@ def main(argv=None) -> int:
     except UserError as exc:
         print(f"socbench {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # output piped into `head` and closed: not an error
+        sys.stderr.close()
+        return 0
     except KeyboardInterrupt:
         print(f"socbench {args.command}: interrupted", file=sys.stderr)
         return 130
