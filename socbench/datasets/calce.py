@@ -29,6 +29,7 @@ from ..errors import DataError
 from ..profile import Profile, ProfileMeta
 from .canonical import check_current_sign
 from .counting import soc_between_full_charges
+from .units import check_cell_units
 
 CAPACITY_AH = 1.0652
 NOMINAL_CAPACITY_AH = 1.1
@@ -111,17 +112,8 @@ def load_calce(path) -> Profile:
     t = _numeric(df, tcol, src)
     i_raw = _numeric(df, "Current_A", src)
     v = _numeric(df, "Voltage_V", src)
-    lo, hi = VOLTAGE_RANGE
-    bad = (v < lo) | (v > hi)
-    if bad.any():
-        k = int(np.argmax(bad))
-        raise DataError(f"voltage {v[k]:g} V outside an LFP cell's range {lo}-{hi} V"
-                        + (" (millivolts?)" if v[k] > 1000 * lo else ""), file=src, column="Voltage_V", row=k + 1)
-    bad = np.abs(i_raw) > MAX_ABS_CURRENT
-    if bad.any():
-        k = int(np.argmax(bad))
-        raise DataError(f"current {i_raw[k]:g} A beyond ±{MAX_ABS_CURRENT:g} A for a 1.1 Ah cell (milliamps?)",
-                        file=src, column="Current_A", row=k + 1)
+    check_cell_units(v, i_raw, voltage_range=VOLTAGE_RANGE, max_abs_current=MAX_ABS_CURRENT, cell="1.1 Ah LFP cell",
+                     src=src, voltage_column="Voltage_V", current_column="Current_A")
     dt = np.diff(t)
     back = dt < 0
     if back.any():

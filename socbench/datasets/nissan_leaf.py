@@ -23,6 +23,7 @@ import pandas as pd
 from ..errors import DataError
 from ..profile import Profile, ProfileMeta
 from .counting import soc_between_full_charges
+from .units import check_cell_units
 
 CAPACITY_AH = 33.1
 CHEMISTRY = "LMO-LNO"
@@ -86,17 +87,8 @@ def load_nissan_leaf(path) -> Profile:
             raise DataError(f"not a finite number ({df[c].iloc[row - 1]!r})", file=src, column=c, row=row)
         cols[c] = values
     t, i_raw, v = cols["time_s"], cols["current_A"], cols["voltage_V"]
-    lo, hi = VOLTAGE_RANGE
-    bad = (v < lo) | (v > hi)
-    if bad.any():
-        k = int(np.argmax(bad))
-        raise DataError(f"voltage {v[k]:g} V outside the cell's range {lo}-{hi} V"
-                        + (" (millivolts?)" if v[k] > 1000 * lo else ""), file=src, column="voltage_V", row=k + 1)
-    bad = np.abs(i_raw) > MAX_ABS_CURRENT
-    if bad.any():
-        k = int(np.argmax(bad))
-        raise DataError(f"current {i_raw[k]:g} A beyond ±{MAX_ABS_CURRENT:g} A for a 33 Ah cell (milliamps?)",
-                        file=src, column="current_A", row=k + 1)
+    check_cell_units(v, i_raw, voltage_range=VOLTAGE_RANGE, max_abs_current=MAX_ABS_CURRENT, cell="33 Ah cell",
+                     src=src, voltage_column="voltage_V", current_column="current_A")
     mode = df["mode"].astype(str).str.strip().to_numpy()
     bad = ~np.isin(mode, list(MODES))
     if bad.any():

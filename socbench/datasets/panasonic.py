@@ -41,6 +41,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..profile import Profile, ProfileMeta
+from .units import check_cell_units
 
 #: Largest discharge from full [Ah] among the HPPC and drive-cycle files of each temperature folder of the dataset
 #: (``Ah[0] - min(Ah)``; the file that sets it in brackets). tests/test_datasets.py re-measures these from the files.
@@ -191,19 +192,8 @@ def _read_struct(path: Path) -> dict[str, np.ndarray]:
 
 
 def _check_ranges(cols: dict[str, np.ndarray], src: str) -> None:
-    v, i = cols["Voltage"], cols["Current"]
-    lo, hi = VOLTAGE_RANGE
-    bad = (v < lo) | (v > hi)
-    if bad.any():
-        k = int(np.argmax(bad))
-        hint = " (millivolts?)" if v[k] > 1000 * lo else (" (is this a current column?)" if v[k] < lo else "")
-        raise DataError(f"voltage {v[k]:g} V outside the cell's range {lo}-{hi} V{hint}", file=src, column="Voltage",
-                        row=k + 1)
-    bad = np.abs(i) > MAX_ABS_CURRENT
-    if bad.any():
-        k = int(np.argmax(bad))
-        raise DataError(f"current {i[k]:g} A beyond ±{MAX_ABS_CURRENT:g} A for a 2.9 Ah cell (milliamps?)", file=src,
-                        column="Current", row=k + 1)
+    check_cell_units(cols["Voltage"], cols["Current"], voltage_range=VOLTAGE_RANGE, max_abs_current=MAX_ABS_CURRENT,
+                     cell="2.9 Ah cell", src=src, voltage_column="Voltage", current_column="Current")
 
 
 def _check_sign_against_counter(cols: dict[str, np.ndarray], src: str) -> None:
