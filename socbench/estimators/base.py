@@ -27,6 +27,7 @@ from ..errors import ConfigError, DataError
 from ..profile import Profile
 from .estimate import Estimate
 from .noise import NoiseModel, SensorNoise
+from .safety import clamp_soc, diverged, repair_psd, symmetrise
 
 COMMON_OPTIONS: dict = {
     "Q": None,
@@ -236,3 +237,15 @@ def restore(values: np.ndarray, good: np.ndarray, failed: np.ndarray) -> None:
     """In place: rows of failed runs take their last good (finite) values, so the batch keeps computing cleanly."""
     if failed.any():
         values[failed] = good[failed]
+
+
+def settle_update(rec: Recorder, k: int, x, P, x_good, P_good, v_pred, e, S, nis, gated, opt: dict):
+    """The safety tail every Kalman update shares, in order: symmetrise and PSD-repair ``P``, clamp SOC (flagged),
+    detect divergence, put failed runs back on their last good state, record sample ``k``. Returns ``(x, P)``."""
+    P, _ = repair_psd(symmetrise(P), opt["psd_floor"], opt["psd_rel_floor"])
+    clamped = clamp_soc(x)
+    failed = rec.fail(k, diverged(x, P, nis, opt["var_max"], opt["nis_max"]))
+    restore(x, x_good, failed)
+    restore(P, P_good, failed)
+    rec.record(k, x[:, 0], np.sqrt(P[:, 0, 0]), v_pred, e, S, clamped, gated, x, np.diagonal(P, 0, -2, -1))
+    return x, P

@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Estimator, Recorder, restore
+from .base import Estimator, Recorder, restore, settle_update
 from .estimate import Estimate
-from .safety import Gate, clamp_soc, diverged, repair_psd, symmetrise
+from .safety import Gate, diverged, symmetrise
 
 
 class EKF(Estimator):
@@ -52,12 +52,7 @@ class EKF(Estimator):
                 x = x + K * e[:, None]
                 A = eye - K[:, :, None] * H[:, None, :]
                 P = A @ P @ np.swapaxes(A, -1, -2) + Rk[:, None, None] * (K[:, :, None] * K[:, None, :])
-                P, _ = repair_psd(symmetrise(P), opt["psd_floor"], opt["psd_rel_floor"])
-                clamped = clamp_soc(x)
-                failed = rec.fail(k, diverged(x, P, nis, opt["var_max"], opt["nis_max"]))
-                restore(x, x_good, failed)
-                restore(P, P_good, failed)
-                rec.record(k, x[:, 0], np.sqrt(P[:, 0, 0]), y, e, S, clamped, gated, x, np.diagonal(P, 0, -2, -1))
+                x, P = settle_update(rec, k, x, P, x_good, P_good, y, e, S, nis, gated, opt)
                 if k + 1 == T:
                     break
                 # ---------------------------------------------------------------- predict

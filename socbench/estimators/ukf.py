@@ -25,9 +25,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from .base import Estimator, Recorder, restore
+from .base import Estimator, Recorder, restore, settle_update
 from .estimate import Estimate
-from .safety import Gate, clamp_soc, diverged, repair_psd, symmetrise
+from .safety import Gate, diverged, repair_psd, symmetrise
 
 
 def merwe_weights(n: int, alpha: float, beta: float, kappa: float):
@@ -99,12 +99,7 @@ class UKF(Estimator):
                 K = np.where(gated[:, None], 0.0, Pxy / S[:, None])
                 x = x + K * e[:, None]
                 P = P - S[:, None, None] * (K[:, :, None] * K[:, None, :])
-                P, _ = repair_psd(symmetrise(P), *floors)
-                clamped = clamp_soc(x)
-                failed = rec.fail(k, diverged(x, P, nis, opt["var_max"], opt["nis_max"]))
-                restore(x, x_good, failed)
-                restore(P, P_good, failed)
-                rec.record(k, x[:, 0], np.sqrt(P[:, 0, 0]), yhat, e, S, clamped, gated, x, np.diagonal(P, 0, -2, -1))
+                x, P = settle_update(rec, k, x, P, x_good, P_good, yhat, e, S, nis, gated, opt)
                 if k + 1 == T:
                     break
                 # ---------------------------------------------------------------- predict
