@@ -71,23 +71,9 @@ class LsqResult:
 
 
 def simulate_voltage(model, time_s, current, temp=None, x0=None, soc_jumps=None) -> np.ndarray:
-    """Open-loop output ``y_k = h(x_k, I_k)``, ``x_{k+1} = f(x_k, I_k, dt_k)``, batched over ``x0``'s leading axes.
-
-    ``soc_jumps[k]`` (optional, length T) is added to the SOC state *after* the step into sample ``k``: charge that the
-    current column does not carry (a gap in the record whose amp-hours are known from a reference).
-    """
-    x = np.array(x0, dtype=float)
-    T = time_s.size
-    dts = np.diff(time_s)
-    y = np.empty(x.shape[:-1] + (T,))
-    for k in range(T):
-        tk = None if temp is None else temp[k]
-        y[..., k] = model.output(x, current[k], tk)[0]
-        if k + 1 < T:
-            x = model.step(x, current[k], dts[k], tk)[0]
-            if soc_jumps is not None and soc_jumps[k + 1] != 0.0:
-                x[..., 0] += soc_jumps[k + 1]
-    return y
+    """Open-loop voltage ``(…, T)`` of ``model`` from state ``x0 (…, n)``: :meth:`~socbench.models.base.Model.open_loop`
+    (``soc_jumps[k]`` is added to the SOC after the step into sample ``k``)."""
+    return model.open_loop(x0, time_s, current, temp, soc_jumps)[1]
 
 
 def _initial_soc(model, profile: Profile, soc0):

@@ -28,8 +28,9 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..profile import Profile
-from .blocks import ROBUST, STRICT, GuardLog
+from .blocks import ROBUST, STRICT, GuardLog, soc_step
 from .params import ModelParams, Polynomial
+from .recurrence import running_sum
 
 #: Reference temperature of the parameter sets [°C] when a profile carries none.
 T_REF_C = 25.0
@@ -174,7 +175,6 @@ class Model(ABC):
         voltage, else 1. Batched profiles simulate all runs in one pass.
         """
         i = profile.current_a
-        T = profile.n
         if x0 is None:
             if soc0 is None:
                 if profile.soc_ref is not None:
@@ -184,23 +184,72 @@ class Model(ABC):
                 else:
                     soc0 = 1.0
             x0 = self.x0(soc0, i.shape[:-1])
-        x = np.array(x0, dtype=float)
-        batch = np.broadcast_shapes(x.shape[:-1], i.shape[:-1])
-        x = np.broadcast_to(x, batch + (self.n_states,)).copy()
-        temp = profile.temperature_c
         log = guards if guards is not None else GuardLog()
-        states = np.empty(batch + (T, self.n_states))
-        volts = np.empty(batch + (T,))
-        dts = np.diff(profile.time_s)
+        states, volts = self.open_loop(x0, profile.time_s, i, profile.temperature_c, guards=log)
+        log.samples += int(np.prod(volts.shape[:-1], dtype=int)) * profile.n
+        return Simulation(profile.time_s, volts, states, self.state_names, log.fractions())
+
+    def open_loop(self, x0, time_s, current_a, temp_c=None, soc_jumps=None, guards: GuardLog | None = None):
+        """States ``(…, T, n)`` and voltage ``(…, T)``: ``y_k = h(x_k, I_k, T_k)``, ``x_{k+1} = f(x_k, I_k, dt_k, …)``.
+
+        ``time_s`` is ``(T,)``; ``current_a``, ``temp_c`` are ``(…, T)`` and broadcast with ``x0 (…, n)``.
+        ``soc_jumps[k]`` (optional, ``(T,)``) is added to the SOC *after* the step into sample ``k``: charge the
+        current column does not carry (a gap in a record whose amp-hours a reference knows).
+
+        Models whose other states follow a linear recurrence once the SOC path is known implement
+        :meth:`_states_given_soc`: the whole record is then evaluated at once (the SOC path as a running sum, the
+        recurrence by a prefix scan, :mod:`socbench.models.recurrence`), which equals the step loop to rounding.
+        Every other model runs the step loop.
+        """
+        x, i, temp, dts, T = self._record(x0, time_s, current_a, temp_c)
+        if T >= 2 and type(self)._states_given_soc is not Model._states_given_soc:
+            i_t = np.moveaxis(i, -1, 0)
+            temp_t = None if temp is None else np.moveaxis(temp, -1, 0)
+            dt = dts.reshape((T - 1,) + (1,) * (x.ndim - 1))
+            xs = np.empty((T,) + x.shape)
+            dz = soc_step(0.0, i_t[:-1], dt, self.capacity_ah, self.eta_charge)[0]
+            jumps = None if soc_jumps is None else np.reshape(soc_jumps, (T,) + (1,) * (x.ndim - 1))
+            xs[..., 0] = running_sum(x[..., 0], dz, jumps)  # B1 over the record: the loop's additions, in order
+            self._states_given_soc(xs, x, i_t[:-1], dt, guards)
+            y = self.output(xs, i_t, temp_t, guards=guards)[0]
+            return np.moveaxis(xs, 0, -2), np.moveaxis(y, 0, -1)
+        return self.open_loop_stepwise(x0, time_s, current_a, temp_c, soc_jumps, guards)
+
+    def open_loop_stepwise(self, x0, time_s, current_a, temp_c=None, soc_jumps=None,
+                           guards: GuardLog | None = None):
+        """:meth:`open_loop` by the step loop, one ``output`` and one ``step`` call per sample (the reference the
+        whole-record evaluation is tested against)."""
+        x, i, temp, dts, T = self._record(x0, time_s, current_a, temp_c)
+        states = np.empty(x.shape[:-1] + (T, self.n_states))
+        volts = np.empty(x.shape[:-1] + (T,))
         for k in range(T):
-            ik = i[..., k]
             tk = None if temp is None else temp[..., k]
             states[..., k, :] = x
-            volts[..., k] = self.output(x, ik, tk, guards=log)[0]
+            volts[..., k] = self.output(x, i[..., k], tk, guards=guards)[0]
             if k + 1 < T:
-                x = self.step(x, ik, dts[k], tk, guards=log)[0]
-        log.samples += int(np.prod(batch, dtype=int)) * T
-        return Simulation(profile.time_s, volts, states, self.state_names, log.fractions())
+                x = self.step(x, i[..., k], dts[k], tk, guards=guards)[0]
+                if soc_jumps is not None and soc_jumps[k + 1] != 0.0:
+                    x[..., 0] += soc_jumps[k + 1]
+        return states, volts
+
+    def _states_given_soc(self, xs, x0, i, dt, guards):
+        """Fill ``xs[..., 1:]`` (time first, ``(T, …, n)``) from the SOC path ``xs[..., 0]``, the initial state
+        ``x0 (…, n)``, the step currents ``i (T − 1, …)`` and steps ``dt (T − 1, 1, …)``. Not implemented: the
+        step loop runs instead (see :meth:`open_loop`)."""
+        raise NotImplementedError
+
+    def _record(self, x0, time_s, current_a, temp_c):
+        """``(x0, I, T_cell, dt, n_samples)`` broadcast to one batch shape (current and temperature ``(…, T)``)."""
+        time_s = np.asarray(time_s, dtype=float)
+        T = time_s.size
+        i = np.asarray(current_a, dtype=float)
+        x = np.asarray(x0, dtype=float)
+        batch = np.broadcast_shapes(x.shape[:-1], i.shape[:-1],
+                                    () if temp_c is None else np.shape(temp_c)[:-1])
+        x = np.broadcast_to(x, batch + (self.n_states,)).copy()
+        i = np.broadcast_to(i, batch + (T,))
+        temp = None if temp_c is None else np.broadcast_to(np.asarray(temp_c, dtype=float), batch + (T,))
+        return x, i, temp, np.diff(time_s), T
 
 
 class _ParamPlan:

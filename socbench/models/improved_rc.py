@@ -29,6 +29,7 @@ import numpy as np
 from ..errors import ModelError
 from .base import Model
 from .blocks import C_FLOOR, R_FLOOR, STRICT, coupled_rc_coefficients, floor_value, soc_rate, soc_step
+from .recurrence import matrix_affine_scan
 
 
 class ImprovedRC(Model):
@@ -67,6 +68,12 @@ class ImprovedRC(Model):
         ce, dce = self._capacitance("C2", z, guards)
         return re, dre, rc, drc, ce, dce, cc, dcc
 
+    def _check_stable(self, lam, z):
+        if self.mode == STRICT and np.any(lam > 0):
+            k = np.argmax(lam)
+            zk = np.ravel(np.broadcast_to(z, np.shape(lam)))[k]
+            raise ModelError(f"{self.name}: unstable eigenvalue λ = {np.ravel(lam)[k]:.3g} 1/s at z = {zk:.4f}")
+
     # ------------------------------------------------------------------ dynamics
     def step(self, x, i, dt, temp=None, jac=False, guards=None):
         x, (i, dt) = self._broadcast(x, i, dt)
@@ -74,11 +81,7 @@ class ImprovedRC(Model):
         w = x[..., 1:]
         net = self._network(z, guards)
         Phi, Gam, dPhi, dGam, lam = coupled_rc_coefficients(*net, dt, derivatives=jac)
-        if self.mode == STRICT and np.any(lam > 0):
-            k = np.argmax(lam)
-            raise ModelError(
-                f"{self.name}: unstable eigenvalue λ = {np.ravel(lam)[k]:.3g} 1/s at z = {np.ravel(z)[k]:.4f}"
-            )
+        self._check_stable(lam, z)
         xn = np.empty_like(x)
         xn[..., 0], dz_di = soc_step(z, i, dt, self.capacity_ah, self.eta_charge)
         xn[..., 1:] = np.einsum("...ij,...j->...i", Phi, w) + Gam * i[..., None]
@@ -92,6 +95,14 @@ class ImprovedRC(Model):
         B[..., 0] = dz_di
         B[..., 1:] = Gam
         return xn, F, B
+
+    def _states_given_soc(self, xs, x0, i, dt, guards):
+        """Whole-record states (see :meth:`Model.open_loop`): ``w⁺ = Φ(z_k) w + Γ(z_k) I`` (B5) by
+        :func:`~socbench.models.recurrence.matrix_affine_scan`."""
+        z = xs[:-1, ..., 0]
+        Phi, Gam, _, _, lam = coupled_rc_coefficients(*self._network(z, guards), dt, derivatives=False)
+        self._check_stable(lam, z)
+        xs[..., 1:] = matrix_affine_scan(Phi, Gam * i[..., None], x0[..., 1:])
 
     def dxdt(self, x, i, temp=None, z_params=None):
         x, (i,) = self._broadcast(x, i)

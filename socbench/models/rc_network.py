@@ -26,6 +26,7 @@ import numpy as np
 from ..errors import ConfigError
 from .base import Model
 from .blocks import R_FLOOR, floor_value, integrator_coefficients, rc_coefficients, soc_rate, soc_step
+from .recurrence import affine_scan, running_sum
 
 C0_DISABLED = "disabled"
 C0_AS_PRINTED = "as_printed"
@@ -112,6 +113,25 @@ class RCNetwork(Model):
                 F[..., idx, idx] = _back(a)
                 _front(B[..., cols])[...] = b
         return (xn, F, B) if jac else (xn, None, None)
+
+    def _states_given_soc(self, xs, x0, i, dt, guards):
+        """Whole-record states (see :meth:`Model.open_loop`): the integrator a running sum of ``dt·I/C0(z_k)`` (B3),
+        each branch the affine recurrence ``U⁺ = a(z_k) U + b(z_k) I`` (B2) by
+        :func:`~socbench.models.recurrence.affine_scan`."""
+        z = xs[:-1, ..., 0]
+        if self.has_integrator:
+            if self.c0_mode == C0_AS_PRINTED:
+                g = integrator_coefficients(*self.p("C0", z), dt)[0]
+                xs[..., 1] = running_sum(x0[..., 1], g * i)
+            else:
+                xs[..., 1] = x0[..., 1]
+        n = self._n
+        if n:
+            vals, _ = self.params_at(self._branch_params, z, deriv=False)
+            a, b, _, _ = rc_coefficients(vals[:n], None, vals[n:], None, dt, self.mode, guards,
+                                         name=self._branch_names, derivatives=False)  # (n, T − 1, …)
+            cols = slice(self._first_branch, self._first_branch + n)
+            xs[..., cols] = affine_scan(np.moveaxis(a, 0, -1), np.moveaxis(b * i, 0, -1), x0[..., cols])
 
     def dxdt(self, x, i, temp=None, z_params=None):
         x, (i,) = self._broadcast(x, i)

@@ -62,6 +62,9 @@ class StaticTermModel(Model):
             return xn, None, None
         return xn, np.ones(x.shape + (1,)), dz_di[..., None]
 
+    def _states_given_soc(self, xs, x0, i, dt, guards):
+        """SOC is the only state: nothing beyond the SOC path (see :meth:`Model.open_loop`)."""
+
     def dxdt(self, x, i, temp=None, z_params=None):
         x, (i,) = self._broadcast(x, i)
         return soc_rate(i, self.capacity_ah, self.eta_charge)[..., None]

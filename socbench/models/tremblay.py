@@ -29,6 +29,7 @@ import numpy as np
 
 from .base import Model
 from .blocks import EPS_SINGULAR, R_FLOOR, floor_value, guarded_inv, lowpass_coefficients, soc_rate, soc_step
+from .recurrence import affine_scan
 from .static_terms import exponential_zone
 
 
@@ -57,6 +58,12 @@ class TremblayGeneric(Model):
         F[..., 1, 1] = a
         B = np.stack([dz_di, 1.0 - a], axis=-1)
         return xn, F, B
+
+    def _states_given_soc(self, xs, x0, i, dt, guards):
+        """Whole-record ``I*`` (see :meth:`Model.open_loop`): ``I*⁺ = a(z_k) I* + (1 − a) I`` (B4) by
+        :func:`~socbench.models.recurrence.affine_scan`."""
+        a = lowpass_coefficients(*self.p("tc", xs[:-1, ..., 0]), dt)[0]
+        xs[..., 1] = affine_scan(a, (1.0 - a) * i, x0[..., 1])
 
     def dxdt(self, x, i, temp=None, z_params=None):
         x, (i,) = self._broadcast(x, i)
