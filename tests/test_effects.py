@@ -77,6 +77,49 @@ def test_batch_of_10000_matches_state_by_state(case, monkeypatch):
     generic.test_batch_of_10000_matches_state_by_state(case)
 
 
+@pytest.mark.parametrize("case", list(CASES))
+def test_whole_record_open_loop_matches_the_step_loop(case):
+    """The augmented model's whole-record ``open_loop`` (effect states by prefix scans, the SOC path by a running
+    sum or, with a leak, an SOC-only loop) against one step/output call per sample, on the record of the generic test
+    (varying dt, charge and discharge, rests, an SOC jump, a temperature column, two initial states)."""
+    m = _augmented(case)
+    assert m.whole_record  # every effect and base model here has the whole-record path: the test compares two paths
+    rng = np.random.default_rng(7)
+    n, q = 1500, m.capacity_ah
+    t = np.concatenate([[0.0], np.cumsum(rng.choice([0.1, 1.0, 5.0], size=n - 1))])
+    i = np.repeat(rng.choice([0.0, 0.5, 2.0, -1.0], size=n // 25 + 1) * q, 25)[:n] + rng.normal(0.0, 0.01 * q, n)
+    temp = 25.0 + np.cumsum(rng.normal(0.0, 0.05, n))
+    jumps = np.zeros(n)
+    jumps[n // 2] = -0.02
+    x0 = m.x0(np.array([0.95, 0.7]))
+    s_fast, y_fast = m.open_loop(x0, t, i, temp, jumps)
+    s_loop, y_loop = m.open_loop_stepwise(x0, t, i, temp, jumps)
+    assert y_fast.shape == (2, n) and s_fast.shape == (2, n, m.n_states)
+    np.testing.assert_allclose(s_fast, s_loop, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(y_fast, y_loop, rtol=1e-12, atol=1e-12)
+
+
+def test_whole_record_open_loop_takes_effect_parameter_batches():
+    """The diagnosis fits simulate several effect-parameter variants in one call: each row must equal its own
+    one-variant step loop."""
+    base = make_model("dp", paper_params("dp"))
+    gamma, tau, cap = np.array([3.0, 60.0, 400.0]), np.array([1.0, 2.5, 3.8]), np.array([0.8, 1.0, 1.3])
+
+    def make(g, lt, c):
+        return [Hysteresis(M=0.05, M0=0.01, gamma=g, h0=-0.5, h_ref=-1.0), ExtraRC(R=3e-3, log10_tau=lt),
+                Capacity(cap0=c), SelfDischarge(rate=0.03), CurrentBias(b0=0.1)]
+
+    batched = augment(base, make(gamma, tau, cap))
+    prof = _profile(_pulses(22.0), dt=2.0, temp=10.0)
+    y_all = batched.simulate(prof, x0=batched.x0(0.8, (3,))).voltage_v
+    assert y_all.shape == (3, prof.n)
+    for r in range(3):
+        one = augment(base, make(gamma[r], tau[r], cap[r]))
+        y_one = one.open_loop_stepwise(one.x0(0.8), prof.time_s, prof.current_a, prof.temperature_c)[1]
+        np.testing.assert_allclose(y_all[r], y_one, rtol=1e-12, atol=1e-12)
+    assert np.ptp(y_all[:, -1]) > 0.01  # the variants differ: the rows are not one simulation repeated
+
+
 # ----------------------------------------------------------------------------------------------- each effect
 def _profile(current, dt=1.0, temp=None):
     current = np.asarray(current, dtype=float)

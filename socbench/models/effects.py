@@ -36,7 +36,8 @@ import numpy as np
 
 from ..errors import ConfigError
 from .base import T_REF_C, Model
-from .blocks import rc_coefficients
+from .blocks import rc_coefficients, soc_step
+from .recurrence import affine_scan, running_sum
 
 #: gas constant [J/(mol K)] and Faraday constant [C/mol]
 R_GAS = 8.314462618
@@ -116,6 +117,13 @@ class Effect:
         """``(e⁺, ∂e⁺/∂e (…, ne, ne), ∂e⁺/∂z (…, ne), ∂e⁺/∂I (…, ne))`` of the effect's states."""
         return e, None, None, None
 
+    def record_states(self, e0, i, dt, base):
+        """The effect's states over a whole record at once, time first ``(T, …, ne)``, from ``e0 (…, ne)``, the
+        (effective) step currents ``i (T − 1, …)`` and steps ``dt (T − 1, 1, …)``: what :meth:`advance` gives step by
+        step, for effects whose states do not depend on the SOC. Not implemented: the augmented model runs the step
+        loop (see :meth:`AugmentedModel.open_loop`)."""
+        raise NotImplementedError
+
     def rate(self, e, z, i, temp, base):
         """Continuous-time ``ė`` (0 for discrete states); SOC-dependent quantities frozen at ``z``."""
         return np.zeros_like(e)
@@ -131,6 +139,11 @@ class Effect:
     def output_term(self, e, z, i, temp, base, jac):
         """``(Δy, ∂Δy/∂e (…, ne), ∂Δy/∂z, ∂Δy/∂I)`` added to the output, or None."""
         return None
+
+
+def _constant_states(self, e0, i, dt, base):
+    """A random-walk state without process noise stays at its initial value over the record (open loop)."""
+    return np.broadcast_to(e0, (i.shape[0] + 1,) + np.shape(e0))
 
 
 def _temp_k(temp, t_ref_c, shape):
@@ -226,6 +239,18 @@ class Hysteresis(Effect):
         Be[..., 0] = -a * c * dt * sg * (h + sg)
         return en, Fe, np.zeros(e.shape), Be
 
+    def record_states(self, e0, i, dt, base):
+        """Both states are affine recurrences in time (:func:`~socbench.models.recurrence.affine_scan`):
+        ``h⁺ = A_h h − (1 − A_h) sgn I`` and ``s⁺ = 0·s + sgn I`` while moving, ``1·s + 0`` otherwise."""
+        a, _ = self._decay(i, dt, base)
+        sg = np.sign(i)
+        moving = np.abs(i) > base.capacity_ah / 100.0
+        # each step is a convex combination of h and ±1, so |h| ≤ 1; the scan's summation order can overshoot by an
+        # ulp, which the clip removes (the step loop stays inside by construction)
+        h = np.clip(affine_scan(a, -(1.0 - a) * sg, e0[..., 0]), -1.0, 1.0)
+        s = affine_scan(np.where(moving, 0.0, 1.0), np.where(moving, sg, 0.0), e0[..., 1])
+        return np.stack([h, s], axis=-1)
+
     def rate(self, e, z, i, temp, base):
         eta = np.where(i >= 0.0, 1.0, base.eta_charge)
         r = np.zeros_like(e)
@@ -268,6 +293,8 @@ class Capacity(Effect):
             return e, None, None, None
         return e, np.ones(e.shape + (1,)), np.zeros(e.shape), np.zeros(e.shape)
 
+    record_states = _constant_states
+
 
 class CurrentBias(Effect):
     """Current-sensor offset (ECM_SPEC §9.4): ``I_meas = I + b``, ``b`` a random-walk state (``b⁺ = b``).
@@ -294,6 +321,8 @@ class CurrentBias(Effect):
         if not jac:
             return e, None, None, None
         return e, np.ones(e.shape + (1,)), np.zeros(e.shape), np.zeros(e.shape)
+
+    record_states = _constant_states
 
 
 class ExtraRC(Effect):
@@ -323,6 +352,11 @@ class ExtraRC(Effect):
         if not jac:
             return en, None, None, None
         return en, a[..., None, None], np.zeros(e.shape), b[..., None]
+
+    def record_states(self, e0, i, dt, base):
+        """``U_x⁺ = a U_x + b I`` over the record by :func:`~socbench.models.recurrence.affine_scan`."""
+        a, b = self._coef(dt, base)
+        return affine_scan(a, b * i, e0[..., 0])[..., None]
 
     def rate(self, e, z, i, temp, base):
         tau = 10.0 ** self["log10_tau"]
@@ -534,6 +568,69 @@ class AugmentedModel(Model):
         if bcol is not None:
             F[..., :, bcol] -= B
         return xn, F, B
+
+    # ------------------------------------------------------------------ the whole record at once
+    @property
+    def whole_record(self) -> bool:
+        """Whether :meth:`open_loop` can evaluate a record at once: the base model's non-SOC states are linear given
+        the SOC path (:meth:`Model._states_given_soc`) and every effect with states has :meth:`Effect.record_states`."""
+        base_ok = type(self.base)._states_given_soc is not Model._states_given_soc
+        return base_ok and all(not e.n_states or type(e).record_states is not Effect.record_states
+                               for e in self.effects)
+
+    def open_loop(self, x0, time_s, current_a, temp_c=None, soc_jumps=None, guards=None):
+        """:meth:`Model.open_loop` for the augmented model, the whole record at once when :attr:`whole_record`.
+
+        In open loop the current offset ``b`` is constant (a random walk without noise), so the effective current
+        ``i_e = i − b`` is known for the whole record first. Then, time first:
+
+        1. the effects' states from ``i_e`` (:meth:`Effect.record_states`: prefix scans, or constants);
+        2. the SOC path ``z_{k+1} = z_k + g_k·Δz_k − leak(z_k) (+ jump_{k+1})``, ``Δz_k`` the base model's B1
+           increment on ``i_e``, ``g_k`` the product of the effects' SOC gains (capacity, coulombic efficiency): a
+           running sum (:func:`~socbench.models.recurrence.running_sum`); with a leak (self_discharge, which depends
+           on ``U_oc(z_k)``) a loop over the SOC alone;
+        3. the base model's other states given that SOC path and ``i_e`` (its :meth:`Model._states_given_soc`);
+        4. the output on every sample in one :meth:`output` call.
+
+        Equals :meth:`open_loop_stepwise` to rounding (the SOC increment is not formed as ``(z + Δz) − z``).
+        """
+        if not self.whole_record:
+            return self.open_loop_stepwise(x0, time_s, current_a, temp_c, soc_jumps, guards)
+        x, i, temp, dts, T = self._record(x0, time_s, current_a, temp_c)
+        if T < 2:
+            return self.open_loop_stepwise(x0, time_s, current_a, temp_c, soc_jumps, guards)
+        nb = self._nb
+        i_t = np.moveaxis(i, -1, 0)
+        temp_t = None if temp is None else np.moveaxis(temp, -1, 0)
+        dt = dts.reshape((T - 1,) + (1,) * (x.ndim - 1))
+        ie = self._effective_current(x, i_t[:-1])[0]  # (T − 1, …): b is the initial (constant) offset
+        xs = np.empty((T,) + x.shape)
+        for e, sl in zip(self.effects, self._slices):
+            if e.n_states:
+                xs[..., sl] = e.record_states(x[..., sl], ie, dt, self.base)
+        gain = np.ones(ie.shape)
+        for e, sl in zip(self.effects, self._slices):
+            g = e.soc_gain(xs[:-1, ..., sl], ie, self.base)
+            if g is not None:
+                gain = gain * g[0]
+        inc = gain * soc_step(0.0, ie, dt, self.base.capacity_ah, self.base.eta_charge)[0]
+        jumps = None if soc_jumps is None else np.reshape(soc_jumps, (T,) + (1,) * (x.ndim - 1))
+        leaky = [(e, sl) for e, sl in zip(self.effects, self._slices) if type(e).soc_leak is not Effect.soc_leak]
+        if not leaky:
+            xs[..., 0] = running_sum(x[..., 0], inc, jumps)
+        else:
+            z = x[..., 0]
+            for k in range(T):  # the leak depends on U_oc(z_k): only the SOC runs step by step
+                xs[k, ..., 0] = z
+                if k + 1 < T:
+                    z = z + inc[k]
+                    for e, sl in leaky:
+                        z = z - e.soc_leak(xs[k, ..., 0], xs[k, ..., sl], dt[k], self.base)[0]
+                    if jumps is not None:
+                        z = z + jumps[k + 1]
+        self.base._states_given_soc(xs[..., :nb], x[..., :nb], ie, dt, guards)
+        y = self.output(xs, i_t, temp_t, guards=guards)[0]
+        return np.moveaxis(xs, 0, -2), np.moveaxis(y, 0, -1)
 
     def output(self, x, i, temp=None, jac=False, guards=None):
         x, (i,) = self._broadcast(x, i)
