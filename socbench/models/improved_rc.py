@@ -50,23 +50,24 @@ class ImprovedRC(Model):
         return ("z", "Ue", "Uc")
 
     # ------------------------------------------------------------------ guarded parameters
-    def _capacitance(self, name, z, guards):
-        c, dc = self.p(name, z)
+    def _capacitance(self, name, c, dc, z, guards):
         if self.mode == STRICT and np.any(c <= 0):
             k = np.argmin(c)
             zk = np.ravel(np.broadcast_to(z, c.shape))[k]
             raise ModelError(f"{self.name}: {name} = {np.ravel(c)[k]:.4g} F ≤ 0 at z = {zk:.4f}")
         return floor_value(c, dc, C_FLOOR, self.mode, guards, f"{name}_floor")
 
-    def _network(self, z, guards=None):
-        """``(R_e, R_e', R_c, R_c', C_e, C_e', C_c, C_c')`` at ``z`` with the mode's guards applied."""
-        rc, drc = self.p("R1", z)
-        re, dre = self.p("R2", z)
+    def _network(self, z, guards=None, deriv=True):
+        """``(R_e, R_e', R_c, R_c', C_e, C_e', C_c, C_c')`` at ``z`` with the mode's guards applied (derivatives None
+        unless ``deriv``)."""
+        v, d = self.params_at(("R1", "R2", "C1", "C2"), z, deriv=deriv)
+        d = [None] * 4 if d is None else d
+        rc, re = v[0], v[1]
         if np.any(re + rc <= 0):
             raise ModelError(f"{self.name}: R1 + R2 ≤ 0 (min {np.min(re + rc):.3g} Ω)")
-        cc, dcc = self._capacitance("C1", z, guards)
-        ce, dce = self._capacitance("C2", z, guards)
-        return re, dre, rc, drc, ce, dce, cc, dcc
+        cc, dcc = self._capacitance("C1", v[2], d[2], z, guards)
+        ce, dce = self._capacitance("C2", v[3], d[3], z, guards)
+        return re, d[1], rc, d[0], ce, dce, cc, dcc
 
     def _check_stable(self, lam, z):
         if self.mode == STRICT and np.any(lam > 0):
@@ -79,7 +80,7 @@ class ImprovedRC(Model):
         x, (i, dt) = self._broadcast(x, i, dt)
         z = x[..., 0]
         w = x[..., 1:]
-        net = self._network(z, guards)
+        net = self._network(z, guards, deriv=jac)
         Phi, Gam, dPhi, dGam, lam = coupled_rc_coefficients(*net, dt, derivatives=jac)
         self._check_stable(lam, z)
         xn = np.empty_like(x)
@@ -100,7 +101,7 @@ class ImprovedRC(Model):
         """Whole-record states (see :meth:`Model.open_loop`): ``w⁺ = Φ(z_k) w + Γ(z_k) I`` (B5) by
         :func:`~socbench.models.recurrence.matrix_affine_scan`."""
         z = xs[:-1, ..., 0]
-        Phi, Gam, _, _, lam = coupled_rc_coefficients(*self._network(z, guards), dt, derivatives=False)
+        Phi, Gam, _, _, lam = coupled_rc_coefficients(*self._network(z, guards, deriv=False), dt, derivatives=False)
         self._check_stable(lam, z)
         xs[..., 1:] = matrix_affine_scan(Phi, Gam * i[..., None], x0[..., 1:])
 
