@@ -23,6 +23,16 @@ def _mv(v):
     return "–" if v is None else f"{1000 * v:.2f}"
 
 
+def _pct(v):
+    return "–" if v is None else f"{100 * v:.2f}"
+
+
+def markdown_table(header, rows) -> list:
+    """A Markdown table as lines: ``header`` the column titles, ``rows`` lists of cells (formatted by ``str``)."""
+    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + \
+        ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+
+
 def markdown(diag, figures=()) -> str:
     """``diagnosis.md``: the before/after table and one sentence of evidence per step."""
     b, a = diag.before, diag.after
@@ -34,23 +44,21 @@ def markdown(diag, figures=()) -> str:
     held = ", ".join(f"{h['profile']} from sample {h['first_index']}" for h in sp["held_out"])
     lines += ["", f"Split ({sp['method']}): effect parameters fitted on {sp['train']['profile']} "
               f"({sp['train']['n']} samples), judged on {held}.", ""]
-    lines += ["| | held-out voltage RMSE [mV] | held-out SOC RMSE (EKF) [%] |", "|---|---|---|"]
     added = " + ".join(diag.effects_added) or "no change"
-    for label, d in (("before (base model)", b), (f"after ({added})", a)):
-        soc = "–" if d.get("soc_rmse") is None else f"{100 * d['soc_rmse']:.2f}"
-        lines.append(f"| {label} | {_mv(d['rmse_v'])} | {soc} |")
+    lines += markdown_table(["", "held-out voltage RMSE [mV]", "held-out SOC RMSE (EKF) [%]"],
+                            [[label, _mv(d["rmse_v"]), _pct(d.get("soc_rmse"))]
+                             for label, d in (("before (base model)", b), (f"after ({added})", a))])
     if diag.soc.get("note"):
         lines += ["", f"SOC: {diag.soc['note']}."]
     if diag.steps:
         lines += ["", "## Steps", ""]
         for k, s in enumerate(diag.steps, 1):
             lines.append(f"{k}. **{s.effect}** — {_mv(s.rmse_before)} → {_mv(s.rmse_after)} mV held-out; {s.evidence}.")
-    lines += ["", "## Candidates (first round)", "", "| effect | score | signature R² | held-out RMSE after [mV] | "
-              "evidence |", "|---|---|---|---|---|"]
-    for c in diag.rounds[0]["candidates"] if diag.rounds else []:
-        score = "–" if not np.isfinite(c.score) else f"{c.score:.3f}"
-        after = "–" if not np.isfinite(c.score) else _mv(c.rmse_after)
-        lines.append(f"| {c.effect} | {score} | {c.signature_r2:.2f} | {after} | {c.evidence} |")
+    fitted = [(c, np.isfinite(c.score)) for c in (diag.rounds[0]["candidates"] if diag.rounds else [])]
+    lines += ["", "## Candidates (first round)", ""]
+    lines += markdown_table(["effect", "score", "signature R²", "held-out RMSE after [mV]", "evidence"],
+                            [[c.effect, f"{c.score:.3f}" if ok else "–", f"{c.signature_r2:.2f}",
+                              _mv(c.rmse_after) if ok else "–", c.evidence] for c, ok in fitted])
     lines += ["", "Score: ln(MSE_before/MSE_after) on the held-out part − 2·(parameters added)/n_eff (AIC per "
               "effective sample).", ""]
     for f in figures:

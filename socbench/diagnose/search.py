@@ -8,9 +8,7 @@ One round, on the current model ``m`` (the base model, then the base model with 
    (the refit) — inside their physical bounds (:meth:`~socbench.models.effects.Effect.bounds`) on the training part,
    with :func:`socbench.identify.fit_parameters` (bounded least squares; the base model's parameters stay as fitted on
    the fit data);
-3. judge it on the held-out part (simulated on the held-out records compressed by
-   :func:`~socbench.identify.compress_profile`, exact at the kept samples, each weighted by the samples it stands for;
-   the reported before/after numbers are recomputed on every held-out sample):
+3. judge it on every sample of the held-out part (the numbers reported as before/after):
    ``score = ln(MSE_before / MSE_after) − 2·p / n_eff`` (AIC per effective sample, ``p`` the parameters the
    effect adds, ``n_eff = N·(1 − ρ)/(1 + ρ)`` from the lag-1 autocorrelation ρ of the held-out residual,
    at least 100 — neighbouring residuals of a voltage fit are far from independent);
@@ -36,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..identify import compress_profile, fit_parameters
+from ..identify import fit_parameters
 from ..models.effects import EFFECTS, augment, make_effect
 from .data import Split
 from .signatures import Trajectory, signatures
@@ -48,10 +46,15 @@ MIN_N_EFF = 100.0
 MIN_SIGNATURE_R2 = 0.01
 #: candidates tied (within 0.01) with the last one fitted are fitted too when their R² is at least this
 TIE_R2 = 0.1
-#: no effect is added once the held-out RMSE is within this factor of the measured voltage noise
-NOISE_FLOOR = 2.0
-#: compression of the held-out records for scoring and of the training record for the fits
-HELD_COMPRESS = {"max_step_s": 30.0}
+#: no effect is added once the held-out RMSE is within this factor of the measured voltage noise. A base model fitted
+#: on its own record leaves some error of its own beside the noise (the fit is not exact), and near the noise any
+#: flexible effect can take up part of it. The factor is the critical value of that null distribution: over 75
+#: synthetic cases without a hidden effect (rint/thevenin/dp on steps and pulses, 1 mV noise, seeds 200–214, which
+#: neither the tests nor the benchmark use) the base model's held-out RMSE was 1.1–2.3 × the measured noise, and at
+#: the former factor 2.0 four of them gained an effect; on 75 more (seeds 300–314) it was 1.2–2.4 × and none gained
+#: one at 2.5. Every hidden effect of the tests and the benchmark starts at ≥ 7 × the noise.
+NOISE_FLOOR = 2.5
+#: compression of the training record for the fits (the held-out part is scored on every sample)
 FIT_COMPRESS = {"max_step_s": 60.0}
 
 
@@ -82,29 +85,15 @@ def initial_soc(model, profile) -> float:
     return float(np.clip(model.ocv.inverse(profile.voltage_v[0]), 0.0, 1.0))
 
 
-def held_out(model, split: Split, compressed: bool = False):
-    """``(rmse, residual)`` of ``model`` on the held-out part (each profile simulated from its start).
-
-    ``compressed``: on the compressed records, each kept sample weighted by the number of samples it stands for (up
-    to the next kept one), so that both estimate the same per-sample RMSE; otherwise on every sample.
-    """
-    res, wts = [], []
+def held_out(model, split: Split):
+    """``(rmse, residual)`` of ``model`` on every held-out sample (each profile simulated from its start)."""
+    res = []
     for prof, k in split.held:
-        soc0 = initial_soc(model, prof)
-        if compressed:
-            comp = compress_profile(prof, **HELD_COMPRESS)
-            p, idx = comp.profile, comp.index
-            keep = idx >= k
-            w = np.diff(np.append(idx, prof.n))[keep].astype(float)
-        else:
-            p, keep, w = prof, np.arange(prof.n) >= k, None
-        sim = model.simulate(p, soc0=soc0)
-        res.append((p.voltage_v - sim.voltage_v)[keep])
-        wts.append(np.ones(int(keep.sum())) if w is None else w)
+        sim = model.simulate(prof, soc0=initial_soc(model, prof))
+        res.append((prof.voltage_v - sim.voltage_v)[k:])
     r = np.concatenate(res)
-    w = np.concatenate(wts)
     r = np.where(np.isfinite(r), r, 10.0)
-    return float(np.sqrt(np.sum(w * r * r) / np.sum(w))), r
+    return float(np.sqrt(np.mean(r * r))), r
 
 
 def effective_samples(r: np.ndarray) -> float:
@@ -233,7 +222,7 @@ class Search:
         """``(final model, steps, rounds, before_rmse)``: steps = accepted candidates, rounds = every round's list."""
         current = []  # [(name, fitted values)]
         model = self.base
-        rmse_now, r_now = held_out(model, self.split, compressed=True)
+        rmse_now, r_now = held_out(model, self.split)
         before = rmse_now
         steps, rounds = [], []
         for _ in range(self.max_steps):
@@ -280,7 +269,7 @@ class Search:
         start = dict(sig.guess) if sig is not None else {}
         try:
             model, res = self.fit(current + [(name, start)])
-            rmse_after, r_after = held_out(model, self.split, compressed=True)
+            rmse_after, r_after = held_out(model, self.split)
         except Exception as exc:  # a failed fit scores nothing but is reported
             return Candidate(name, -np.inf, rmse_now, rmse_now, {}, 0.0 if sig is None else sig.r2,
                              f"fit failed: {type(exc).__name__}: {exc}", seconds=_time.perf_counter() - t0)

@@ -102,6 +102,28 @@ def _linear_one(name, traj, col, sse_null, to_guess, regressor, bounds):
     return Signature(name, _r2(sse, sse_null), guess, coef[1] * col, regressor, {"coef": float(coef[1])})
 
 
+def _best_on_grid(fits, admissible=None):
+    """The grid point of least SSE: ``fits`` yields ``(key, target, columns)``, each fitted as
+    ``target ≈ [1, columns] β`` by least squares; with ``admissible(β)`` only fits of the physical sign count.
+    Returns ``(sse, β, key)`` or None when no grid point is admissible."""
+    best = None
+    for key, target, cols in fits:
+        sse, coef = _lstsq(target, cols)
+        if (admissible is None or admissible(coef)) and (best is None or sse < best[0]):
+            best = (sse, coef, key)
+    return best
+
+
+def _grid_states(effect, profile, model) -> np.ndarray:
+    """The states of ``effect`` (its parameters a grid ``(G,)``) over ``profile`` from its initial states, driven by
+    the measured current: ``(T, G, ne)`` by :meth:`~socbench.models.effects.Effect.record_states` (prefix scans)."""
+    grid = np.broadcast_shapes(*(np.shape(v) for v in effect.values.values()))
+    e0 = np.array(np.broadcast_to(effect.initial(), grid + (effect.n_states,)))
+    g = e0.shape[0]
+    i = np.broadcast_to(profile.current_a[:-1, None], (profile.n - 1, g))
+    return effect.record_states(e0, i, profile.dt[:, None], model)
+
+
 def signatures(model, traj: Trajectory, bounds: dict, t_ref: float) -> dict:
     """``{effect: Signature}`` on the trajectory of ``model`` (``bounds[effect]`` clip the guesses)."""
     prof = traj.profile
@@ -129,25 +151,15 @@ def signatures(model, traj: Trajectory, bounds: dict, t_ref: float) -> dict:
     out["self_discharge"] = _linear_one("self_discharge", traj, du * leak, sse_null, lambda b: {"rate": -b},
                                         "U'(z)·∫U/U(1)dt", bounds["self_discharge"])
 
-    # hysteresis: Plett's h for a grid of (γ, h0), s the sign memory
+    # hysteresis: Plett's h for a grid of (γ, h0) and the sign memory s_k (sgn I_k while moving, else s_{k−1}),
+    # with M > 0 (the charge branch lies above the discharge branch)
     gam, h0 = np.meshgrid(GAMMA_GRID, H0_GRID, indexing="ij")
     gam, h0 = gam.ravel(), h0.ravel()
-    hyst = Hysteresis(M=0.0, M0=0.0, gamma=gam, h0=h0)
-    e = np.broadcast_to(hyst.initial(), (gam.size, 2)).copy()
-    hs = np.empty((prof.n, gam.size))
-    ss = np.empty(prof.n)
+    states = _grid_states(Hysteresis(M=0.0, M0=0.0, gamma=gam, h0=h0), prof, model)
+    hs = states[..., 0]
     moving = np.abs(i) > q / 100.0
-    s_prev = 0.0
-    for k in range(prof.n):
-        hs[k] = e[:, 0]
-        ss[k] = s_prev = np.sign(i[k]) if moving[k] else s_prev
-        if k + 1 < prof.n:
-            e = hyst.advance(e, None, np.full(gam.size, i[k]), np.full(gam.size, dt[k]), None, model, False)[0]
-    best = None
-    for g in range(gam.size):
-        sse, coef = _lstsq(r, [hs[:, g], ss])
-        if coef[1] > 0 and (best is None or sse < best[0]):
-            best = (sse, coef, g)
+    ss = np.where(moving, np.sign(i), states[:, 0, 1])
+    best = _best_on_grid(((g, r, [hs[:, g], ss]) for g in range(gam.size)), lambda coef: coef[1] > 0)
     if best is None:
         out["hysteresis"] = Signature("hysteresis", 0.0, {}, np.zeros_like(r), "h_γ(t), s(t)")
     else:
@@ -158,19 +170,9 @@ def signatures(model, traj: Trajectory, bounds: dict, t_ref: float) -> dict:
         out["hysteresis"] = Signature("hysteresis", _r2(sse, sse_null), guess, coef[1] * hs[:, g] + coef[2] * ss,
                                       "h_γ(t), s(t)", {"gamma": float(gam[g]), "h0": float(h0[g])})
 
-    # extra RC: unit-R branch voltage (low-pass current) over the τ grid
-    rc = ExtraRC(R=1.0, log10_tau=LOG10_TAU_GRID)
-    u = np.zeros(LOG10_TAU_GRID.size)
-    lp = np.empty((prof.n, LOG10_TAU_GRID.size))
-    for k in range(prof.n):
-        lp[k] = u
-        if k + 1 < prof.n:
-            u = rc.advance(u[:, None], None, np.full(u.size, i[k]), np.full(u.size, dt[k]), None, model, False)[0][:, 0]
-    best = None
-    for g in range(LOG10_TAU_GRID.size):
-        sse, coef = _lstsq(r, [lp[:, g]])
-        if coef[1] < 0 and (best is None or sse < best[0]):
-            best = (sse, coef, g)
+    # extra RC: unit-R branch voltage (low-pass current) over the τ grid, with R > 0 (the output falls by U_x)
+    lp = _grid_states(ExtraRC(R=1.0, log10_tau=LOG10_TAU_GRID), prof, model)[..., 0]
+    best = _best_on_grid(((g, r, [lp[:, g]]) for g in range(LOG10_TAU_GRID.size)), lambda coef: coef[1] < 0)
     if best is None:
         out["extra_rc"] = Signature("extra_rc", 0.0, {}, np.zeros_like(r), "LP_τ(I)")
     else:
@@ -184,35 +186,23 @@ def signatures(model, traj: Trajectory, bounds: dict, t_ref: float) -> dict:
     tk = (prof.temperature_c if prof.temperature_c is not None else np.full(prof.n, 25.0)) + KELVIN
     gfac = n_cells(model) * 2.0 * R_GAS * tk / FARADAY
     sse_lin, _ = _lstsq(r, [i])
-    best = None
-    for ratio in I0_OVER_Q_GRID:
-        i0 = ratio * q
-        shape = -gfac * np.arcsinh(i / (2.0 * i0))
-        sse, coef = _lstsq(r - shape, [i])
-        if best is None or sse < best[0]:
-            best = (sse, coef, i0, shape)
-    sse, coef, i0, shape = best
+    shapes = {i0: -gfac * np.arcsinh(i / (2.0 * i0)) for i0 in I0_OVER_Q_GRID * q}
+    sse, coef, i0 = _best_on_grid((i0, r - shape, [i]) for i0, shape in shapes.items())
     b = bounds["butler_volmer"]
     out["butler_volmer"] = Signature("butler_volmer", _r2(sse, sse_lin),
                                      {"I0": float(np.clip(i0, *b["I0"])), "dR": float(np.clip(coef[1], *b["dR"]))},
-                                     shape + coef[1] * i, "asinh(I/2I0) curvature", {"I0": float(i0)})
+                                     shapes[i0] + coef[1] * i, "asinh(I/2I0) curvature", {"I0": float(i0)})
 
     # temperature: Arrhenius-scaled over-potential over the E_a grid, plus the entropic term
     if prof.temperature_c is not None:
         eta = traj.ocv - traj.y_model
         dtemp = prof.temperature_c - t_ref
-        best = None
-        for ea in EA_GRID:
-            k = np.exp(ea / R_GAS * (1.0 / tk - 1.0 / (t_ref + KELVIN)))
-            shape = -(k - 1.0) * eta
-            sse, coef = _lstsq(r - shape, [dtemp])
-            if best is None or sse < best[0]:
-                best = (sse, coef, ea, shape)
-        sse, coef, ea, shape = best
+        shapes = {ea: -(np.exp(ea / R_GAS * (1.0 / tk - 1.0 / (t_ref + KELVIN))) - 1.0) * eta for ea in EA_GRID}
+        sse, coef, ea = _best_on_grid((ea, r - shape, [dtemp]) for ea, shape in shapes.items())
         b = bounds["temperature"]
         out["temperature"] = Signature("temperature", _r2(sse, sse_null),
                                        {"Ea": float(ea), "dUdT": float(np.clip(coef[1], *b["dUdT"]))},
-                                       shape + coef[1] * dtemp, "−(k(T)−1)·η, T−T_ref",
+                                       shapes[ea] + coef[1] * dtemp, "−(k(T)−1)·η, T−T_ref",
                                        {"Ea": float(ea), "temp_range_c": [float(prof.temperature_c.min()),
                                                                           float(prof.temperature_c.max())]})
     return out
