@@ -26,9 +26,12 @@ import time
 import warnings
 from pathlib import Path
 
+import numpy as np
+
 from socbench.datasets import load
 from socbench.diagnose import diagnose
-from socbench.diagnose.report import figures, write_report
+from socbench.diagnose.report import figures, markdown_table, write_report
+from socbench.diagnose.search import NOISE_FLOOR, Search, held_out, initial_soc
 from socbench.diagnose.synthetic import hidden_case
 
 REAL = {
@@ -84,7 +87,32 @@ def run_real(key, data_dir: Path, out: Path, report_dir: Path) -> dict:
     figs = figures(diag, out / "figures", prefix=f"diagnose_{key}_")
     bounds = {e.name: e.bounds(diag.base_model) for e in diag.final_model.effects} if diag.steps else {}
     return {"key": key, "case": case, "diagnosis": d, "wall_s": wall, "cpu_s": cpu, "bounds": bounds,
-            "figures": [str(p.relative_to(out)) for p in figs], "seconds": diag.seconds}
+            "figures": [str(p.relative_to(out)) for p in figs], "seconds": diag.seconds,
+            "alone": each_effect_alone(diag) if len(diag.steps) > 1 else []}
+
+
+#: the end-of-discharge knee: the base model's SOC at or below this (where U'(z) is steep and an SOC error is amplified)
+KNEE_SOC = 0.1
+
+
+def each_effect_alone(diag) -> list:
+    """Held-out RMSE of the base model, of each added effect fitted alone (same training part, bounds and effort as
+    the search) and of the final model: on every held-out sample, above and at/below ``KNEE_SOC`` (base model's SOC)."""
+    search = Search(diag.base_model, diag.split, diag.fit["t_ref_c"], h_ref=diag.fit["ocv_branch"], max_nfev=15)
+    models = [("base", diag.base_model)]
+    for e in diag.final_model.effects:
+        models.append((f"{e.name} alone", search.fit([(e.name, {p: float(e[p]) for p in e.param_names})])[0]))
+    models.append(("all added", diag.final_model))
+    z = np.concatenate([diag.base_model.simulate(p, soc0=initial_soc(diag.base_model, p)).soc[k:]
+                        for p, k in diag.split.held])
+    knee = z <= KNEE_SOC
+    rows = []
+    for label, m in models:
+        r = held_out(m, diag.split)[1]
+        rms = [float(np.sqrt(np.mean(x * x))) for x in (r, r[~knee], r[knee]) if x.size]
+        rows.append({"model": label, "rmse": rms[0], "plateau": rms[1], "knee": rms[2] if len(rms) > 2 else None,
+                     "knee_share": float(knee.mean())})
+    return rows
 
 
 def run_synthetic() -> list:
@@ -126,7 +154,8 @@ def render(results: dict) -> str:
          "time, low-pass current on a τ grid, asinh curvature in I); the best-supported candidates are then fitted "
          "in their bounds on the training part and scored on the held-out part with an AIC-like penalty; the winner "
          "is added and everything added so far is refitted; the search stops when the held-out RMSE falls by less "
-         "than 10 %.", ""]
+         f"than 10 % or is within {NOISE_FLOOR:g} × the voltage noise measured in the data (the critical value of the "
+         "base fits' own held-out error on synthetic data without a hidden effect).", ""]
     for key in ("panasonic", "calce"):
         r = results.get(key)
         if r is None:
@@ -170,6 +199,24 @@ def render(results: dict) -> str:
             fitted = c["score"] is not None and math.isfinite(c["score"])
             score = f"{c['score']:.3f}" if fitted else "–"
             L.append(f"| {c['effect']} | {score} | {c['signature_r2']:.2f} | {c['evidence']} |")
+        if r.get("alone"):
+            share = 100 * r["alone"][0]["knee_share"]
+            L += ["", f"Each added effect alone (fitted on the same training part) and all together; "
+                  "held-out RMSE [mV] "
+                  f"on every sample, on the samples where the base model's SOC is above {KNEE_SOC:g}, and on the "
+                  f"{share:.1f} % at or below it (the end-of-discharge knee, where the OCV is steep):", ""]
+            L += markdown_table(["model", "all", f"SOC > {KNEE_SOC:g}", f"SOC ≤ {KNEE_SOC:g}"],
+                                [[a["model"], f"{1000 * a['rmse']:.2f}", f"{1000 * a['plateau']:.2f}",
+                                  "–" if a["knee"] is None else f"{1000 * a['knee']:.2f}"] for a in r["alone"]])
+            base, alone = r["alone"][0], r["alone"][1:-1]
+            flat = min(alone, key=lambda a: a["plateau"])
+            if all(a["knee"] is not None for a in r["alone"]):
+                steep = min(alone, key=lambda a: a["knee"])
+                L += ["", f"Above the knee ({100 - share:.1f} % of the samples) {flat['model']} removes the most "
+                      f"({1000 * base['plateau']:.1f} → {1000 * flat['plateau']:.1f} mV); in the knee {steep['model']} "
+                      f"does ({1000 * base['knee']:.1f} → {1000 * steep['knee']:.1f} mV). The search ranks by the "
+                      "held-out mean squared error, where the few knee samples weigh most: that sets the order of "
+                      "the steps, not which effects are found."]
         L += [""] + [f"![{Path(f).stem}]({f})" for f in r["figures"]] + [""]
     syn = results.get("synthetic")
     if syn:
@@ -178,9 +225,7 @@ def render(results: dict) -> str:
               "cell, HPPC fit record with 30-min rests, an evaluation load chosen to excite the effect, white voltage "
               "noise), diagnosed with the same defaults as the real cases; held-out = the second half of the "
               "evaluation record. `tests/test_diagnose.py` runs the same kind of cases with other seeds (and partly "
-              "other loads, noise levels and current noise); one of its cases without a hidden effect (DP on current "
-              "steps) is marked as a known failure: there the base fit's own error sits just above the noise floor and "
-              "hysteresis takes part of it up.", "",
+              "other loads, noise levels and current noise), its two cases without a hidden effect included.", "",
               "| hidden effect | base | load | noise [mV] | added | held-out RMSE before → after [mV] | cut | "
               "time [s] |", "|---|---|---|---|---|---|---|---|"]
         for r in syn:

@@ -2,7 +2,7 @@
 for — temperature for the Panasonic 18650PF driven cold after a 25 °C fit, hysteresis for the A123 LFP cell.
 
 Nothing but the files and the base model is given; no effect name is in any metadata the diagnosis reads (the
-measured cell temperature column is data). Slow: minutes each on a loaded 2-core machine.
+measured cell temperature column is data). About ten seconds each (whole-record simulation).
 """
 
 from __future__ import annotations
