@@ -4,6 +4,7 @@
 * :func:`fit_model` — any registered model in the paper's modes (``paper``, ``constant``, ``lookup``)
 * :func:`fit_parameters` — the generic bounded least-squares building block (batched finite-difference Jacobian)
 * :func:`compress_profile` — exact merging of constant-current steps before fitting
+* :func:`select_fit` — choose the fit setting by validation on other records (:mod:`socbench.identify.select`)
 """
 
 from .compress import Compression, compress_profile
@@ -21,6 +22,7 @@ from .hppc import (
     unrecorded_charge,
 )
 from .lsq import LsqResult, covariance, fit_parameters, simulate_voltage
+from .select import FIT_CANDIDATES, Selection, select_fit, validation_rmse
 
 __all__ = [
     "Compression",
@@ -45,4 +47,8 @@ __all__ = [
     "covariance",
     "fit_parameters",
     "simulate_voltage",
+    "FIT_CANDIDATES",
+    "Selection",
+    "select_fit",
+    "validation_rmse",
 ]
