@@ -84,19 +84,7 @@ def test_whole_record_open_loop_matches_the_step_loop(case):
     (varying dt, charge and discharge, rests, an SOC jump, a temperature column, two initial states)."""
     m = _augmented(case)
     assert m.whole_record  # every effect and base model here has the whole-record path: the test compares two paths
-    rng = np.random.default_rng(7)
-    n, q = 1500, m.capacity_ah
-    t = np.concatenate([[0.0], np.cumsum(rng.choice([0.1, 1.0, 5.0], size=n - 1))])
-    i = np.repeat(rng.choice([0.0, 0.5, 2.0, -1.0], size=n // 25 + 1) * q, 25)[:n] + rng.normal(0.0, 0.01 * q, n)
-    temp = 25.0 + np.cumsum(rng.normal(0.0, 0.05, n))
-    jumps = np.zeros(n)
-    jumps[n // 2] = -0.02
-    x0 = m.x0(np.array([0.95, 0.7]))
-    s_fast, y_fast = m.open_loop(x0, t, i, temp, jumps)
-    s_loop, y_loop = m.open_loop_stepwise(x0, t, i, temp, jumps)
-    assert y_fast.shape == (2, n) and s_fast.shape == (2, n, m.n_states)
-    np.testing.assert_allclose(s_fast, s_loop, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(y_fast, y_loop, rtol=1e-12, atol=1e-12)
+    generic.assert_open_loop_matches_step_loop(m, exact_soc=False)
 
 
 def test_whole_record_open_loop_takes_effect_parameter_batches():
