@@ -37,7 +37,7 @@ import numpy as np
 from ..errors import ConfigError
 from .base import T_REF_C, Model
 from .blocks import rc_coefficients, soc_step
-from .recurrence import affine_scan, running_sum
+from .recurrence import affine_scan, hysteresis_path, running_sum
 
 #: gas constant [J/(mol K)] and Faraday constant [C/mol]
 R_GAS = 8.314462618
@@ -240,16 +240,9 @@ class Hysteresis(Effect):
         return en, Fe, np.zeros(e.shape), Be
 
     def record_states(self, e0, i, dt, base):
-        """Both states are affine recurrences in time (:func:`~socbench.models.recurrence.affine_scan`):
-        ``h⁺ = A_h h − (1 − A_h) sgn I`` and ``s⁺ = 0·s + sgn I`` while moving, ``1·s + 0`` otherwise."""
-        a, _ = self._decay(i, dt, base)
-        sg = np.sign(i)
+        """Both states over the record by :func:`~socbench.models.recurrence.hysteresis_path`."""
         moving = np.abs(i) > base.capacity_ah / 100.0
-        # each step is a convex combination of h and ±1, so |h| ≤ 1; the scan's summation order can overshoot by an
-        # ulp, which the clip removes (the step loop stays inside by construction)
-        h = np.clip(affine_scan(a, -(1.0 - a) * sg, e0[..., 0]), -1.0, 1.0)
-        s = affine_scan(np.where(moving, 0.0, 1.0), np.where(moving, sg, 0.0), e0[..., 1])
-        return np.stack([h, s], axis=-1)
+        return np.stack(hysteresis_path(self._decay(i, dt, base)[0], i, moving, e0[..., 0], e0[..., 1]), axis=-1)
 
     def rate(self, e, z, i, temp, base):
         eta = np.where(i >= 0.0, 1.0, base.eta_charge)

@@ -26,7 +26,7 @@ import numpy as np
 
 from .base import Model
 from .blocks import R_FLOOR, eta, floor_value, lowpass_coefficients, soc_rate, soc_step
-from .recurrence import affine_scan
+from .recurrence import hysteresis_path, lowpass_path
 
 
 class ESC(Model):
@@ -107,19 +107,16 @@ class ESC(Model):
         return xn, F, B
 
     def _states_given_soc(self, xs, x0, i, dt, guards):
-        """Whole-record states (see :meth:`Model.open_loop`), each an affine recurrence solved by
-        :func:`~socbench.models.recurrence.affine_scan`: the low-pass currents ``iR⁺ = a(z_k) iR + (1 − a) I`` (B4),
-        the dynamic hysteresis ``h⁺ = a_h h − (1 − a_h) sgn I`` and the sign memory ``s⁺ = sgn I`` while moving,
-        else ``s`` (``a = 0`` or ``1``)."""
+        """Whole-record states (see :meth:`Model.open_loop`) by :mod:`socbench.models.recurrence`: the low-pass
+        currents ``iR⁺ = a(z_k) iR + (1 − a) I`` (B4, ``lowpass_path``), the dynamic hysteresis
+        ``h⁺ = a_h h − (1 − a_h) sgn I`` and the sign memory (``hysteresis_path``)."""
         z = xs[:-1, ..., 0]
         n = self._n
         for j in range(1, n + 1):
-            a = lowpass_coefficients(*self.p(f"tau{j}", z), dt)[0]
-            xs[..., j] = affine_scan(a, (1.0 - a) * i, x0[..., j])
-        ah = np.exp(-np.abs(self._hysteresis_rate(i, z)[0] * dt))
-        xs[..., n + 1] = affine_scan(ah, -(1.0 - ah) * np.sign(i), x0[..., n + 1])
-        moving = np.abs(i) > self.capacity_ah / 100.0
-        xs[..., n + 2] = affine_scan(np.where(moving, 0.0, 1.0), np.where(moving, np.sign(i), 0.0), x0[..., n + 2])
+            xs[..., j] = lowpass_path(lowpass_coefficients(*self.p(f"tau{j}", z), dt)[0], i, x0[..., j])
+        decay = np.exp(-np.abs(self._hysteresis_rate(i, z)[0] * dt))
+        moving = self._sign_memory(x0[..., n + 2], i)[0]
+        xs[..., n + 1], xs[..., n + 2] = hysteresis_path(decay, i, moving, x0[..., n + 1], x0[..., n + 2])
 
     def dxdt(self, x, i, temp=None, z_params=None):
         x, (i,) = self._broadcast(x, i)

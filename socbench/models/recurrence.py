@@ -95,3 +95,23 @@ def matrix_affine_scan(A, c, x0) -> np.ndarray:
     for r in range(m):
         out[1:, ..., r] = cc[r] + sum(a[r][q] * x0[..., q] for q in range(m))
     return out
+
+
+# ------------------------------------------------------------------------------ the blocks' whole-record forms
+def lowpass_path(a, i, i0) -> np.ndarray:
+    """B4 over a record: ``I*⁺ = a I* + (1 − a) I`` (``a = e^{−dt/t_c}`` per step), time first, from ``I*_0 = i0``."""
+    return affine_scan(a, (1.0 - a) * i, i0)
+
+
+def hysteresis_path(decay, i, moving, h0, s0):
+    """Plett's hysteresis over a record, time first: ``(h, s)``.
+
+    ``h⁺ = A h − (1 − A) sgn I`` with the per-step decay ``A``, and the sign memory ``s⁺ = sgn I`` while ``moving``,
+    else ``s`` (an affine map with ``a = 0`` or ``1``). Each step of ``h`` is a convex combination of ``h`` and ``±1``,
+    so ``|h| ≤ 1``; the scan's summation order can overshoot that by an ulp, which the clip removes (the step loop
+    stays inside by construction).
+    """
+    sg = np.sign(i)
+    h = np.clip(affine_scan(decay, -(1.0 - decay) * sg, h0), -1.0, 1.0)
+    s = affine_scan(np.where(moving, 0.0, 1.0), np.where(moving, sg, 0.0), s0)
+    return h, s

@@ -29,7 +29,7 @@ import numpy as np
 
 from .base import Model
 from .blocks import EPS_SINGULAR, R_FLOOR, floor_value, guarded_inv, lowpass_coefficients, soc_rate, soc_step
-from .recurrence import affine_scan
+from .recurrence import lowpass_path
 from .static_terms import exponential_zone
 
 
@@ -61,9 +61,8 @@ class TremblayGeneric(Model):
 
     def _states_given_soc(self, xs, x0, i, dt, guards):
         """Whole-record ``I*`` (see :meth:`Model.open_loop`): ``I*⁺ = a(z_k) I* + (1 − a) I`` (B4) by
-        :func:`~socbench.models.recurrence.affine_scan`."""
-        a = lowpass_coefficients(*self.p("tc", xs[:-1, ..., 0]), dt)[0]
-        xs[..., 1] = affine_scan(a, (1.0 - a) * i, x0[..., 1])
+        :func:`~socbench.models.recurrence.lowpass_path`."""
+        xs[..., 1] = lowpass_path(lowpass_coefficients(*self.p("tc", xs[:-1, ..., 0]), dt)[0], i, x0[..., 1])
 
     def dxdt(self, x, i, temp=None, z_params=None):
         x, (i,) = self._broadcast(x, i)
