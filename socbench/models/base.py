@@ -201,19 +201,14 @@ class Model(ABC):
         recurrence by a prefix scan, :mod:`socbench.models.recurrence`), which equals the step loop to rounding.
         Every other model runs the step loop.
         """
-        x, i, temp, dts, T = self._record(x0, time_s, current_a, temp_c)
-        if T >= 2 and type(self)._states_given_soc is not Model._states_given_soc:
-            i_t = np.moveaxis(i, -1, 0)
-            temp_t = None if temp is None else np.moveaxis(temp, -1, 0)
-            dt = dts.reshape((T - 1,) + (1,) * (x.ndim - 1))
-            xs = np.empty((T,) + x.shape)
-            dz = soc_step(0.0, i_t[:-1], dt, self.capacity_ah, self.eta_charge)[0]
-            jumps = None if soc_jumps is None else np.reshape(soc_jumps, (T,) + (1,) * (x.ndim - 1))
-            xs[..., 0] = running_sum(x[..., 0], dz, jumps)  # B1 over the record: the loop's additions, in order
-            self._states_given_soc(xs, x, i_t[:-1], dt, guards)
-            y = self.output(xs, i_t, temp_t, guards=guards)[0]
-            return np.moveaxis(xs, 0, -2), np.moveaxis(y, 0, -1)
-        return self.open_loop_stepwise(x0, time_s, current_a, temp_c, soc_jumps, guards)
+        if np.size(time_s) < 2 or type(self)._states_given_soc is Model._states_given_soc:
+            return self.open_loop_stepwise(x0, time_s, current_a, temp_c, soc_jumps, guards)
+        x, i_t, temp_t, dt, jumps = self._record_time_first(x0, time_s, current_a, temp_c, soc_jumps)
+        xs = np.empty(i_t.shape[:1] + x.shape)
+        dz = soc_step(0.0, i_t[:-1], dt, self.capacity_ah, self.eta_charge)[0]
+        xs[..., 0] = running_sum(x[..., 0], dz, jumps)  # B1 over the record: the loop's additions, in order
+        self._states_given_soc(xs, x, i_t[:-1], dt, guards)
+        return self._time_first_result(xs, i_t, temp_t, guards)
 
     def open_loop_stepwise(self, x0, time_s, current_a, temp_c=None, soc_jumps=None,
                            guards: GuardLog | None = None):
@@ -251,6 +246,21 @@ class Model(ABC):
         temp = None if temp_c is None else np.broadcast_to(np.asarray(temp_c, dtype=float), batch + (T,))
         return x, i, temp, np.diff(time_s), T
 
+
+    def _record_time_first(self, x0, time_s, current_a, temp_c, soc_jumps):
+        """:meth:`_record` with time on the *first* axis, the layout of the whole-record evaluation (SOC functions
+        broadcast a parameter batch against the trailing axes): ``(x0 (…, n), I (T, …), T_cell (T, …) or None,
+        dt (T − 1, 1, …), SOC jumps (T, 1, …) or None)``."""
+        x, i, temp, dts, T = self._record(x0, time_s, current_a, temp_c)
+        ones = (1,) * (x.ndim - 1)
+        temp_t = None if temp is None else np.moveaxis(temp, -1, 0)
+        jumps = None if soc_jumps is None else np.reshape(soc_jumps, (T,) + ones)
+        return x, np.moveaxis(i, -1, 0), temp_t, dts.reshape((T - 1,) + ones), jumps
+
+    def _time_first_result(self, xs, i_t, temp_t, guards):
+        """``(states (…, T, n), voltage (…, T))`` of time-first states ``xs (T, …, n)``: one ``output`` call."""
+        y = self.output(xs, i_t, temp_t, guards=guards)[0]
+        return np.moveaxis(xs, 0, -2), np.moveaxis(y, 0, -1)
 
 class _ParamPlan:
     """Stacked evaluation of SOC functions: polynomials of one degree (and one parameter-batch shape) share one

@@ -587,15 +587,10 @@ class AugmentedModel(Model):
 
         Equals :meth:`open_loop_stepwise` to rounding (the SOC increment is not formed as ``(z + Δz) − z``).
         """
-        if not self.whole_record:
+        if np.size(time_s) < 2 or not self.whole_record:
             return self.open_loop_stepwise(x0, time_s, current_a, temp_c, soc_jumps, guards)
-        x, i, temp, dts, T = self._record(x0, time_s, current_a, temp_c)
-        if T < 2:
-            return self.open_loop_stepwise(x0, time_s, current_a, temp_c, soc_jumps, guards)
-        nb = self._nb
-        i_t = np.moveaxis(i, -1, 0)
-        temp_t = None if temp is None else np.moveaxis(temp, -1, 0)
-        dt = dts.reshape((T - 1,) + (1,) * (x.ndim - 1))
+        x, i_t, temp_t, dt, jumps = self._record_time_first(x0, time_s, current_a, temp_c, soc_jumps)
+        T, nb = i_t.shape[0], self._nb
         ie = self._effective_current(x, i_t[:-1])[0]  # (T − 1, …): b is the initial (constant) offset
         xs = np.empty((T,) + x.shape)
         for e, sl in zip(self.effects, self._slices):
@@ -607,7 +602,6 @@ class AugmentedModel(Model):
             if g is not None:
                 gain = gain * g[0]
         inc = gain * soc_step(0.0, ie, dt, self.base.capacity_ah, self.base.eta_charge)[0]
-        jumps = None if soc_jumps is None else np.reshape(soc_jumps, (T,) + (1,) * (x.ndim - 1))
         leaky = [(e, sl) for e, sl in zip(self.effects, self._slices) if type(e).soc_leak is not Effect.soc_leak]
         if not leaky:
             xs[..., 0] = running_sum(x[..., 0], inc, jumps)
@@ -622,8 +616,7 @@ class AugmentedModel(Model):
                     if jumps is not None:
                         z = z + jumps[k + 1]
         self.base._states_given_soc(xs[..., :nb], x[..., :nb], ie, dt, guards)
-        y = self.output(xs, i_t, temp_t, guards=guards)[0]
-        return np.moveaxis(xs, 0, -2), np.moveaxis(y, 0, -1)
+        return self._time_first_result(xs, i_t, temp_t, guards)
 
     def output(self, x, i, temp=None, jac=False, guards=None):
         x, (i,) = self._broadcast(x, i)
