@@ -27,7 +27,7 @@ from ..errors import ConfigError, DataError
 from ..profile import Profile
 from .estimate import Estimate
 from .noise import NoiseModel, SensorNoise
-from .safety import clamp_soc, diverged, repair_psd, symmetrise
+from .safety import Gate, clamp_soc, diverged, repair_psd, symmetrise
 
 COMMON_OPTIONS: dict = {
     "Q": None,
@@ -119,6 +119,15 @@ class Estimator:
 
     def _run(self, inputs: Inputs, x0: np.ndarray, P0: np.ndarray, seed) -> Estimate:  # pragma: no cover
         raise NotImplementedError
+
+    # ------------------------------------------------------------------ per-run bookkeeping
+    def recorder(self, inputs: Inputs, x0: np.ndarray, P0: np.ndarray) -> Recorder:
+        """The output buffers of a run batch ``x0 (R, n)``, ``P0 (R, n, n)``: initial SOC and its SD from them."""
+        return Recorder(inputs, self.n, self.options["store_states"], x0[:, 0], np.sqrt(P0[:, 0, 0]))
+
+    def gate(self, n_runs: int) -> Gate:
+        """The innovation gate with this estimator's ``gate_alpha`` and ``gate_release``."""
+        return Gate(n_runs, self.options["gate_alpha"], self.options["gate_release"])
 
     # ------------------------------------------------------------------ initial conditions
     def initial_state(self, inputs: Inputs, soc0) -> np.ndarray:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from .base import Estimator, Inputs, Recorder, restore
+from .base import Estimator, Inputs, restore
 from .estimate import Estimate
 from .safety import clamp_soc, diverged, symmetrise
 
@@ -47,13 +47,13 @@ class CoulombCounter(Estimator):
         return self._count(inputs, x0, P0, self.declared_capacity(profile.meta.capacity_ah))
 
     def _count(self, inputs, x0, P0, capacity_ah: float) -> Estimate:
-        m, opt, noise = self.model, self.options, self.noise
-        T, n = inputs.n, self.n
+        m, noise = self.model, self.noise
+        T = inputs.n
         ratio = m.capacity_ah / capacity_ah  # the model counts with its own capacity: rescale its SOC row
         bias_var = noise.sensor.current_bias_sd**2
         x, P = x0.copy(), P0.copy()
         x_good, P_good = x.copy(), P.copy()
-        rec = Recorder(inputs, n, opt["store_states"], x0[:, 0], np.sqrt(P0[:, 0, 0]))
+        rec = self.recorder(inputs, x0, P0)
         drift = np.zeros(inputs.n_runs)  # Σ η dt / (3600 Q_d): the SOC error per ampere of offset
         no_gate = np.zeros(inputs.n_runs, dtype=bool)
         with np.errstate(all="ignore"):

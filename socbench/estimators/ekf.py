@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Estimator, Recorder, restore, settle_update
+from .base import Estimator, restore, settle_update
 from .estimate import Estimate
-from .safety import Gate, diverged, symmetrise
+from .safety import diverged, symmetrise
 
 
 class EKF(Estimator):
@@ -34,8 +34,8 @@ class EKF(Estimator):
         R, T, n = inputs.n_runs, inputs.n, self.n
         x, P = x0.copy(), P0.copy()
         x_good, P_good = x.copy(), P.copy()
-        rec = Recorder(inputs, n, opt["store_states"], x0[:, 0], np.sqrt(P0[:, 0, 0]))
-        gate = Gate(R, opt["gate_alpha"], opt["gate_release"])
+        rec = self.recorder(inputs, x0, P0)
+        gate = self.gate(R)
         eye = np.eye(n)
         with np.errstate(all="ignore"):
             for k in range(T):

@@ -27,9 +27,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from .base import Estimator, Recorder, restore
+from .base import Estimator, restore
 from .estimate import Estimate
-from .safety import Gate, diverged
+from .safety import diverged
 
 
 def systematic_indices(weights: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -227,7 +227,7 @@ class ParticleFilter(Estimator):
     # ------------------------------------------------------------------ the time loop
     def _run(self, inputs, x0, P0, seed=None) -> Estimate:
         m, opt, noise = self.model, self.options, self.noise
-        R, T, n, N = inputs.n_runs, inputs.n, self.n, self.n_particles
+        R, T, N = inputs.n_runs, inputs.n, self.n_particles
         sd_i, additive = self.process_noise()
         draws = self.draws(seed, R)
         L0 = np.linalg.cholesky(P0)
@@ -235,8 +235,8 @@ class ParticleFilter(Estimator):
         pending_clamp = _clamp_particles(X)
         w = np.full((R, N), 1.0 / N)
         X_good, w_good = X.copy(), w.copy()
-        rec = Recorder(inputs, n, opt["store_states"], x0[:, 0], np.sqrt(P0[:, 0, 0]))
-        gate = Gate(R, opt["gate_alpha"], opt["gate_release"])
+        rec = self.recorder(inputs, x0, P0)
+        gate = self.gate(R)
         threshold = opt["resample_threshold"] * N
         K_rough, h = opt["roughening"], opt["kernel_h"]
         resampled = np.zeros(R, dtype=int)

@@ -23,10 +23,10 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
 from filterpy.monte_carlo import resampling as fp_resampling
 
-from .base import Estimator, Inputs, Recorder
+from .base import Estimator, Inputs
 from .estimate import Estimate
 from .pf import ParticleFilter, log_likelihood, roughening_sd, shrink, weighted_mean_root
-from .safety import Gate, clamp_soc, diverged, repair_psd, symmetrise
+from .safety import clamp_soc, diverged, repair_psd, symmetrise
 from .ukf import UKF
 
 
@@ -54,7 +54,7 @@ class _KalmanReference(Estimator):
         parts = []
         for r in range(inputs.n_runs):
             one = _one_run(inputs, r)
-            rec = Recorder(one, self.n, self.options["store_states"], x0[r:r + 1, 0], np.sqrt(P0[r:r + 1, 0, 0]))
+            rec = self.recorder(one, x0[r:r + 1], P0[r:r + 1])
             self._filter(one, x0[r].copy(), P0[r].copy(), rec)
             parts.append(rec.finish(self.name, self.model))
         return _stack(parts, {"reference": "filterpy"})
@@ -101,7 +101,7 @@ class ReferenceEKF(_KalmanReference):
         ekf = _ModelEKF(m, self.noise)
         ekf.x = x0[:, None].copy()
         ekf.P = P0.copy()
-        gate = Gate(1, self.options["gate_alpha"], self.options["gate_release"])
+        gate = self.gate(1)
         for k in range(T):
             i, v = inputs.current[0, k], inputs.voltage[0, k]
             temp = None if inputs.temp is None else inputs.temp[0, k]
@@ -150,7 +150,7 @@ class ReferenceUKF(_KalmanReference):
         ukf.x = x0.copy()
         ukf.P = P0.copy()
         ukf.sigmas_f = points.sigma_points(ukf.x, ukf.P)  # the prior sigma points the first update uses
-        gate = Gate(1, opt["gate_alpha"], opt["gate_release"])
+        gate = self.gate(1)
         floors = (opt["psd_floor"], opt["psd_rel_floor"])
         for k in range(T):
             i, v = inputs.current[0, k], inputs.voltage[0, k]
@@ -190,7 +190,7 @@ class ReferencePF(ParticleFilter):
         parts = []
         for r in range(R):
             one = _one_run(inputs, r)
-            rec = Recorder(one, self.n, self.options["store_states"], x0[r:r + 1, 0], np.sqrt(P0[r:r + 1, 0, 0]))
+            rec = self.recorder(one, x0[r:r + 1], P0[r:r + 1])
             self._filter_one(one, x0[r], P0[r], eps0[r], draws, r, rec)
             parts.append(rec.finish(self.name, self.model))
         return _stack(parts, {"reference": "filterpy.monte_carlo.systematic_resample", "seed": draws.seed})
@@ -202,7 +202,7 @@ class ReferencePF(ParticleFilter):
         X = x0 + eps0 @ np.linalg.cholesky(P0).T
         clamp = _clamp_one(X)
         w = np.full(N, 1.0 / N)
-        gate = Gate(1, opt["gate_alpha"], opt["gate_release"])
+        gate = self.gate(1)
         for k in range(T):
             g, u, eps_i, eps_q = draws.step(k)
             i, v = inputs.current[0, k], inputs.voltage[0, k]

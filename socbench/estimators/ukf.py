@@ -25,9 +25,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from .base import Estimator, Recorder, restore, settle_update
+from .base import Estimator, restore, settle_update
 from .estimate import Estimate
-from .safety import Gate, diverged, repair_psd, symmetrise
+from .safety import diverged, repair_psd, symmetrise
 
 
 def merwe_weights(n: int, alpha: float, beta: float, kappa: float):
@@ -73,12 +73,12 @@ class UKF(Estimator):
 
     def _run(self, inputs, x0, P0, seed=None) -> Estimate:
         m, opt, noise = self.model, self.options, self.noise
-        R, T, n = inputs.n_runs, inputs.n, self.n
+        R, T = inputs.n_runs, inputs.n
         lam, Wm, Wc = self.lam, self.Wm, self.Wc
         x, P = x0.copy(), P0.copy()
         x_good, P_good = x.copy(), P.copy()
-        rec = Recorder(inputs, n, opt["store_states"], x0[:, 0], np.sqrt(P0[:, 0, 0]))
-        gate = Gate(R, opt["gate_alpha"], opt["gate_release"])
+        rec = self.recorder(inputs, x0, P0)
+        gate = self.gate(R)
         floors = (opt["psd_floor"], opt["psd_rel_floor"])
         with np.errstate(all="ignore"):
             for k in range(T):
