@@ -13,8 +13,9 @@ import argparse
 import importlib
 import os
 import sys
+import warnings
 
-from .errors import UserError
+from .errors import SocbenchWarning, UserError
 
 #: sub-command -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -53,7 +54,9 @@ def main(argv=None) -> int:
         return 2
     module = importlib.import_module(COMMANDS[args.command][0])
     try:
-        return int(module.run(args) or 0)
+        with warnings.catch_warnings():
+            _one_line_warnings(args.command)
+            return int(module.run(args) or 0)
     except UserError as exc:
         print(f"socbench {args.command}: error: {exc}", file=sys.stderr)
         return 2
@@ -68,6 +71,25 @@ def main(argv=None) -> int:
             raise
         print(f"socbench {args.command}: internal error: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 1
+
+
+def _one_line_warnings(command: str) -> None:
+    """Inside a command: socbench's own warnings print as one line each (no file, line or source excerpt), the same
+    message once; numpy's floating-point RuntimeWarnings are not for users (a result that matters is checked, not
+    warned about) and are silenced."""
+    seen = set()
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = str(message).strip().splitlines()[0] if str(message).strip() else category.__name__
+        if text in seen:
+            return
+        seen.add(text)
+        prefix = "warning" if issubclass(category, SocbenchWarning) else f"warning ({category.__name__})"
+        print(f"socbench {command}: {prefix}: {text}", file=sys.stderr)
+
+    warnings.showwarning = show
+    warnings.simplefilter("always", SocbenchWarning)
+    warnings.simplefilter("ignore", RuntimeWarning)
 
 
 if __name__ == "__main__":  # pragma: no cover

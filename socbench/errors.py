@@ -42,5 +42,11 @@ class ConfigError(UserError, ValueError):
     """A bad option, parameter file or scenario file (unknown key, impossible value)."""
 
 
+class SocbenchWarning(UserWarning):
+    """Something the user should know about their input or result, that does not stop the command (a reference SOC a
+    few points outside [0, 1], a model driven outside its domain...). The CLI prints each as one line on stderr:
+    ``socbench COMMAND: warning: message``. Raise with ``warnings.warn(message, SocbenchWarning, stacklevel=2)``."""
+
+
 class ModelError(ValueError):
     """A model left its admissible region in strict mode (negative capacitance, unstable eigenvalue...)."""
