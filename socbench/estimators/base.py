@@ -18,7 +18,7 @@ Options common to all filters (all keyword): ``Q``, ``R`` (overrides, see :class
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -54,6 +54,7 @@ class Inputs:
     voltage: np.ndarray
     temp: np.ndarray | None
     name: str
+    capacity_ah: float | None = None  # the record's declared capacity (the coulomb counter's default)
 
     @property
     def n_runs(self) -> int:
@@ -78,7 +79,15 @@ class Inputs:
             return None if a is None else np.ascontiguousarray(np.broadcast_to(a, (R, T)), dtype=float)
 
         return cls(profile.time_s, profile.dt, full(profile.current_a), full(profile.voltage_v),
-                   full(profile.temperature_c), profile.name)
+                   full(profile.temperature_c), profile.name, profile.meta.capacity_ah)
+
+    def slice(self, start: int, stop: int) -> Inputs:
+        """Samples ``start:stop`` (a segment of the record)."""
+        def cut(a):
+            return None if a is None else np.ascontiguousarray(a[:, start:stop])
+
+        return Inputs(self.time_s[start:stop], self.dt[start:max(stop - 1, start)], cut(self.current),
+                      cut(self.voltage), cut(self.temp), self.name, self.capacity_ah)
 
 
 class Estimator:
@@ -110,12 +119,34 @@ class Estimator:
         return f"{type(self).__name__}(model={getattr(self.model, 'name', '?')!r})"
 
     # ------------------------------------------------------------------ the one verb
-    def run(self, profile: Profile, soc0=None, P0=None, seed=None) -> Estimate:
-        """Estimate SOC over every run of ``profile`` (see the module docstring for ``soc0`` and ``P0``)."""
+    def run(self, profile: Profile, soc0=None, P0=None, seed=None, segments=None) -> Estimate:
+        """Estimate SOC over every run of ``profile`` (see the module docstring for ``soc0`` and ``P0``).
+
+        A record of several discharges (battery swaps, recharges: :mod:`socbench.segments`) is filtered segment by
+        segment: ``segments=None`` finds them, ``False`` filters the record as one piece, or pass a
+        :class:`~socbench.segments.Segments`. ``soc0`` starts the first segment; every later one restarts the
+        filter as at a record's start — SOC from the OCV inverse of its first voltage (an estimator never reads
+        the reference it is scored against), the other states at rest, covariance ``P0`` — and the current across
+        a boundary is never used. ``Estimate.domain`` is :func:`socbench.domain.estimate_domain` of the result.
+        """
+        from ..domain import estimate_domain
+        from ..segments import resolve
+
         inputs = Inputs.from_profile(profile)
-        x0 = self.initial_state(inputs, soc0)
+        segs = resolve(segments, profile, self.model.ocv, self.model.capacity_ah)
         P0 = self.initial_cov(inputs.n_runs, P0)
-        return self._run(inputs, x0, P0, seed)
+        if segs.count == 1:
+            est = self._run(inputs, self.initial_state(inputs, soc0), P0, seed)
+        else:
+            parts = []
+            for s, (a, b) in enumerate(segs.spans()):
+                part = inputs.slice(a, b)
+                parts.append(self._run(part, self.initial_state(part, soc0 if s == 0 else None), P0,
+                                       segment_seed(seed, s)))
+            est = Estimate.join(parts, inputs.time_s, segs)
+        domain = estimate_domain(self.model, est, profile)
+        domain["segments"] = segs.count
+        return replace(est, domain=domain, segments=segs)
 
     def _run(self, inputs: Inputs, x0: np.ndarray, P0: np.ndarray, seed) -> Estimate:  # pragma: no cover
         raise NotImplementedError
@@ -167,6 +198,14 @@ class Estimator:
         return np.ascontiguousarray(np.broadcast_to(P, (R, n, n)))
 
 
+def segment_seed(seed, s: int):
+    """The random seed of segment ``s``: ``seed`` itself for the first (a record in one piece is unchanged), an
+    independent stream derived from ``(seed, s)`` for the others; None stays None (fresh entropy)."""
+    if seed is None or s == 0:
+        return seed
+    return int(np.random.SeedSequence([int(seed), int(s)]).generate_state(1, np.uint64)[0] >> np.uint64(1))
+
+
 class Recorder:
     """Preallocated ``(R, T)`` outputs; rows of failed runs repeat their last recorded values from failure on."""
 
@@ -184,15 +223,21 @@ class Recorder:
         self.P_diag = np.empty((R, T, n_states)) if store_states else None
         self.failed = np.zeros(R, dtype=bool)
         self.failed_at = np.full(R, -1)
+        self.failed_reason = np.zeros(R, dtype=np.int8)  # safety.DIVERGENCE_REASONS
         self._soc0 = np.asarray(soc0, dtype=float)
         self._std0 = np.asarray(std0, dtype=float)
         self._x0 = None
 
     def fail(self, k: int, bad: np.ndarray) -> np.ndarray:
-        """Mark runs ``bad`` failed at sample ``k``; returns the (R,) mask of all failed runs."""
-        new = bad & ~self.failed
+        """Mark runs ``bad`` failed at sample ``k``; returns the (R,) mask of all failed runs.
+
+        ``bad`` is a reason code per run (:func:`~.safety.diverged`, nonzero = failed) or a bool mask (reason 1,
+        non-finite state)."""
+        bad = np.asarray(bad)
+        new = (bad != 0) & ~self.failed
         if new.any():
             self.failed_at[new] = k
+            self.failed_reason[new] = bad[new] if bad.dtype != bool else 1
             self.failed |= new
         return self.failed
 
@@ -238,7 +283,7 @@ class Recorder:
             innovation=self.innovation, innovation_var=self.innovation_var, failed=self.failed.copy(),
             failed_at=self.failed_at.copy(), clamped=self.clamped, gated=self.gated, x=self.x, P_diag=self.P_diag,
             estimator=estimator, model=getattr(model, "name", type(model).__name__),
-            state_names=tuple(model.state_names), info=dict(info or {}),
+            state_names=tuple(model.state_names), info=dict(info or {}), failed_reason=self.failed_reason.copy(),
         )
 
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from .base import Estimator, Inputs, restore
+from .base import Estimator, restore
 from .estimate import Estimate
 from .safety import clamp_soc, diverged, symmetrise
 
@@ -40,11 +40,8 @@ class CoulombCounter(Estimator):
             raise ConfigError(f"coulomb: capacity must be > 0 Ah, got {cap!r}")
         return cap
 
-    def run(self, profile, soc0=None, P0=None, seed=None) -> Estimate:
-        inputs = Inputs.from_profile(profile)
-        x0 = self.initial_state(inputs, soc0)
-        P0 = self.initial_cov(inputs.n_runs, P0)
-        return self._count(inputs, x0, P0, self.declared_capacity(profile.meta.capacity_ah))
+    def _run(self, inputs, x0, P0, seed=None) -> Estimate:
+        return self._count(inputs, x0, P0, self.declared_capacity(inputs.capacity_ah))
 
     def _count(self, inputs, x0, P0, capacity_ah: float) -> Estimate:
         m, noise = self.model, self.noise

@@ -20,6 +20,14 @@ Aggregates of a cell (DESIGN.md leaderboard columns) pool every sample of every 
 A run fails when the estimator flags it (``Estimate.failed``) or when any of its outputs is not finite. A metric with
 nothing to average (every run failed, or the estimator defines no such quantity, e.g. no innovation variance) is
 ``None``: an empty field in ``leaderboard.csv``, never NaN.
+
+Beside the row a cell record keeps, for the reliability report:
+
+* ``failures``: per failed run, why (the estimator's divergence reason, ``Estimate.failed_reason``, or "non-finite
+  output"), the sample and time where it failed, and what the run looked like there (last good SOC and its SD, true
+  SOC, measured current and voltage, predicted voltage, innovation and its variance);
+* ``domain``: the estimate's domain report (:func:`socbench.domain.estimate_domain`), whose ``outside_fraction`` is
+  the ``out_of_domain`` column (share of samples with the estimate outside the model's domain; an extra column).
 """
 
 from __future__ import annotations
@@ -37,7 +45,12 @@ TRACE_POINTS = 400
 #: the metric columns of a leaderboard row, in the DESIGN.md order
 METRIC_COLUMNS = ("soc_rmse", "soc_max_abs", "v_mean", "v_rmse", "v_sd", "v_max", "nis_mean", "nees_mean",
                   "frac_within_3sigma", "us_per_step")
-LEADERBOARD_COLUMNS = ("model", "estimator", "scenario", "n_runs") + METRIC_COLUMNS + ("failed_runs",)
+#: columns beyond the DESIGN.md set (more keys are welcome there)
+EXTRA_COLUMNS = ("out_of_domain",)
+LEADERBOARD_COLUMNS = (("model", "estimator", "scenario", "n_runs") + METRIC_COLUMNS + ("failed_runs",)
+                       + EXTRA_COLUMNS)
+#: failed runs described per cell record (the rest are counted)
+MAX_FAILURES_LISTED = 20
 
 
 class Toolkit:
@@ -149,7 +162,8 @@ def compute_cell(toolkit: Toolkit, job: dict) -> dict:
     seeds = tuple(int(s) for s in job["seeds"])
     n_runs = len(seeds)
     row = _empty_row(job, n_runs)
-    rec = {"row": row, "error": None, "trace": None, "run_soc_rmse": None, "run_failed": [True] * n_runs}
+    rec = {"row": row, "error": None, "trace": None, "run_soc_rmse": None, "run_failed": [True] * n_runs,
+           "failures": [], "domain": None}
     try:
         fit = job["fit"]
         if fit.get("params") is None:
@@ -163,6 +177,8 @@ def compute_cell(toolkit: Toolkit, job: dict) -> dict:
         elapsed = time.perf_counter() - t1
         rec.update(reduce_cell(estimate, profile, elapsed, toolkit.score))
         rec["row"] = {**row, **rec["row"]}
+        for f in rec["failures"]:
+            f["seed"] = seeds[f["run"]]
     except (KeyboardInterrupt, MemoryError):
         raise
     except Exception as exc:  # the estimator (or model) threw: every run of the batch failed
@@ -175,6 +191,7 @@ def _empty_row(job: dict, n_runs: int) -> dict:
     row = {"model": job["model"], "estimator": job["estimator"], "scenario": job["scenario"], "n_runs": n_runs}
     row.update({c: None for c in METRIC_COLUMNS})
     row["failed_runs"] = n_runs
+    row.update({c: None for c in EXTRA_COLUMNS})
     return row
 
 
@@ -208,13 +225,17 @@ def reduce_cell(estimate, profile, elapsed_s: float, score=None) -> dict:
     std = _as_runs(estimate.soc_std, R, T)
     vpred = _as_runs(estimate.v_pred, R, T)
 
-    failed = np.broadcast_to(np.asarray(estimate.failed, dtype=bool), (R,)).copy()
+    flagged = np.broadcast_to(np.asarray(estimate.failed, dtype=bool), (R,)).copy()
+    failed = flagged.copy()
     for arr in (soc, std, vpred, _as_runs(estimate.innovation, R, T), _as_runs(estimate.innovation_var, R, T)):
         failed |= ~np.isfinite(arr).all(axis=1)  # belt and braces: a non-finite output is a failed run
     ok = ~failed
 
-    row = {c: None for c in METRIC_COLUMNS}
+    row = {c: None for c in METRIC_COLUMNS + EXTRA_COLUMNS}
     row["failed_runs"] = int(failed.sum())
+    domain = getattr(estimate, "domain", None) or None
+    if domain:
+        row["out_of_domain"] = domain.get("outside_fraction")
     row["us_per_step"] = 1e6 * elapsed_s / (R * T)
     run_rmse = [None] * R
     trace = None
@@ -233,7 +254,37 @@ def reduce_cell(estimate, profile, elapsed_s: float, score=None) -> dict:
         trace["run"] = r0
     row = {k: (v if k == "failed_runs" else _finite_or_none(v)) for k, v in row.items()}
     return {"row": row, "trace": trace, "run_soc_rmse": [_finite_or_none(x) for x in run_rmse],
-            "run_failed": failed.tolist()}
+            "run_failed": failed.tolist(), "failures": describe_failures(estimate, profile, failed, flagged),
+            "domain": domain}
+
+
+def describe_failures(estimate, profile, failed, flagged, limit: int = MAX_FAILURES_LISTED) -> list[dict]:
+    """Why and where each failed run failed (module docstring), for the first ``limit`` failed runs."""
+    R, T = profile.n_runs, profile.n
+    reasons = estimate.failure_reasons() if hasattr(estimate, "failure_reasons") else ["diverged"] * R
+    at = np.broadcast_to(np.asarray(getattr(estimate, "failed_at", np.full(R, -1))), (R,))
+
+    def value(a, r, k):
+        if a is None:
+            return None
+        return _finite_or_none(_as_runs(a, R, T)[r, k])
+
+    out = []
+    for r in np.flatnonzero(failed)[:limit]:
+        r = int(r)
+        if flagged[r] and at[r] >= 0:
+            k, why = int(at[r]), reasons[r] or "diverged"
+        else:  # not flagged by the estimator: the first non-finite output
+            bad = ~np.isfinite(_as_runs(estimate.soc, R, T)[r]) | ~np.isfinite(_as_runs(estimate.v_pred, R, T)[r])
+            k, why = (int(np.argmax(bad)) if bad.any() else 0), "non-finite output"
+        last = max(k - 1, 0)  # outputs from the failure on repeat the last good values
+        out.append({"run": r, "step": k, "time_s": float(profile.time_s[k]), "reason": why,
+                    "soc": value(estimate.soc, r, last), "soc_std": value(estimate.soc_std, r, last),
+                    "soc_true": value(profile.soc_ref, r, k), "current_a": value(profile.current_a, r, k),
+                    "voltage_v": value(profile.voltage_v, r, k), "v_pred": value(estimate.v_pred, r, last),
+                    "innovation": value(estimate.innovation, r, last),
+                    "innovation_var": value(estimate.innovation_var, r, last)})
+    return out
 
 
 def _compact(a) -> list[float]:
