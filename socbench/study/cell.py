@@ -95,7 +95,8 @@ class Toolkit:
     def make_estimator(self, estimator: str, model, noise, **options):
         from ..estimators import make_estimator
 
-        return make_estimator(estimator, model, noise=noise, **options)
+        # the posterior states are kept so that the cell's domain report counts the model's guards along them
+        return make_estimator(estimator, model, noise=noise, **{"store_states": True, **options})
 
     def score(self, estimate, profile) -> dict:
         from ..estimators.scoring import score
@@ -174,11 +175,13 @@ def compute_cell(toolkit: Toolkit, job: dict) -> dict:
         est = toolkit.make_estimator(job["estimator"], model, scen.sensor_noise(), **job.get("options", {}))
         t1 = time.perf_counter()
         estimate = est.run(profile, soc0, seed=int(job["seed"]))
-        elapsed = time.perf_counter() - t1
+        # the filter's time: without the post-hoc domain report computed in run()
+        elapsed = time.perf_counter() - t1 - float((getattr(estimate, "domain", None) or {}).get("seconds", 0.0))
         rec.update(reduce_cell(estimate, profile, elapsed, toolkit.score))
         rec["row"] = {**row, **rec["row"]}
         for f in rec["failures"]:
             f["seed"] = seeds[f["run"]]
+            f["model_nonfinite_soc"] = nonfinite_soc(model, f)
     except (KeyboardInterrupt, MemoryError):
         raise
     except Exception as exc:  # the estimator (or model) threw: every run of the batch failed
@@ -227,8 +230,11 @@ def reduce_cell(estimate, profile, elapsed_s: float, score=None) -> dict:
 
     flagged = np.broadcast_to(np.asarray(estimate.failed, dtype=bool), (R,)).copy()
     failed = flagged.copy()
+    nonfinite_outputs = 0
     for arr in (soc, std, vpred, _as_runs(estimate.innovation, R, T), _as_runs(estimate.innovation_var, R, T)):
-        failed |= ~np.isfinite(arr).all(axis=1)  # belt and braces: a non-finite output is a failed run
+        bad = ~np.isfinite(arr)
+        nonfinite_outputs += int(bad.sum())
+        failed |= bad.any(axis=1)  # belt and braces: a non-finite output is a failed run
     ok = ~failed
 
     row = {c: None for c in METRIC_COLUMNS + EXTRA_COLUMNS}
@@ -252,10 +258,34 @@ def reduce_cell(estimate, profile, elapsed_s: float, score=None) -> dict:
         r0 = int(np.argmax(ok))
         trace = make_trace(profile.time_s, soc[r0] - truth[r0], std[r0], meas[r0], vpred[r0])
         trace["run"] = r0
+    # a metric that came out NaN/inf is stored empty (JSON has no NaN) but named here: the sweep reports them
+    nonfinite_metrics = sorted(k for k, v in row.items() if v is not None and k != "failed_runs"
+                               and not np.isfinite(float(v)))
     row = {k: (v if k == "failed_runs" else _finite_or_none(v)) for k, v in row.items()}
     return {"row": row, "trace": trace, "run_soc_rmse": [_finite_or_none(x) for x in run_rmse],
             "run_failed": failed.tolist(), "failures": describe_failures(estimate, profile, failed, flagged),
-            "domain": domain}
+            "domain": domain, "nonfinite": {"outputs": nonfinite_outputs, "metrics": nonfinite_metrics}}
+
+
+def nonfinite_soc(model, failure: dict, sigmas: float = 3.0, points: int = 61):
+    """``[lowest, highest]`` SOC within ``soc ± sigmas·soc_std`` of a failure where the model itself gives a
+    non-finite voltage or next state (other states at rest, the failure's current), or None: tells a model that is
+    undefined where the filter's spread reaches (a sigma point or particle beyond its domain) from a filter that
+    diverged on its own."""
+    z, sd = failure.get("soc"), failure.get("soc_std")
+    if z is None or sd is None:
+        return None
+    zs = z + np.linspace(-sigmas, sigmas, points) * sd
+    i = np.full(points, failure.get("current_a") or 0.0)
+    try:
+        with np.errstate(all="ignore"):
+            x = model.x0(zs, (points,))
+            y = model.output(x, i)[0]
+            xn = model.step(x, i, 1.0)[0]
+        bad = ~np.isfinite(y) | ~np.all(np.isfinite(xn), axis=-1)
+    except Exception as exc:  # a model that raises there (strict mode) is undefined there too
+        return {"error": _error_text(exc)}
+    return [float(zs[bad].min()), float(zs[bad].max())] if bad.any() else None
 
 
 def describe_failures(estimate, profile, failed, flagged, limit: int = MAX_FAILURES_LISTED) -> list[dict]:
