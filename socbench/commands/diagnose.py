@@ -10,7 +10,9 @@ from __future__ import annotations
 from ..datasets import load
 from ..diagnose import diagnose
 from ..diagnose.report import write_report
+from ..domain import warn_outside
 from ..errors import ConfigError
+from ..io import output_dir
 from ..models import model_names
 from ..models.effects import effect_names
 
@@ -48,6 +50,7 @@ def run(args) -> int:
         raise ConfigError(f"--train-fraction must be in [0.05, 0.95], got {args.train_fraction}")
     if not args.dt > 0:
         raise ConfigError(f"--dt must be > 0, got {args.dt}")
+    output_dir(args.out, "--out")
     fit = [load(p, args.format) for p in args.fit]
     evals = [load(p, args.format) for p in args.eval]
     diag = diagnose(args.model, fit, evals, mode=args.mode, dt=args.dt, train_fraction=args.train_fraction,
@@ -61,4 +64,8 @@ def run(args) -> int:
     for s in diag.steps:
         print(f"  + {s.effect}: {s.evidence}")
     print(f"  wrote {args.out}/diagnosis.json, diagnosis.md ({diag.seconds['total']:.1f} s)")
+    for when, model in (("before", args.model), ("after", "+".join([args.model, *diag.effects_added]))):
+        report = diag.domain.get(when)
+        if report:
+            warn_outside(report, f"{model} on the held-out data")
     return 0

@@ -4,18 +4,24 @@ Writes ``DIR/estimate.csv`` (``time_s, soc, soc_std, v_pred, innovation``, plus 
 ``DIR/metrics.json`` (``soc_rmse, soc_max_abs, rmse_v, nis_mean`` and, when the data carries a reference SOC,
 ``nees_mean, frac_within_3sigma``; the SOC keys are null without one). ``--data builtin:hppc`` and
 ``--params paper:MODEL`` name the embedded profile and Table 3 sets.
+
+A record of several discharges (battery swaps, recharges) is filtered segment by segment, each restarting the filter
+as at the record's start (:mod:`socbench.segments`); ``--no-segments`` filters it as one piece. ``metrics.json``
+also holds ``failed_reason`` (why each failed run diverged), ``segments``, ``domain``
+(:func:`socbench.domain.estimate_domain`) and ``guard_fractions``; a warning line is printed when ≥ 1 % of the
+samples lie outside the model's domain.
 """
 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 from ..datasets import load
+from ..domain import guard_fractions, warn_outside
 from ..errors import ConfigError, DataError
 from ..estimators import SensorNoise, estimator_class, make_estimator
 from ..estimators.scoring import score
-from ..io import atomic_write_frame, atomic_write_text
+from ..io import atomic_write_frame, atomic_write_text, output_dir
 from ..models import make_model
 from .simulate import resolve_params
 
@@ -33,6 +39,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--particles", type=int, default=500, help="particles of the pf (default 500)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the pf (default 0)")
     parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument("--no-segments", action="store_true",
+                        help="filter the record as one piece, through its gaps (default: restart each segment)")
 
 
 def run(args) -> int:
@@ -41,22 +49,26 @@ def run(args) -> int:
         raise DataError(f"--soc0 must be in [0, 1], got {args.soc0}")
     if not args.soc0_sd > 0:
         raise ConfigError(f"--soc0-sd must be > 0, got {args.soc0_sd}")
+    out = output_dir(args.out, "--out")
     noise = SensorNoise(voltage_sd=args.voltage_sd, current_sd=args.current_sd)
     profile = load(args.data, args.format)
     profile.require("voltage_v")
     name, params = resolve_params(args.params)
     model = make_model(name, params)
-    options = {"soc0_sd": args.soc0_sd}
+    options = {"soc0_sd": args.soc0_sd, "store_states": True}  # states: the domain report counts guards along them
     if args.estimator == "pf":
         options["n_particles"] = args.particles
-    est = make_estimator(args.estimator, model, noise, **options).run(profile, soc0=args.soc0, seed=args.seed)
+    est = make_estimator(args.estimator, model, noise, **options).run(profile, soc0=args.soc0, seed=args.seed,
+                                                                      segments=False if args.no_segments else None)
     s = score(est, profile)
     metrics = {k: v for k, v in s.items() if k != "runs"}
     metrics.update({"estimator": args.estimator, "model": name, "data": str(args.data),
-                    "noise": {"voltage_sd": args.voltage_sd, "current_sd": args.current_sd}})
+                    "noise": {"voltage_sd": args.voltage_sd, "current_sd": args.current_sd},
+                    "failed_reason": est.failure_reasons(), "segments": est.segments.to_dict(),
+                    "domain": {k: v for k, v in est.domain.items() if k != "seconds"},
+                    "guard_fractions": guard_fractions(est.domain)})
     if profile.soc_ref is None:
         metrics.update({"nees_mean": None, "frac_within_3sigma": None})
-    out = Path(args.out)
     frame = est.to_frame(0)[["time_s", "soc", "soc_std", "v_pred", "innovation", "innovation_var"]]
     if est.n_runs > 1:
         import pandas as pd
@@ -66,9 +78,11 @@ def run(args) -> int:
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2, default=_jsonable))
     soc_part = (f"SOC RMSE {_fmt(s['soc_rmse'], 100)} %  max {_fmt(s['soc_max_abs'], 100)} %  "
                 f"NEES {_fmt(s['nees_mean'])}  " if profile.soc_ref is not None else "no reference SOC  ")
-    print(f"{args.estimator} on {name}, {profile.name}: n={profile.n}  {soc_part}"
+    segs = f"  {est.segments.count} segments" if est.segments.count > 1 else ""
+    print(f"{args.estimator} on {name}, {profile.name}: n={profile.n}{segs}  {soc_part}"
           f"V RMSE {_fmt(s['rmse_v'], 1000, 1)} mV  NIS {_fmt(s['nis_mean'])}  "
           f"failed runs {s['failed_runs']}  -> {out}")
+    warn_outside(est.domain, f"{args.estimator} on {name}, {profile.name}")
     return 0
 
 

@@ -2,8 +2,10 @@
 
 Fits a registered model to a record (normally an HPPC test) with :func:`socbench.identify.fit_model` and writes a
 self-contained parameter file (model, capacity, OCV curve, parameter functions) with a ``"fit"`` block (mode, RMSE,
-standard errors, warnings, seconds) that ``socbench simulate --params`` reads back. Without ``--ocv`` the OCV curve
-comes from the record's HPPC rest points.
+standard errors, warnings, seconds, and ``domain``: :func:`socbench.domain.domain_report` of the fitted model along
+the fitted record, with its segment count) that ``socbench simulate --params`` reads back. Without ``--ocv`` the OCV
+curve comes from the record's HPPC rest points. A record of several discharges (battery swaps, recharges) is fitted
+segment by segment (:mod:`socbench.segments`).
 """
 
 from __future__ import annotations
@@ -12,8 +14,10 @@ import json
 from pathlib import Path
 
 from ..datasets import load
+from ..domain import warn_outside
 from ..errors import ConfigError, DataError
 from ..identify import MODES, fit_model
+from ..io import output_file
 from ..models import model_class, save_params
 from ..ocv import OCVCurve
 
@@ -58,6 +62,7 @@ def run(args) -> int:
     if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
         raise ConfigError(f"--soc0 must be in [0, 1], got {args.soc0}")
     model_class(args.model)  # an unknown model fails before the data is read
+    output_file(args.out, "--out")
     ocv = _read_ocv(args.ocv) if args.ocv else None
     profile = load(args.data, args.format)
     if profile.batched:
@@ -66,6 +71,8 @@ def run(args) -> int:
     save_params(args.out, args.model, res.params, fit=res.fit_summary())
     print(f"{args.model} fitted on {profile.name} ({args.mode} mode): RMS {1000 * res.rmse_v:.1f} mV over "
           f"{res.n_samples} samples in {res.seconds:.1f} s; {len(res.warnings)} warning(s); wrote {args.out}")
+    if res.lsq is not None and res.lsq.domain.get("samples"):
+        warn_outside(res.lsq.domain, f"{args.model} fitted on {profile.name}")
     for w in res.warnings[:5]:
         print(f"  warning: {w}")
     if len(res.warnings) > 5:

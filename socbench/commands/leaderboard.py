@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import signal
 import sys
-from pathlib import Path
+import warnings
 
-from ..errors import ConfigError
+from ..domain import WARN_FRACTION
+from ..errors import ConfigError, SocbenchWarning
+from ..io import output_dir
 from ..study import (
     BACKENDS,
     DEFAULT_ESTIMATORS,
@@ -68,7 +70,7 @@ def run(args) -> int:
     if args.scheduler and args.backend != "dask":
         raise ConfigError("--scheduler needs --backend dask")
     config = build_config(args, toolkit)
-    out = Path(args.out)
+    out = output_dir(args.out, "--out")
     store = Store(out / "store")
     print(f"leaderboard: {len(config.models)} models × {len(config.estimators)} estimators × "
           f"{len(config.scenarios)} scenarios × {len(config.seeds)} seeds = {config.n_cells} cells "
@@ -89,5 +91,12 @@ def run(args) -> int:
         print(f"  warning: {len(result.stale)} fits/cells come from other code (--recompute-stale refreshes them)")
     for sentence in report["best"]:
         print(f"  {sentence}")
+    outside = sorted((rec["row"] for rec in result.cells if (rec["row"].get("out_of_domain") or 0) >= WARN_FRACTION),
+                     key=lambda r: -r["out_of_domain"])
+    if outside:
+        w = outside[0]
+        warnings.warn(f"{len(outside)} cells spent ≥ {100 * WARN_FRACTION:.0f} % of their samples outside the model's "
+                      f"domain (out_of_domain column; worst {w['model']} + {w['estimator']} on {w['scenario']}: "
+                      f"{100 * w['out_of_domain']:.1f} %)", SocbenchWarning, stacklevel=2)
     print(f"wrote {out / 'leaderboard.csv'}, {out / 'leaderboard.md'} and {len(report['figures'])} figures")
     return 0

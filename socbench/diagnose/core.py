@@ -47,6 +47,7 @@ class Diagnosis:
     fit: dict
     seconds: dict = field(default_factory=dict)
     soc: dict = field(default_factory=dict)
+    domain: dict = field(default_factory=dict)  # {"before", "after"}: socbench.domain reports on the held-out data
 
     @property
     def effects_added(self) -> list:
@@ -66,6 +67,7 @@ class Diagnosis:
             "rounds": [[c.to_dict() for c in r["candidates"]] for r in self.rounds],
             "fit": self.fit,
             "soc": self.soc,
+            "domain": self.domain,
             "seconds": self.seconds,
         }
 
@@ -184,6 +186,22 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "const
                         "training-part RMSE; current noise 1 % of C; SOC scored on the held-out part"}
         else:
             soc_info = {"note": "no reference SOC in the held-out data: SOC error not reported"}
+    domain = {"before": held_out_domain(base, split), "after": held_out_domain(final, split)}
     t_end = _time.perf_counter()
     seconds = {"fit": t_fit - t0, "search": t_search - t_fit, "soc": t_end - t_search, "total": t_end - t0}
-    return Diagnosis(model_name, base, final, steps, rounds, before_d, after_d, split, fit_info, seconds, soc_info)
+    return Diagnosis(model_name, base, final, steps, rounds, before_d, after_d, split, fit_info, seconds, soc_info,
+                     domain)
+
+
+def held_out_domain(model, split: Split) -> dict:
+    """The domain report (:func:`socbench.domain.domain_report`) of ``model`` on the held-out profiles, each
+    simulated from its start as the held-out scores are (segment by segment where a record has several)."""
+    from ..domain import merge
+
+    reports = []
+    for prof, _ in split.held:
+        sim = model.simulate(prof, soc0=initial_soc(model, prof))
+        reports.append({**sim.domain, "segments": sim.domain.get("segments", 1)})
+    out = merge(reports)
+    out["segments"] = sum(r["segments"] for r in reports)
+    return out

@@ -85,6 +85,7 @@ class FitResult:
             "stderr": {k: num(v) for k, v in self.stderr.items()},
             "warnings": list(self.warnings),
             "success": bool(self.lsq.success) if self.lsq is not None else None,
+            "domain": dict(self.lsq.domain) if self.lsq is not None else {},
         }
 
 
