@@ -112,12 +112,12 @@ def write_figures(result, out: Path) -> list[str]:
     names = []
     for scen in cfg.scenarios:
         by = {(r["row"]["model"], r["row"]["estimator"]): r for r in result.cells if r["row"]["scenario"] == scen}
-        fig, axes = plots.figure(1, 2, width=11, height=max(3.0, 0.35 * len(cfg.models) + 1.5))
-        for ax, col, scale, unit in ((axes[0, 0], "soc_rmse", 100, "SOC RMSE [%]"),
-                                     (axes[0, 1], "v_rmse", 1000, "voltage RMSE [mV]")):
+        panels = []
+        for col, scale, unit in (("soc_rmse", 100, "SOC RMSE [%]"), ("v_rmse", 1000, "voltage RMSE [mV]")):
             vals = [[None if by[(m, e)]["row"][col] is None else scale * by[(m, e)]["row"][col]
                      for e in cfg.estimators] for m in cfg.models]
-            plots.heatmap(ax, vals, list(cfg.models), list(cfg.estimators), f"{unit.split(' [')[0]} on {scen}", unit)
+            panels.append((vals, f"{unit.split(' [')[0]} on {scen}", unit))
+        fig = plots.heatmap_figure(panels, list(cfg.models), list(cfg.estimators))
         name = f"heatmap_{_slug(scen)}.png"
         plots.save(fig, out / name)
         names.append(name)
