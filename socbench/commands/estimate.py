@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ..checks import check_temperature_range
 from ..datasets import load
 from ..errors import ConfigError, DataError
 from ..estimators import SensorNoise, estimator_class, make_estimator
@@ -45,6 +46,7 @@ def run(args) -> int:
     profile = load(args.data, args.format)
     profile.require("voltage_v")
     name, params = resolve_params(args.params)
+    temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set")
     model = make_model(name, params)
     options = {"soc0_sd": args.soc0_sd}
     if args.estimator == "pf":
@@ -56,6 +58,8 @@ def run(args) -> int:
                     "noise": {"voltage_sd": args.voltage_sd, "current_sd": args.current_sd}})
     if profile.soc_ref is None:
         metrics.update({"nees_mean": None, "frac_within_3sigma": None})
+    if temperature:
+        metrics["temperature_range"] = temperature
     out = Path(args.out)
     frame = est.to_frame(0)[["time_s", "soc", "soc_std", "v_pred", "innovation", "innovation_var"]]
     if est.n_runs > 1:
