@@ -20,6 +20,11 @@ ESTIMATORS: dict[str, str] = {
     "ekf": "socbench.estimators.ekf:EKF",
     "ukf": "socbench.estimators.ukf:UKF",
     "pf": "socbench.estimators.pf:ParticleFilter",
+    "aekf": "socbench.estimators.aekf:AdaptiveEKF",
+    "ckf": "socbench.estimators.ckf:CKF",
+    "srukf": "socbench.estimators.srukf:SRUKF",
+    "hinf": "socbench.estimators.hinf:HInfinityFilter",
+    "dual": "socbench.estimators.dual:JointEKF",
 }
 
 

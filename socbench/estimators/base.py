@@ -142,29 +142,34 @@ class Estimator:
         return self.model.x0(np.broadcast_to(soc0, (R,)), (R,))
 
     def initial_cov(self, R: int, P0) -> np.ndarray:
-        n = self.n
         sd = getattr(self.model, "initial_sd", None)
         if sd is None:
-            sd = np.full(n, self.options["state0_sd"])
+            sd = np.full(self.n, self.options["state0_sd"])
             sd[0] = self.options["soc0_sd"]
-        base = np.diag(np.asarray(sd, dtype=float) ** 2)
-        if P0 is None:
-            P = base
-        else:
-            P = np.asarray(P0, dtype=float)
-            if P.ndim == 0:
-                P = base.copy()
-                P[0, 0] = float(P0)
-            elif P.shape == (n,):
-                P = np.diag(P)
-            elif P.shape not in ((n, n), (R, n, n)):
-                raise ConfigError(f"P0 must be a scalar, ({n},), ({n}, {n}) or ({R}, {n}, {n}); got {P.shape}")
-        if not np.all(np.isfinite(P)):
-            raise ConfigError("P0 must be finite")
-        P = 0.5 * (P + np.swapaxes(P, -1, -2))
-        if np.min(np.linalg.eigvalsh(P)) <= 0:
-            raise ConfigError("P0 must be positive definite")
-        return np.ascontiguousarray(np.broadcast_to(P, (R, n, n)))
+        return initial_cov(R, P0, self.n, sd)
+
+
+def initial_cov(R: int, P0, n: int, default_sd) -> np.ndarray:
+    """``(R, n, n)`` initial covariances from ``P0``: None (``diag(default_sd²)``), a scalar (the SOC variance, the
+    rest from ``default_sd``), ``(n,)`` variances, ``(n, n)`` or ``(R, n, n)``; symmetric positive definite."""
+    base = np.diag(np.asarray(default_sd, dtype=float) ** 2)
+    if P0 is None:
+        P = base
+    else:
+        P = np.asarray(P0, dtype=float)
+        if P.ndim == 0:
+            P = base.copy()
+            P[0, 0] = float(P0)
+        elif P.shape == (n,):
+            P = np.diag(P)
+        elif P.shape not in ((n, n), (R, n, n)):
+            raise ConfigError(f"P0 must be a scalar, ({n},), ({n}, {n}) or ({R}, {n}, {n}); got {P.shape}")
+    if not np.all(np.isfinite(P)):
+        raise ConfigError("P0 must be finite")
+    P = 0.5 * (P + np.swapaxes(P, -1, -2))
+    if np.min(np.linalg.eigvalsh(P)) <= 0:
+        raise ConfigError("P0 must be positive definite")
+    return np.ascontiguousarray(np.broadcast_to(P, (R, n, n)))
 
 
 class Recorder:

@@ -65,11 +65,15 @@ class UKF(Estimator):
 
     def __init__(self, model, noise=None, **options):
         super().__init__(model, noise, **options)
+        self.lam, self.Wm, self.Wc = self.weights()
+
+    def weights(self):
+        """``(λ, Wm, Wc)`` of the Merwe scaled sigma points with this filter's α, β, κ."""
         n = self.n
         a, b, kp = self.options["alpha"], self.options["beta"], self.options["kappa"]
         if not a > 0 or not n + kp > 0:
             raise ConfigError(f"ukf: need alpha > 0 and n + kappa > 0 (n={n}, alpha={a}, kappa={kp})")
-        self.lam, self.Wm, self.Wc = merwe_weights(n, a, b, kp)
+        return merwe_weights(n, a, b, kp)
 
     def _run(self, inputs, x0, P0, seed=None) -> Estimate:
         m, opt, noise = self.model, self.options, self.noise
