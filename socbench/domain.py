@@ -65,7 +65,8 @@ def domain_report(model, *, states=None, soc=None, current=None, temp=None, time
     ocv = model.ocv
     below = z < -SOC_TOLERANCE
     above = z > 1.0 + SOC_TOLERANCE
-    exc = ocv.excursion(z)
+    tz = None if temp is None else np.broadcast_to(np.asarray(temp, dtype=float), z.shape)
+    exc = ocv.excursion(z, tz)
     held = exc > EXCURSION_FLAG
     outside = below | above | held
     counts = {"soc_below_0": _count(below), "soc_above_1": _count(above), "ocv_extrapolated": _count(exc > 1e-12),
@@ -121,7 +122,7 @@ def estimate_domain(model, estimate, profile) -> dict:
     if estimate.x is not None:
         return domain_report(model, states=estimate.x, current=cur, temp=temp, time_s=profile.time_s,
                              voltage=estimate.v_pred, clamped=estimate.clamped)
-    return domain_report(model, soc=estimate.soc, voltage=estimate.v_pred, clamped=estimate.clamped)
+    return domain_report(model, soc=estimate.soc, temp=temp, voltage=estimate.v_pred, clamped=estimate.clamped)
 
 
 def guard_fractions(report: dict) -> dict:

@@ -99,8 +99,8 @@ def find_segments(profile: Profile, ocv=None, capacity_ah: float | None = None) 
         what, limit = "reference SOC", SOC_JUMP
     elif profile.voltage_v is not None and ocv is not None and q:
         rest = (np.abs(i_before) <= REST_C_RATE * q) & (np.abs(profile.current_a[..., gap + 1]) <= REST_C_RATE * q)
-        z_before = ocv.inverse(profile.voltage_v[..., gap])
-        z_after = ocv.inverse(profile.voltage_v[..., gap + 1])
+        z_before = ocv.inverse(profile.voltage_v[..., gap], temp=_temp(profile, gap))
+        z_after = ocv.inverse(profile.voltage_v[..., gap + 1], temp=_temp(profile, gap + 1))
         rise = np.where(rest, z_after - z_before - counted, 0.0)
         what, limit = "rest-voltage SOC", SOC_JUMP_VOLTAGE
     else:
@@ -111,6 +111,11 @@ def find_segments(profile: Profile, ocv=None, capacity_ah: float | None = None) 
     reasons = tuple(f"{what} {worst[j]:+.2f} beyond the counted charge over a {dt[gap[j]]:.0f} s gap"
                     for j in np.flatnonzero(hit))
     return Segments((0,) + tuple(int(k) + 1 for k in gap[hit]), n, reasons)
+
+
+def _temp(profile: Profile, k):
+    """The cell temperature at sample(s) ``k`` (None without a temperature column: the curve's reference)."""
+    return None if profile.temperature_c is None else profile.temperature_c[..., k]
 
 
 def resolve(segments, profile: Profile, ocv=None, capacity_ah: float | None = None) -> Segments:
@@ -131,7 +136,7 @@ def restart_soc(profile: Profile, start: int, ocv, rule: str = REFERENCE) -> np.
     if rule == REFERENCE and profile.soc_ref is not None:
         z = profile.soc_ref[..., start]
     elif profile.voltage_v is not None:
-        z = ocv.inverse(profile.voltage_v[..., start])
+        z = ocv.inverse(profile.voltage_v[..., start], temp=_temp(profile, start))
     else:
         z = np.ones(np.shape(profile.current_a[..., start]))
     return np.clip(np.asarray(z, dtype=float), 0.0, 1.0)

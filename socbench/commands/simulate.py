@@ -15,7 +15,7 @@ import json
 
 import pandas as pd
 
-from ..checks import check_voltage_level
+from ..checks import check_temperature_range, check_voltage_level
 from ..datasets import load
 from ..domain import warn_outside
 from ..errors import DataError
@@ -53,11 +53,14 @@ def run(args) -> int:
     if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
         raise DataError(f"--soc0 must be in [0, 1], got {args.soc0}")
     check_voltage_level(profile, params, f"the '{args.params}' parameter set")
+    temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set")
     model = make_model(name, params)
     sim = model.simulate(profile, soc0=args.soc0, segments=False if args.no_segments else None)
     stats = voltage_error_stats(profile.voltage_v, sim.voltage_v)
     stats.update({"model": name, "data": str(args.data), "guard_fractions": sim.domain_fractions,
                   "segments": sim.segments.to_dict(), "domain": sim.domain})
+    if temperature:
+        stats["temperature_range"] = temperature
     segs = f"  {sim.segments.count} segments" if sim.segments.count > 1 else ""
     print(
         f"{name} on {profile.name}: n={stats['n']}{segs}  RMS {1000 * stats['rmse_v']:.1f} mV  "
