@@ -9,7 +9,7 @@ import pytest
 
 from socbench.domain import domain_report, guard_fractions, outside_message, warn_outside
 from socbench.errors import SocbenchWarning
-from socbench.estimators import make_estimator
+from socbench.estimators import estimator_names, make_estimator
 from socbench.models import make_model, model_names, paper_params
 from socbench.ocv import EXCURSION_FLAG, OCVCurve
 from socbench.profile import Profile, ProfileMeta
@@ -94,7 +94,7 @@ def test_ocv_clamp_value_and_derivative_on_random_curves():
         assert ocv.inverse(ocv.voltage[-1] + 10.0) == pytest.approx(hi + EXCURSION_FLAG, abs=1e-9)
 
 
-@pytest.mark.parametrize("estimator", ["coulomb", "ekf", "ukf", "pf"])
+@pytest.mark.parametrize("estimator", estimator_names())
 def test_every_estimator_reports_its_domain_and_warns_when_driven_past_empty(estimator):
     """A record that goes 40 % past empty on the counted charge: every estimator's report counts it (the clamp holds
     the estimate at 0 where the counter would be below); the same record stopped at 20 % is clean."""

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from socbench.estimators import make_estimator
+from socbench.estimators import estimator_names, make_estimator
 from socbench.estimators.safety import DIVERGENCE_REASONS, diverged
 from socbench.models import make_model, paper_params
 from socbench.study.cell import nonfinite_soc, reduce_cell
@@ -25,8 +25,8 @@ def _sweep_module():
 
 
 def test_ci_slice_of_the_robustness_sweep_has_no_nan_or_inf(tmp_path, capsys):
-    """Every estimator on rint and fang (whose log term once sent every UKF run to NaN) over three seeds of the
-    short flight; the sweep's own analysis must find no NaN/inf, and writes its JSON and report."""
+    """Every registered estimator on rint and fang (whose log term once sent every UKF run to NaN), three seeds of
+    the short flight; the sweep's own analysis must find no NaN/inf, and writes its JSON and report."""
     sweep = _sweep_module()
     doc = tmp_path / "reliability.md"
     code = sweep.main(["--seeds", "3", "--models", "rint,fang", "--scenarios", "flight-10kg", "--backend", "serial",
@@ -34,15 +34,16 @@ def test_ci_slice_of_the_robustness_sweep_has_no_nan_or_inf(tmp_path, capsys):
     capsys.readouterr()
     assert code == 0
     an = json.loads((tmp_path / "out" / "robustness.json").read_text())
-    assert an["cells"] == 8 and an["runs"] == 24
+    n_cells = 2 * len(estimator_names())  # every registered estimator
+    assert an["cells"] == n_cells and an["runs"] == 3 * n_cells
     assert an["nan_inf"] == {"outputs": 0, "metrics": 0, "table": 0}
     assert an["failed_runs"] == 0 and not an["cells_that_threw"]
     text = doc.read_text()
-    assert "**NaN/inf: 0**" in text and "8 cells, 24 runs" in text
+    assert "**NaN/inf: 0**" in text and f"{n_cells} cells, {3 * n_cells} runs" in text
     # rerunning the same command resumes: nothing is recomputed
     assert sweep.main(["--seeds", "3", "--models", "rint,fang", "--scenarios", "flight-10kg", "--backend", "serial",
                        "--out", str(tmp_path / "out"), "--no-doc"]) == 0
-    assert "8 in the store, 0 to run" in capsys.readouterr().err
+    assert f"{n_cells} in the store, 0 to run" in capsys.readouterr().err
 
 
 def test_divergence_reasons_are_coded_in_order():
@@ -90,7 +91,7 @@ def test_the_model_probe_finds_where_a_model_is_undefined():
     p = p.__class__(**{**p.__dict__, "values": {**p.values, "tau2": Constant(0.007)}})
 
     class UnguardedFang(Fang):
-        def term(self, z, guards=None):
+        def term(self, z, temp=None, guards=None):
             k0, k1 = self.p("K0", z)[0], self.p("K1", z)[0]
             t1, t2 = self.p("tau1", z)[0], self.p("tau2", z)[0]
             with np.errstate(all="ignore"):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from socbench.datasets import load
-from socbench.estimators import make_estimator
+from socbench.estimators import estimator_names, make_estimator
 from socbench.estimators.base import segment_seed
 from socbench.identify import fit_parameters
 from socbench.models import make_model, model_names, paper_ocv, paper_params
@@ -68,7 +68,7 @@ def test_simulate_restarts_the_second_segment_at_its_reference_soc(name):
         assert abs(whole.soc[n1] - zb) > SOC_JUMP
 
 
-@pytest.mark.parametrize("estimator", ["coulomb", "ekf", "ukf", "pf"])
+@pytest.mark.parametrize("estimator", estimator_names())
 def test_estimate_restarts_each_segment_like_a_record_start(estimator):
     m = make_model("dp", paper_params("dp"))
     rng = np.random.default_rng(77)
@@ -82,6 +82,11 @@ def test_estimate_restarts_each_segment_like_a_record_start(estimator):
                  (est.v_pred[:, n1:], second.v_pred), (est.soc_std[:, n1:], second.soc_std)):
         np.testing.assert_array_equal(a, b)
     assert est.soc[0, n1] == second.soc[0, 0]
+    for k, v in second.info.items():  # per-run paths joined, final values from the last segment
+        if isinstance(v, np.ndarray) and v.ndim == 2:
+            np.testing.assert_array_equal(est.info[k][:, n1:], v)
+        elif isinstance(v, np.ndarray) and v.dtype.kind == "f":
+            np.testing.assert_array_equal(est.info[k], v)
     # the estimator never reads the reference: its restart comes from the first voltage of the segment
     z_ocv = float(np.clip(m.ocv.inverse(prof.voltage_v[n1]), 0, 1))
     if estimator == "coulomb":

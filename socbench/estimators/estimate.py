@@ -96,7 +96,8 @@ class Estimate:
         """One estimate from the estimates of consecutive segments of a record (time axis concatenated).
 
         A run fails where it first failed in any segment (``failed_at`` on the whole record's samples); a later
-        segment restarts it, so its outputs there are that segment's own."""
+        segment restarts it, so its outputs there are that segment's own. ``info``: per-run paths over time are
+        joined, per-run integer counters (PSD repairs, resamplings) summed, other entries are the last segment's."""
         def cat(name):
             vals = [getattr(p, name) for p in parts]
             return None if any(v is None for v in vals) else np.concatenate(vals, axis=1)
@@ -114,8 +115,16 @@ class Estimate:
             failed |= new
             offset += p.n
         p0 = parts[0]
-        info = dict(p0.info)  # per-run counters (the pf's resamplings) add up over the segments
-        info.update({k: sum(p.info[k] for p in parts) for k, v in p0.info.items() if isinstance(v, np.ndarray)})
+        info = dict(parts[-1].info)
+        for k, v in p0.info.items():
+            vals = [p.info.get(k) for p in parts]
+            if not all(isinstance(a, np.ndarray) for a in vals):
+                continue
+            if v.ndim == 2 and v.shape[0] == R:  # a path over time (the joint estimator's parameters): joined
+                info[k] = np.concatenate(vals, axis=1)
+            elif v.ndim == 1 and v.shape[0] == R and np.issubdtype(v.dtype, np.integer):  # per-run counters
+                info[k] = np.sum(vals, axis=0)
+            # anything else (a final value per run) is the last segment's
         return cls(time_s, cat("soc"), cat("soc_std"), cat("v_pred"), cat("innovation"), cat("innovation_var"),
                    failed, failed_at, cat("clamped"), cat("gated"), cat("x"), cat("P_diag"), p0.estimator, p0.model,
                    p0.state_names, info, reason, {}, segments)
