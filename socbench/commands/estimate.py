@@ -95,7 +95,7 @@ def run(args) -> int:
     segs = f"  {est.segments.count} segments" if est.segments.count > 1 else ""
     print(f"{args.estimator} on {name}, {profile.name}: n={profile.n}{segs}  {soc_part}"
           f"V RMSE {_fmt(s['rmse_v'], 1000, 1)} mV  NIS {_fmt(s['nis_mean'])}{params}  "
-          f"failed runs {s['failed_runs']}  -> {out}")
+          f"failed runs {s['failed_runs']}  out of domain {100 * est.domain['outside_fraction']:.1f} %  -> {out}")
     warn_outside(est.domain, f"{args.estimator} on {name}, {profile.name}")
     return 0
 

@@ -64,7 +64,8 @@ def run(args) -> int:
     segs = f"  {sim.segments.count} segments" if sim.segments.count > 1 else ""
     print(
         f"{name} on {profile.name}: n={stats['n']}{segs}  RMS {1000 * stats['rmse_v']:.1f} mV  "
-        f"mean {1000 * stats['mean_v']:.1f} mV  SD {1000 * stats['sd_v']:.1f} mV  max {1000 * stats['max_v']:.1f} mV"
+        f"mean {1000 * stats['mean_v']:.1f} mV  SD {1000 * stats['sd_v']:.1f} mV  max {1000 * stats['max_v']:.1f} mV  "
+        f"out of domain {100 * sim.domain['outside_fraction']:.1f} %"
     )
     warn_outside(sim.domain, f"{name} on {profile.name}")
     if args.out:
