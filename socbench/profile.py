@@ -26,11 +26,10 @@ The reference SOC is the one column checked leniently, because a reference count
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-
-import warnings
 
 from .errors import DataError, SocbenchWarning
 
@@ -143,10 +142,11 @@ class Profile:
             object.__setattr__(self, "soc_ref_error", error)
             object.__setattr__(self, "soc_ref_checked", None)
             return
-        row = _first_bad_row((z < -SOC_TOLERANCE) | (z > 1 + SOC_TOLERANCE))
         worst = lo if -lo > hi - 1 else hi
-        warnings.warn(f"{src}, column 'soc_ref', row {row}: reference SOC reaches {worst:.4g}, outside [0, 1] "
-                      f"by less than {100 * SOC_WARN_MARGIN:g} points (as a count from a nominal capacity does): kept as is",
+        row = _first_bad_row(z == worst)  # where it is furthest out
+        warnings.warn(f"{src}, column 'soc_ref', row {row}: reference SOC reaches {worst:.4g}, outside [0, 1] by "
+                      f"less than {100 * SOC_WARN_MARGIN:g} points (as a count from a nominal capacity does): "
+                      "kept as is",
                       SocbenchWarning, stacklevel=4)
 
     @staticmethod

@@ -123,26 +123,24 @@ def _solve(cell: Cell, seg_i: np.ndarray, seg_t0: np.ndarray, t: np.ndarray, soc
 
 
 def _schedule(cell: Cell, lay: Layout):
-    """Segments ``[(current A, seconds, kind), ...]`` of the HPPC and the number of pulse sets. Each step discharges
-    ``lay.step`` of Q (the pulses' net charge comes on top); the last one runs to empty (z = 0)."""
+    """Segments ``[(current A, seconds, kind), ...]`` of the HPPC and the number of pulse sets. As in the USABC
+    protocol, pulse set ``j`` is at ``z = 1 − j·step`` and the step after it discharges to the next level (the pulses'
+    net charge counts); the last set is at the lowest level ≥ ``step`` and the last step runs to empty (z = 0)."""
     q = cell.capacity_ah
+    n_levels = int(np.floor(1.0 / lay.step + 1e-9))
     segs = [(0.0, lay.rest_s, "rest")]
-    z, n_levels = 1.0, 0
-    while True:
-        n_levels += 1
+    z = 1.0
+    for j in range(n_levels):
         for m, c in enumerate(lay.pulses_c):
             segs.append((c * q, lay.pulse_s, "pulse"))
             z -= c * lay.pulse_s / 3600.0  # C·h = fraction of Q
             if not (m == len(lay.pulses_c) - 1 and lay.straight_into_step):
                 segs.append((0.0, lay.inner_rest_s, "inner"))
-        net = sum(c * lay.pulse_s / 3600.0 for c in lay.pulses_c)
-        last = z - lay.step < lay.step + net  # no room for one more set and a full final step: run to empty now
-        dz = z if last else lay.step
-        segs.append((lay.step_c * q, 3600.0 * dz / lay.step_c, "step"))
+        z_next = 1.0 - (j + 1) * lay.step if j < n_levels - 1 else 0.0
+        segs.append((lay.step_c * q, 3600.0 * (z - z_next) / lay.step_c, "step"))
         segs.append((0.0, lay.rest_s, "rest"))
-        z -= dz
-        if last:
-            return segs, n_levels
+        z = z_next
+    return segs, n_levels
 
 
 def _sample_times(seg_t0: np.ndarray, kinds, t_end: float, ins: Instrument, rng) -> np.ndarray:
@@ -217,15 +215,16 @@ def random_cell(rng) -> Cell:
 
 def random_layout(rng) -> Layout:
     kind = rng.choice(["discharge", "discharge+charge", "three"])
-    amp = rng.uniform(0.5, 2.0)
+    pulse_s = 10.0 if kind == "three" else float(rng.choice([10.0, 18.0, 30.0]))
+    amp = min(rng.uniform(0.5, 2.0), 36.0 / pulse_s)  # a pulse moves at most 1 % of Q (HPPC pulses are short)
     pulses = {"discharge": (amp,), "discharge+charge": (amp, -rng.uniform(0.5, 1.0) * amp),
               "three": (0.5 * amp, amp, 1.5 * amp)}[str(kind)]
     inner = float(np.exp(rng.uniform(np.log(20.0), np.log(600.0))))
-    return Layout(pulses_c=tuple(float(c) for c in pulses), pulse_s=float(rng.choice([10.0, 18.0, 30.0])),
+    gaps = bool(rng.random() < 0.25)  # a logger that pauses during the steps resumes in a rest (Panasonic)
+    return Layout(pulses_c=tuple(float(c) for c in pulses), pulse_s=pulse_s,
                   inner_rest_s=inner, rest_s=float(np.exp(rng.uniform(np.log(300.0), np.log(7200.0)))),
                   step=float(rng.uniform(0.05, 0.10)), step_c=float(rng.uniform(0.3, 1.0)),
-                  gaps=bool(rng.random() < 0.25),
-                  straight_into_step=bool(kind == "discharge+charge" and rng.random() < 0.3))
+                  gaps=gaps, straight_into_step=bool(kind == "discharge+charge" and not gaps and rng.random() < 0.3))
 
 
 def random_instrument(rng) -> Instrument:

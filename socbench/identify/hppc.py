@@ -24,37 +24,51 @@ or a fixed duration where the record can tell. The analysis
    a run of the other samples is active only if one of them reaches beyond ``θ_hi``, so noise that crosses ``θ_lo``
    stays rest. *Blips* — active runs shorter than :data:`MIN_PULSE_S` or of at most two samples, that peak below
    ``2 θ_hi`` — are merged into the surrounding rest (a short run of a large current stays: the Panasonic cells at
-   −20 °C hit their voltage limit 1–1.5 s into the 11.6 A pulses, and those aborted pulses are real). An active run is cut into *phases* where
-   ``I − b`` changes sign (a charge pulse that runs straight into a discharge step, as in the ORNL Leaf HPPC); a phase
-   shorter than :data:`MIN_PULSE_S` joins its neighbour;
-3. **tells pulses from steps**: a *pulse* is a phase that starts from a rest, holds its current (median absolute
-   deviation from its median within ``max(θ_lo, 15 %)`` of it: a drive cycle's driving is not held) and lasts at
-   most ``max_pulse_s``; phases before the most charged point of the record (pre-conditioning before the charge to
-   full) are not part of the test. By default that bound
-   is read from the record: the sorted durations of the held phases that start from a rest are split at their largest
-   ratio between neighbours when it is ≥ :data:`DURATION_GAP` (4: pulses of seconds against steps of minutes, while
-   the pulses of one record differ by less — 30 s discharge and 10 s regen pulses in the ORNL Leaf test, or a pulse
-   that a coarse sampling makes one or two samples long) and at least two phases lie below it; without such a split (a file whose steps fall in gaps) every phase up to
-   :data:`MAX_PULSE_S` is a pulse. Anything not a pulse (steps, a CV charge, drive-cycle driving) is a step;
-4. puts every sample on the **SOC axis** ``z = 1 − (Ah − Ah_full)/Q``, where ``Ah`` is the charge discharged since
-   the first sample — ``I − b`` integrated under zero-order hold or, when the record has gaps whose charge only the
-   reference SOC knows, that reference (see :func:`discharged_ah`) — ``Ah_full`` its minimum (the most charged point:
-   an HPPC starts full, and the ORNL Leaf record first charges to full), and ``Q`` the capacity (default: the charge
-   discharged from there to the most discharged point — ECM_SPEC §2 recommends the HPPC's own Ah);
+   −20 °C hit their voltage limit 1–1.5 s into the 11.6 A pulses, and those aborted pulses are real). An active run
+   is cut into *phases* where ``I − b`` changes sign (a charge pulse that runs straight into a discharge step, as in
+   the ORNL Leaf HPPC); a phase shorter than :data:`MIN_PULSE_S` joins its neighbour;
+3. puts every sample on the **SOC axis** ``z = 1 − (Ah − Ah_full)/Q``. ``Ah`` is the charge discharged since the
+   first sample: ``I − b`` integrated under zero-order hold or, when the record has gaps whose charge only the
+   reference SOC knows, that reference (:func:`discharged_ah`). ``Ah_full`` is its minimum, the most charged point:
+   an HPPC starts full, and the ORNL Leaf files first discharge to empty and charge to full — phases before the
+   record first comes within :data:`FULL_TOL` of full are pre-conditioning, not part of the test. ``Q`` is the
+   capacity (default: the charge discharged from full to the most discharged point — ECM_SPEC §2 recommends the
+   HPPC's own Ah);
+4. **tells pulses from steps**: a *pulse* is a phase that
+
+   * starts from a rest at least half as long as itself (an HPPC rests before every pulse; a drive cycle only
+     crosses zero for a moment);
+   * holds its current: median absolute deviation from its median within ``max(θ_lo, 15 %)`` of it (driving is not
+     held; a pulse held at a voltage limit, which decays by up to 30 %, is);
+   * carries at least ``3 θ_hi`` (stands clear of the rest level: a drive cycle's near-zero band, without true rests,
+     makes the thresholds as wide as its currents);
+   * lasts at most ``max_pulse_s``. By default that bound is read from the record: the sorted durations of the phases
+     that pass the tests above are split at their largest ratio between neighbours when it is at least
+     :data:`DURATION_GAP` (4: pulses of seconds against steps of minutes, while the pulses of one record differ by
+     less — 30 s discharge and 10 s regen pulses in the ORNL Leaf test, or a pulse that coarse sampling makes one or
+     two samples long) and at least two phases lie below it; without such a split (a file whose steps fall in gaps)
+     every phase up to :data:`MAX_PULSE_S` is a pulse.
+
+   Anything else (steps, a CV charge, driving) is a step;
 5. groups pulses into **sets**: a new set starts whenever charge moved between two pulses other than by the pulses
    themselves (more than :data:`SET_SPLIT` of Q);
-6. takes an **OCV point** at the end of the rest before each set (of at least ``min_rest_s``): the mean voltage over
-   the rest's last ``min(60 s, 10 % of the rest)``, never reaching back across a gap in the record longer than that
-   window; plus the end of a final rest after a last discharge step;
+6. takes an **OCV point** at the end of the rest before each set, when that rest lasts ``min_rest_s`` (default
+   :data:`MIN_OCV_REST_S`, 4 min) or is the record's initial rest (the cell rested before the test began), and at the
+   end of a final rest after a last discharge step. The point is the end of the least-squares line through the
+   voltage over the rest's last ``min(60 s, 10 % of the rest)`` — noise averaged, without the lag of a mean behind a
+   voltage still relaxing — never reaching back across a gap in the record longer than that window. A record is an
+   HPPC test when it has at least two OCV points and rests before at least half of its pulse sets
+   (:data:`REST_SHARE`); otherwise (a drive cycle, a constant discharge, a flight) :func:`analyze_hppc` raises one
+   :class:`DataError` line;
 7. estimates per pulse the **instantaneous resistance** ``r_inst = −ΔV/ΔI`` across the leading edge (one sample: under
    the ZOH convention ``y_k = h(x_k, I_k)`` this is exactly the model's ``R0(z)`` plus the decay of the RC states over
    one sample), the same across the trailing edge, the **pulse resistance** ``(V_before − V_end)/I`` at the end of
-   the pulse (``V_before`` the rest's end as in 6), and the **relaxation time constant**: the time the voltage needs,
-   in the rest after the pulse, to recover ``1 − 1/e`` of what it recovers by the end of that rest (after the
-   instantaneous jump), and a slow one, a third of the time to recover 95 % (both equal τ for a single exponential).
-   An edge resistance needs a pulse of at least :data:`MIN_EDGE_SAMPLES` samples and an edge that carries at least
-   half the pulse current: with a sample period near the pulse length, or a ramping edge, ``ΔV/ΔI`` would measure
-   polarisation, not ``R0``; such edges give NaN and a note says so.
+   the pulse (``V_before`` the end of the rest before it, as in 6), and the **relaxation time constant**: the time the
+   voltage needs, in the rest after the pulse, to recover ``1 − 1/e`` of what it recovers by the end of that rest
+   (after the instantaneous jump), and a slow one, a third of the time to recover 95 % (both equal τ for a single
+   exponential). An edge resistance needs a pulse of at least :data:`MIN_EDGE_SAMPLES` samples and an edge that
+   carries at least half the pulse current: with a sample period near the pulse length, or a ramping edge, ``ΔV/ΔI``
+   would measure polarisation, not ``R0``; such edges give NaN and a note says so.
 """
 
 from __future__ import annotations
@@ -68,9 +82,18 @@ from ..ocv import OCVCurve, monotone_points
 from ..profile import Profile
 
 #: relative disagreement between the integrated current and the reference SOC above which the reference is used
+#: (when the record's gaps explain it)
 AH_MISMATCH = 5e-3
+#: a step where the reference and the counted current move apart by more than this fraction of the record's charge is
+#: a jump (charge the current column does not carry: a gap in the record)
+JUMP_FRAC = 1e-3
+#: the reference is a record of gaps when its jumps explain at least this share of its disagreement with the current
+JUMP_SHARE = 0.75
 #: a step moving more than this fraction of Q between two pulses starts a new pulse set
 SET_SPLIT = 2e-3
+#: the test starts where the record first comes within this fraction of its charge of its most charged point (what
+#: comes before is pre-conditioning: the ORNL Leaf files discharge to empty and charge to full first)
+FULL_TOL = 0.02
 #: the near-zero band where the rest level and the sensor noise are measured, as a fraction of max|I|
 REST_BAND_FRAC = 0.05
 #: rest threshold θ_lo in robust standard deviations of the current noise; θ_hi = HYSTERESIS × θ_lo
@@ -86,6 +109,9 @@ BLIP_K = 2.0
 #: a held pulse: median absolute deviation of its current within max(θ_lo, this fraction of its level); loose enough
 #: for a pulse the cycler holds at a voltage limit (the ORNL Leaf regen pulse at full charge decays by 30 %)
 PULSE_FLATNESS = 0.15
+#: a pulse's current is at least PULSE_SNR θ_hi, and the rest before it at least PULSE_REST_RATIO × its duration
+PULSE_SNR = 3.0
+PULSE_REST_RATIO = 0.5
 #: pulse/step split: the largest ratio between neighbouring sorted phase durations, when at least this
 DURATION_GAP = 4.0
 #: longest pulse when the durations show no split [s]
@@ -93,7 +119,13 @@ MAX_PULSE_S = 120.0
 #: edge resistances need this many samples in the pulse and an edge carrying EDGE_FRACTION of the pulse current
 MIN_EDGE_SAMPLES = 3
 EDGE_FRACTION = 0.5
-#: OCV point: mean voltage over the last min(OCV_WINDOW_S, OCV_WINDOW_FRAC × duration) of a rest
+#: shortest rest before a pulse set that gives an OCV point [s]: HPPC protocols rest 5 min to 2 h (4 min leaves room
+#: for a coarse sampling of a 5 min rest); after a shorter rest most of the polarisation is still there, and drive
+#: cycles stop for a minute or two
+MIN_OCV_REST_S = 240.0
+#: an HPPC rests (≥ min_rest_s) before at least this share of its pulse sets; a drive cycle with stops does not
+REST_SHARE = 0.5
+#: OCV point: line through the voltage over the last min(OCV_WINDOW_S, OCV_WINDOW_FRAC × duration) of a rest
 OCV_WINDOW_S = 60.0
 OCV_WINDOW_FRAC = 0.1
 
@@ -104,7 +136,7 @@ class Rest:
     stop: int  # one past the last rest sample
     duration_s: float
     soc_end: float
-    v_end: float  # voltage at the rest's end: mean over its last window (module docstring, 6)
+    v_end: float  # voltage at the rest's end, from a line through its last window (module docstring, 6)
 
 
 @dataclass(frozen=True)
@@ -203,28 +235,45 @@ def _counted_ah(profile: Profile, current_offset_a: float = 0.0) -> np.ndarray:
     return profile.with_(current_a=profile.current_a - current_offset_a).amp_hours()
 
 
+def _reference_ah(profile: Profile) -> np.ndarray | None:
+    """The reference SOC as discharged charge since the first sample [Ah] (None without a reference or a capacity).
+    A reference given but refused (far outside [0, 1]) raises here: this is where it is used."""
+    soc_ref = profile.get("soc_ref")
+    if soc_ref is None or not profile.meta.capacity_ah:
+        return None
+    return (soc_ref[0] - soc_ref) * float(profile.meta.capacity_ah)
+
+
 def discharged_ah(profile: Profile, current_offset_a: float = 0.0) -> tuple[np.ndarray, str]:
     """Charge discharged since the first sample [Ah] and where it came from (``"current"`` or ``"soc_ref"``).
 
     The integrated current (zero-order hold, the sensor offset ``current_offset_a`` removed) is used unless the
-    profile's reference SOC (with ``meta.capacity_ah``) disagrees with it by more than 0.5 % of the record's charge:
-    then the record has gaps whose charge only the reference knows (the Panasonic HPPC files omit the discharges
-    between pulse sets), and the reference is used. A reference given but refused (far outside [0, 1]) raises here.
+    profile's reference SOC (with ``meta.capacity_ah``) disagrees with it by more than 0.5 % of the record's charge
+    *in jumps*: the steps where the two move apart by more than :data:`JUMP_FRAC` of the record's charge, added to
+    the integrated current, explain at least 3/4 of the disagreement. Then the record has gaps whose charge only the
+    reference knows (the Panasonic HPPC files omit the discharges between pulse sets), and the reference is used.
+    A reference that drifts away a little at every step (counted from another capacity, or from a sensor with an
+    offset) is not a record of gaps: the current is used. A reference given but refused (far outside [0, 1]) raises
+    here.
     """
     ah = _counted_ah(profile, current_offset_a)
-    soc_ref = profile.get("soc_ref")
-    if soc_ref is not None and profile.meta.capacity_ah:
-        ref = (soc_ref[0] - soc_ref) * float(profile.meta.capacity_ah)
+    ref = _reference_ah(profile)
+    if ref is not None:
         scale = max(float(np.max(np.abs(ref))), float(np.max(np.abs(ah))), 1e-12)
-        if float(np.max(np.abs(ref - ah))) > AH_MISMATCH * scale:
-            return ref, "soc_ref"
+        mismatch = float(np.max(np.abs(ref - ah)))
+        if mismatch > AH_MISMATCH * scale:
+            d = np.diff(ref) - np.diff(ah)
+            jumps = np.where(np.abs(d) > JUMP_FRAC * scale, d, 0.0)
+            filled = ah + np.concatenate([[0.0], np.cumsum(jumps)])
+            if float(np.max(np.abs(ref - filled))) <= (1.0 - JUMP_SHARE) * mismatch:
+                return ref, "soc_ref"
     return ah, "current"
 
 
 def unrecorded_charge(profile: Profile, threshold_frac: float = 1e-3, current_offset_a: float = 0.0) -> np.ndarray:
     """Per sample, the charge [Ah] discharged in the step *into* the sample that the current column does not carry
     (0 where the column, less the offset ``current_offset_a``, and the reference agree to ``threshold_frac`` of the
-    record's charge)."""
+    record's charge; non-zero only where :func:`discharged_ah` takes the reference, i.e. across gaps)."""
     ah, src = discharged_ah(profile, current_offset_a)
     out = np.zeros(profile.n)
     if src != "soc_ref":
@@ -321,17 +370,23 @@ def _pulse_bound(durations: np.ndarray) -> float:
     return MAX_PULSE_S
 
 
-def _window_mean(t: np.ndarray, v: np.ndarray, start: int, stop: int, duration_s: float) -> float:
-    """Mean of ``v`` over the last ``min(OCV_WINDOW_S, OCV_WINDOW_FRAC × duration)`` of the rest ``[start, stop)``,
-    not reaching back across a gap in the record longer than that window."""
+def _rest_end_voltage(t: np.ndarray, v: np.ndarray, start: int, stop: int, duration_s: float) -> float:
+    """The voltage at the end of the rest ``[start, stop)``: the least-squares line through the samples of its last
+    ``min(OCV_WINDOW_S, OCV_WINDOW_FRAC × duration)`` (not reaching back across a gap in the record longer than
+    that window), evaluated at the last sample. The line, not the mean: a still-relaxing voltage would pull a mean
+    back by half the window's drift; the line's end keeps the noise averaging (variance ``4σ²/N`` instead of ``σ²``)
+    without that lag."""
     w = min(OCV_WINDOW_S, OCV_WINDOW_FRAC * duration_s)
     k = stop - 1
-    first = int(np.searchsorted(t, t[k] - w, side="left"))
-    first = max(first, start)
+    first = max(int(np.searchsorted(t, t[k] - w, side="left")), start)
     gaps = np.flatnonzero(np.diff(t[first:stop]) > w)
     if gaps.size:
         first += int(gaps[-1]) + 1
-    return float(np.mean(v[first:stop]))
+    if stop - first < 3:
+        return float(np.mean(v[first:stop]))
+    x = t[first:stop] - t[k]
+    slope, intercept = np.polyfit(x, v[first:stop], 1)
+    return float(intercept)
 
 
 def _recovery_tau(t: np.ndarray, v: np.ndarray, level: float = 1.0 - np.exp(-1.0)) -> float:
@@ -352,7 +407,7 @@ def _recovery_tau(t: np.ndarray, v: np.ndarray, level: float = 1.0 - np.exp(-1.0
 
 
 def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: float | None = None,
-                 max_pulse_s: float | None = None, min_rest_s: float = 60.0) -> HPPCAnalysis:
+                 max_pulse_s: float | None = None, min_rest_s: float = MIN_OCV_REST_S) -> HPPCAnalysis:
     """Analyse an HPPC record (see the module docstring). Raises :class:`DataError` (one line) when the record holds
     no HPPC: no pulse, or fewer than two OCV rest points.
 
@@ -375,10 +430,18 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
         notes.append(f"{blips} current blip(s) shorter than {MIN_PULSE_S:g} s or at the noise level merged into rests")
 
     ah, ah_source = discharged_ah(profile, lev.offset_a)
-    # full: the most charged point; the test starts where the record first comes within SET_SPLIT of it (charge
-    # pulses at full may return to it, and noise makes its exact sample a matter of chance)
+    ref = _reference_ah(profile)
+    if ah_source == "current" and ref is not None:
+        scale = max(float(np.ptp(ah)), 1e-12)
+        off = float(np.max(np.abs(ref - ah))) / scale
+        if off > AH_MISMATCH:
+            notes.append(f"the reference SOC departs from the counted current by up to {100 * off:.2g} % of the "
+                         "charge, not in jumps at gaps (another capacity, or counting error): the SOC axis follows "
+                         "the current")
+    # full: the most charged point; the test starts where the record first comes within FULL_TOL of it (charge
+    # pulses at full may return to it or beyond, and noise and coarse sampling blur the count by tenths of a percent)
     ah_full = float(np.min(ah))
-    k_full = int(np.argmax(ah <= ah_full + SET_SPLIT * max(float(np.ptp(ah)), 1e-12)))
+    k_full = int(np.argmax(ah <= ah_full + FULL_TOL * max(float(np.ptp(ah)), 1e-12)))
     q = float(capacity_ah) if capacity_ah else float(np.max(ah[k_full:]) - ah_full)
     if not q > 0:
         raise DataError("the record discharges no charge: cannot place it on the SOC axis", file=src)
@@ -387,7 +450,7 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     rests = []
     for a, b in _intervals(~active):
         dur = float(t_after[b - 1] - t[a]) if b < n else float(t[b - 1] - t[a])
-        rests.append(Rest(a, b, dur, float(soc[b - 1]), _window_mean(t, v, a, b, dur)))
+        rests.append(Rest(a, b, dur, float(soc[b - 1]), _rest_end_voltage(t, v, a, b, dur)))
     rest_by_start = {r.start: r for r in rests}
     rest_by_stop = {r.stop: r for r in rests}
 
@@ -402,7 +465,13 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
             level = float(np.median(seg))
             if float(np.median(np.abs(seg - level))) > max(lev.lo_a, PULSE_FLATNESS * abs(level)):
                 continue  # not a held current (driving, a ramp)
-            candidates.append((pa, pb, float(t[pb] - t[pa])))
+            if abs(level) < PULSE_SNR * lev.hi_a:
+                continue  # hardly above the rest threshold: a wobble of a current that has no clear rest level
+            dur = float(t[pb] - t[pa])
+            before = rest_by_stop.get(pa)
+            if before is None or before.duration_s < PULSE_REST_RATIO * dur:
+                continue  # an HPPC rests before every pulse; a drive cycle crosses zero for a moment
+            candidates.append((pa, pb, dur))
     if max_pulse_s is None:
         max_pulse_s = _pulse_bound(np.array([c[2] for c in candidates])) if candidates else MAX_PULSE_S
         notes.append(f"pulses: held phases from a rest of at most {max_pulse_s:.3g} s (read from the record)")
@@ -447,24 +516,31 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     firsts = {}
     for p in pulses:
         firsts.setdefault(p.level, p)
+    unrested = []
     for p in firsts.values():
         r = rest_by_stop.get(p.start)
         if r is not None and r.start == 0 and r.duration_s < min_rest_s:
             # the record starts at rest: the cell rested before the test began (HPPC protocol), keep the point
             notes.append(f"pulse set at z={p.soc:.3f}: OCV point from the record's initial rest ({r.duration_s:g} s)")
         elif r is None or r.duration_s < min_rest_s:
-            notes.append(f"pulse set at z={p.soc:.3f}: rest before it shorter than {min_rest_s:g} s, no OCV point")
+            unrested.append(p.soc)
             continue
         ocv_z.append(r.soc_end)
         ocv_v.append(r.v_end)
+    n_sets, n_rested = len(firsts), len(ocv_z)
+    if unrested:
+        notes.append(f"{len(unrested)} of {n_sets} pulse sets (at z = {', '.join(f'{z:.3f}' for z in unrested[:5])}"
+                     f"{', ...' if len(unrested) > 5 else ''}) follow a rest shorter than {min_rest_s:g} s: no OCV "
+                     "point")
     last = rests[-1] if rests else None
     if last is not None and last.stop == n and last.duration_s >= min_rest_s:
         if abs(ah[-1] - ah[pulses[-1].stop]) > SET_SPLIT * q:
             ocv_z.append(last.soc_end)
             ocv_v.append(last.v_end)
-    if len(ocv_z) < 2:
-        raise DataError(f"not an HPPC test: only {len(ocv_z)} OCV rest point(s) (a rest of {min_rest_s:g} s or more "
-                        "before a pulse set); an OCV curve needs 2", file=src)
+    if len(ocv_z) < 2 or n_rested < REST_SHARE * n_sets:
+        raise DataError(f"not an HPPC test: {n_rested} of {n_sets} pulse set(s) follow a rest of {min_rest_s:g} s or "
+                        f"more, {len(ocv_z)} OCV rest point(s) in all (an HPPC rests before most of its pulse sets; "
+                        "an OCV curve needs 2 points)", file=src)
     level_soc = np.array([p.soc for p in firsts.values()])
     return HPPCAnalysis(tuple(rests), tuple(pulses), np.asarray(ocv_z), np.asarray(ocv_v), q, soc, ah, ah_source,
                         level_soc, tuple(notes), lev, float(max_pulse_s))
