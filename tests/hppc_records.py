@@ -91,6 +91,8 @@ class Record:
     soc_true: np.ndarray  # true SOC at the samples
     v_clean: np.ndarray  # noise-free terminal voltage at the samples
     polarisation: np.ndarray  # Σ U_k at the samples (V)
+    current_true: np.ndarray | None = None  # the true current at the samples (A)
+    schedule: tuple | None = None  # (segment start times [s], segment currents [A]) of the true current
     n_sets: int = 0
     ocv_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  # last rest sample before each set
     layout: Layout | None = None
@@ -200,7 +202,7 @@ def hppc_record(cell: Cell, lay: Layout, ins: Instrument, seed: int = 0, with_so
     meta = ProfileMeta(name=name, source=name, capacity_ah=cell.capacity_ah)
     prof = Profile(t - t[0], i_meas, voltage_v=v_meas, soc_ref=np.clip(soc, 0.0, 1.0) if with_soc_ref else None,
                    meta=meta)
-    return Record(prof, cell, soc, v, pol, n_levels, rows, lay, ins)
+    return Record(prof, cell, soc, v, pol, cur, (seg_t0 - t[0], seg_i), n_levels, rows, lay, ins)
 
 
 # ------------------------------------------------------------------------------------------------ random draws
@@ -285,7 +287,7 @@ def drive_record(cell: Cell, ins: Instrument, seed: int = 0, duration_s: float =
     i_meas, v_meas = _measure(t, cur, v, ins, q, rng)
     meta = ProfileMeta(name=name, source=name, capacity_ah=q)
     prof = Profile(t, i_meas, voltage_v=v_meas, soc_ref=np.clip(soc, 0.0, 1.0), meta=meta)
-    return Record(prof, cell, soc, v, pol, layout=None, instrument=ins)
+    return Record(prof, cell, soc, v, pol, cur, (seg_t0, amps), layout=None, instrument=ins)
 
 
 def write_canonical(profile: Profile, path) -> Path:
