@@ -297,3 +297,58 @@ def write_canonical(profile: Profile, path) -> Path:
     path.with_suffix(".json").write_text(json.dumps({"capacity_ah": profile.meta.capacity_ah, "n_series": 1,
                                                      "name": profile.name}))
     return path
+
+
+# ------------------------------------------------------------------------------------------------ rates
+def ocv_point_errors(rec: Record, analysis) -> tuple[np.ndarray, np.ndarray]:
+    """Per OCV point of an analysis of ``rec`` (in time order): the SOC error against the truth, and the voltage
+    error against the true OCV beyond what the truth itself still holds as polarisation at that moment [V]."""
+    order = np.argsort(-analysis.ocv_soc)  # the points come at falling SOC
+    z_true = rec.soc_true[rec.ocv_rows]
+    dz = analysis.ocv_soc[order] - z_true
+    dv = np.abs(analysis.ocv_voltage[order] - rec.cell.ocv(z_true)) - np.abs(rec.polarisation[rec.ocv_rows])
+    return dz, dv
+
+
+def analysis_rates(seeds) -> list:
+    """The HPPC analysis on ``random_hppc(seed)`` for every seed: per draw the sample period, whether the structure
+    (sets, OCV points) is the truth's, the offset error [fraction of 1C], the largest SOC error of an OCV point, the
+    largest OCV voltage error beyond the truth's polarisation and 1.5 σ of the voltage noise [V], the median r_inst
+    against R0 (relative), and the number of warnings emitted."""
+    import warnings
+
+    from socbench.identify import analyze_hppc
+
+    rows = []
+    for seed in seeds:
+        rec = random_hppc(seed)
+        q = rec.cell.capacity_ah
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            a = analyze_hppc(rec.profile, capacity_ah=q)
+        ok = len({p.level for p in a.pulses}) == rec.n_sets and a.ocv_soc.size == rec.ocv_rows.size
+        dz, dv = ocv_point_errors(rec, a) if ok else (np.array([np.nan]), np.array([np.nan]))
+        rows.append({"seed": seed, "dt": rec.instrument.dt, "structure_ok": ok,
+                     "offset_err": abs(a.current_offset_a / q - rec.instrument.i_offset_c),
+                     "soc_err": float(np.max(np.abs(dz))), "v_excess": float(np.max(dv)) - 1.5 * rec.instrument.v_noise,
+                     "r_inst_rel": a.medians()["r_inst"] / rec.cell.r0 - 1.0, "warnings": len(caught)})
+    return rows
+
+
+if __name__ == "__main__":  # python tests/hppc_records.py [N] [FIRST_SEED]: the rates the tests assert, measured
+    import sys
+
+    n, first = (int(sys.argv[1]) if len(sys.argv) > 1 else 300), (int(sys.argv[2]) if len(sys.argv) > 2 else 0)
+    rows = analysis_rates(range(first, first + n))
+    col = {k: np.array([r[k] for r in rows], dtype=float) for k in rows[0]}
+    print(f"{n} draws (seeds {first}..{first + n - 1}): structure right {100 * col['structure_ok'].mean():.1f} %, "
+          f"warnings {int(col['warnings'].sum())}, offset error q95 {100 * np.quantile(col['offset_err'], 0.95):.3f} "
+          f"% of 1C (max {100 * col['offset_err'].max():.3f} %)")
+    for lo, hi in ((0.1, 0.5), (0.5, 2.0), (2.0, 10.0)):
+        m = (col["dt"] >= lo) & (col["dt"] < hi)
+        r, z, v = np.abs(col["r_inst_rel"][m]), col["soc_err"][m], col["v_excess"][m]
+        print(f"  dt {lo:g}-{hi:g} s (n={int(m.sum())}): OCV SOC error q95 {100 * np.nanquantile(z, 0.95):.2f} points "
+              f"(max {100 * np.nanmax(z):.2f}); OCV voltage beyond polarisation + 1.5 sigma in "
+              f"{100 * np.nanmean(v > 0):.0f} % of draws (max {1000 * np.nanmax(v):+.1f} mV); r_inst vs R0 median "
+              f"{100 * np.nanmedian(r):.1f} %, q90 {100 * np.nanquantile(r, 0.9):.1f} %, not measured in "
+              f"{100 * np.mean(np.isnan(r)):.0f} %")
