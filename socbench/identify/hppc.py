@@ -82,7 +82,7 @@ from ..ocv import OCVCurve, monotone_points
 from ..profile import Profile
 
 #: relative disagreement between the integrated current and the reference SOC above which the reference is used
-#: (when the record's gaps explain it)
+#: (when jumps across the record's gaps explain it)
 AH_MISMATCH = 5e-3
 #: a step where the reference and the counted current move apart by more than this fraction of the record's charge is
 #: a jump (charge the current column does not carry: a gap in the record)
@@ -408,8 +408,8 @@ def _recovery_tau(t: np.ndarray, v: np.ndarray, level: float = 1.0 - np.exp(-1.0
 
 def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: float | None = None,
                  max_pulse_s: float | None = None, min_rest_s: float = MIN_OCV_REST_S) -> HPPCAnalysis:
-    """Analyse an HPPC record (see the module docstring). Raises :class:`DataError` (one line) when the record holds
-    no HPPC: no pulse, or fewer than two OCV rest points.
+    """Analyse an HPPC record (see the module docstring). Raises :class:`DataError` (one line) when the record is not
+    an HPPC test: no pulse, fewer than two OCV rest points, or rests before fewer than half of its pulse sets.
 
     ``i_rest`` fixes the rest threshold [A] (default: from the sensor noise); ``max_pulse_s`` the longest pulse
     (default: from the record's phase durations); ``min_rest_s`` the shortest rest that gives an OCV point.
@@ -432,7 +432,7 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     ah, ah_source = discharged_ah(profile, lev.offset_a)
     ref = _reference_ah(profile)
     if ah_source == "current" and ref is not None:
-        scale = max(float(np.ptp(ah)), 1e-12)
+        scale = max(float(np.max(np.abs(ref))), float(np.max(np.abs(ah))), 1e-12)  # as discharged_ah
         off = float(np.max(np.abs(ref - ah))) / scale
         if off > AH_MISMATCH:
             notes.append(f"the reference SOC departs from the counted current by up to {100 * off:.2g} % of the "
