@@ -2,7 +2,7 @@
 
     python benchmarks/robustness.py [--seeds 100] [--models a,b] [--estimators a,b] [--scenarios a,b]
                                     [--backend process] [--jobs N] [--out robustness-out]
-                                    [--doc docs/reliability.md | --no-doc] [--recompute-stale]
+                                    [--doc docs/reliability.md | --no-doc] [--recompute-stale] [--report-only]
 
 One command: runs the study (socbench.study, the leaderboard's machinery) into ``--out/store`` — rerun the same
 command after an interrupt and it resumes, recomputing nothing that finished — then analyses every cell record and
@@ -19,6 +19,9 @@ What it reports (the numbers of the doc all come from here):
   looked like there (last good SOC and SD, true SOC, current, voltage, predicted voltage), and whether the model
   itself is undefined where the filter's ±3σ spread reaches (``model_nonfinite_soc``);
 * the share of samples each cell's estimate spent outside the model's domain (``out_of_domain``, socbench.domain).
+
+``--report-only`` computes nothing: it reports the cells already in the store (a sweep still running in another
+process, or interrupted), and the report says how many of the grid's cells it covers.
 
 Exit status: 0 when there is no NaN/inf, 1 otherwise (a failed run is a result, not an error).
 """
@@ -113,6 +116,8 @@ def analyse(result, store: Store) -> dict:
                    key=lambda c: (-c["failed_rate"], c["model"], c["estimator"], c["scenario"]))
     return {
         "config": cfg.to_dict(),
+        "grid_cells": cfg.n_cells,
+        "missing_cells": len(result.missing),
         "cells": len(cells),
         "runs": runs,
         "failed_runs": failed,
@@ -142,6 +147,11 @@ def analyse(result, store: Store) -> dict:
 # ------------------------------------------------------------------------------------------------ the report
 def _pct(x, digits=1) -> str:
     return "—" if x is None else f"{100.0 * x:.{digits}f}"
+
+
+def _group_pct(g: dict) -> str:
+    """Failed-run rate of a group in %, "—" for a group with no finished run."""
+    return _pct(_rate(g["failed"], g["runs"]), 2) if g["runs"] else "—"
 
 
 def _num(x, fmt="{:.3f}") -> str:
@@ -185,8 +195,9 @@ def markdown(an: dict, command: str) -> str:
         "on this page comes from that run. Rerun the same command to regenerate it (it resumes from its store).",
         "",
         f"Grid: {len(cfg['models'])} models × {len(cfg['estimators'])} estimators × {len(cfg['scenarios'])} catalog "
-        f"scenarios × {len(cfg['seeds'])} seeds (seeds {cfg['seeds'][0]}–{cfg['seeds'][-1]}) = **{an['cells']} cells, "
-        f"{an['runs']} runs**; models fitted on each scenario's own characterisation test (mode '{cfg['fit_mode']}'). "
+        f"scenarios × {len(cfg['seeds'])} seeds (seeds {cfg['seeds'][0]}–{cfg['seeds'][-1]}) = **{an['grid_cells']} "
+        f"cells, {an['grid_cells'] * len(cfg['seeds'])} runs**; "
+        f"models fitted on each scenario's own characterisation test (mode '{cfg['fit_mode']}'). "
         f"Models: {', '.join(cfg['models'])}. Estimators: {', '.join(cfg['estimators'])}. "
         f"Scenarios: {', '.join(cfg['scenarios'])}.",
         "",
@@ -196,12 +207,15 @@ def markdown(an: dict, command: str) -> str:
         + (f" {an['stale']} stored fits/cells were computed by older code (rerun with `--recompute-stale`)."
            if an["stale"] else ""),
         "",
+        *([f"**Partial: {an['cells']} of the grid's {an['grid_cells']} cells had finished when this report was "
+           "written (`--report-only` on a sweep still running); every number below covers those cells only.**", ""]
+          if an.get("missing_cells") else []),
         "## Summary",
         "",
         f"- **NaN/inf: {total_nan}** ({nan['outputs']} non-finite estimator outputs, {nan['metrics']} non-finite "
         f"metrics, {nan['table']} in the table). A failed run's outputs repeat its last finite values "
         "(socbench.estimators.base.Recorder), so none ever carries a NaN.",
-        f"- **Failed runs: {an['failed_runs']} of {an['runs']} ({_pct(an['failed_rate'], 2)} %)** in "
+        f"- **Failed runs: {an['failed_runs']} of {an['runs']} runs ({_pct(an['failed_rate'], 2)} %)** in "
         f"{an['cells_with_failures']} of {an['cells']} cells; {len(an['cells_that_threw'])} cells threw as a whole.",
         f"- Cells whose estimate spent ≥ {100 * DOMAIN_LIST:.0f} % of samples outside the model's domain "
         f"(socbench.domain): {len(an['out_of_domain'])}.",
@@ -218,12 +232,11 @@ def markdown(an: dict, command: str) -> str:
     for e in cfg["estimators"]:
         cells = [an["by_estimator_scenario"].get(f"{e}|{s}", {"runs": 0, "failed": 0}) for s in scen]
         tot = an["by_estimator"].get(e, {"runs": 0, "failed": 0})
-        lines.append(f"| {e} | " + " | ".join(_pct(_rate(c["failed"], c["runs"]), 2) for c in cells)
-                     + f" | {_pct(_rate(tot['failed'], tot['runs']), 2)} |")
+        lines.append(f"| {e} | " + " | ".join(_group_pct(c) for c in cells) + f" | {_group_pct(tot)} |")
     lines += ["", "## Failed-run rate per model (%)", "", "| model | failed / runs | rate % |", "|---|---|---|"]
     for m in cfg["models"]:
         g = an["by_model"].get(m, {"runs": 0, "failed": 0})
-        lines.append(f"| {m} | {g['failed']} / {g['runs']} | {_pct(_rate(g['failed'], g['runs']), 2)} |")
+        lines.append(f"| {m} | {g['failed']} / {g['runs']} | {_group_pct(g)} |")
     lines += ["", f"## Worst cells (up to {WORST}, by failed-run rate)", ""]
     if an["worst"]:
         lines += ["| model | estimator | scenario | failed / runs | out of domain % | reasons |",
@@ -304,6 +317,8 @@ def main(argv=None) -> int:
                     help="write the Markdown report here (default docs/reliability.md)")
     ap.add_argument("--no-doc", action="store_true", help="do not write the Markdown report")
     ap.add_argument("--recompute-stale", action="store_true", help="recompute cells computed by older code")
+    ap.add_argument("--report-only", action="store_true",
+                    help="compute nothing: report the cells already in the store (a sweep running elsewhere)")
     args = ap.parse_args(argv)
     if args.seeds < 1:
         ap.error("--seeds must be at least 1")
@@ -320,14 +335,18 @@ def main(argv=None) -> int:
     try:
         result = run_study(config, store, backend=args.backend, jobs=args.jobs, toolkit=toolkit,
                            log=lambda msg: print(f"  {msg}", file=sys.stderr, flush=True),
-                           recompute_stale=args.recompute_stale)
+                           recompute_stale=args.recompute_stale, compute=not args.report_only)
+    except KeyboardInterrupt:
+        print("interrupted: every finished cell is in the store; rerun the same command to resume", file=sys.stderr)
+        return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
     an = analyse(result, store)
     atomic_write_text(out / "robustness.json", json.dumps(an, indent=1, default=_jsonable))
     nan = an["nan_inf"]
     total_nan = nan["outputs"] + nan["metrics"] + nan["table"]
-    print(f"{an['cells']} cells, {an['runs']} runs in {time.perf_counter() - t0:.0f} s: NaN/inf {total_nan}; "
+    partial = f" (of {an['grid_cells']}: report only)" if an["missing_cells"] else ""
+    print(f"{an['cells']} cells{partial}, {an['runs']} runs in {time.perf_counter() - t0:.0f} s: NaN/inf {total_nan}; "
           f"failed runs {an['failed_runs']} ({100 * an['failed_rate']:.2f} %) in {an['cells_with_failures']} cells; "
           f"{len(an['cells_that_threw'])} cells threw; {len(an['out_of_domain'])} cells ≥ 1 % out of domain")
     for c in an["worst"][:5]:

@@ -6,6 +6,9 @@ estimator's posterior path), so any engine that returns a trajectory is checked 
 * ``soc_below_0`` / ``soc_above_1``  SOC outside [0, 1] by more than ``SOC_TOLERANCE`` (an amp-hour counter's rounding);
 * ``soc_clamped``        an estimator's SOC clamp to [0, 1] acted (``Estimate.clamped``; the posterior itself never
                          leaves [0, 1], the clamp is where it would have);
+* ``soc_pinned``         the clamp holds the estimate at 0 while the record has discharged more than ``EXCURSION_FLAG``
+                         (0.05) of the model's capacity since it got there (or at 1 while it charged that much):
+                         where a model's SOC would be beyond the OCV band, the estimator is driven past empty (full);
 * ``ocv_extrapolated``   SOC outside the OCV curve's rest points (:meth:`~socbench.ocv.OCVCurve.excursion` > 0): the
                          curve is extended linearly there;
 * ``ocv_held``           more than ``EXCURSION_FLAG`` (0.05) outside: the curve is held at its band-edge value
@@ -15,9 +18,9 @@ estimator's posterior path), so any engine that returns a trajectory is checked 
 * ``guards``             the samples on which each of the model's guards acted
                          (:class:`~socbench.models.blocks.GuardLog`: R/C floors, the singular-term ε, exponent clip …).
 
-``outside`` counts the samples with SOC outside [0, 1], the OCV held, or an implausible voltage, plus (estimates only)
-the SOC clamp holding the estimate at 0: an estimator pinned at empty has been driven past it, whereas one briefly
-clamped at 1 at the start of a flight from full is not out of its domain. :func:`warn_outside` issues one
+``outside`` counts the samples with SOC outside [0, 1], the OCV held, or an implausible voltage, and (estimates) the
+pinned samples. A clamp that acts briefly — at 1 at the start of a flight from full, at 0 in the last percent of a
+test to empty — is counted in ``soc_clamped`` but is not out of the domain. :func:`warn_outside` issues one
 :class:`~socbench.errors.SocbenchWarning` line when ``outside`` reaches ``WARN_FRACTION`` of the samples, or when any
 voltage is implausible (a voltage error in kilovolts is never reported without a warning).
 """
@@ -38,7 +41,8 @@ WARN_FRACTION = 0.01
 #: the plausible model voltage: [LOW × U_oc(z_lo), HIGH × U_oc(z_hi)]
 VOLTAGE_LOW, VOLTAGE_HIGH = 0.5, 1.5
 
-COUNTERS = ("soc_below_0", "soc_above_1", "soc_clamped", "ocv_extrapolated", "ocv_held", "voltage_implausible")
+COUNTERS = ("soc_below_0", "soc_above_1", "soc_clamped", "soc_pinned", "ocv_extrapolated", "ocv_held",
+            "voltage_implausible")
 
 
 def _count(mask) -> int:
@@ -52,7 +56,7 @@ def domain_report(model, *, states=None, soc=None, current=None, temp=None, time
     Give ``states (…, T, n)`` or ``soc (…, T)``. ``guards`` is the log collected while the trajectory was computed;
     without one, the guards are evaluated here on ``states`` (``model.output`` with ``current`` and ``temp``, and
     ``model.step`` over ``time_s`` too when it is given). ``voltage (…, T)``: the model's voltage along the path;
-    ``clamped (…, T)``: where an estimator's SOC clamp acted.
+    ``clamped (…, T)``: where an estimator's SOC clamp acted (``soc_pinned`` needs ``current`` and ``time_s``).
     """
     if states is not None:
         states = np.asarray(states, dtype=float)
@@ -74,7 +78,10 @@ def domain_report(model, *, states=None, soc=None, current=None, temp=None, time
     if clamped is not None:
         clamped = np.broadcast_to(np.asarray(clamped, dtype=bool), z.shape)
         counts["soc_clamped"] = _count(clamped)
-        outside = outside | (clamped & (z <= SOC_TOLERANCE))
+        if current is not None and time_s is not None:
+            pinned = pinned_beyond_band(clamped, z, current, time_s, model.capacity_ah)
+            counts["soc_pinned"] = _count(pinned)
+            outside = outside | pinned
     if voltage is not None:
         v = np.asarray(voltage, dtype=float)
         lo, hi = VOLTAGE_LOW * float(ocv.voltage[0]), VOLTAGE_HIGH * float(ocv.voltage[-1])
@@ -94,6 +101,27 @@ def domain_report(model, *, states=None, soc=None, current=None, temp=None, time
         "outside": n_out,
         "outside_fraction": n_out / n if n else 0.0,
     }
+
+
+def pinned_beyond_band(clamped, z, current, time_s, capacity_ah: float, band: float = EXCURSION_FLAG):
+    """(…, T) bool: samples of a run of clamped samples at 0 (at 1) after which the record has discharged (charged)
+    more than ``band`` of the capacity, counted from the run's first sample with the zero-order hold."""
+    clamped = np.asarray(clamped, dtype=bool)
+    T = clamped.shape[-1]
+    i = np.broadcast_to(np.asarray(current, dtype=float), clamped.shape)
+    dq = np.zeros(clamped.shape)
+    dq[..., 1:] = i[..., :-1] * np.diff(np.asarray(time_s, dtype=float)) / (3600.0 * capacity_ah)  # into sample k
+    out = np.zeros(clamped.shape, dtype=bool)
+    for pinned, sign in ((clamped & (z <= SOC_TOLERANCE), 1.0), (clamped & (z >= 1.0 - SOC_TOLERANCE), -1.0)):
+        if not pinned.any():
+            continue
+        c = np.cumsum(np.where(pinned, sign * dq, 0.0), axis=-1)
+        # the charge since the run began: c minus its value at the run's first sample
+        first = np.where(pinned & ~np.concatenate([np.zeros(pinned.shape[:-1] + (1,), bool), pinned[..., :-1]], -1),
+                         np.arange(T), 0)
+        start = np.maximum.accumulate(first, axis=-1)
+        out |= pinned & (c - np.take_along_axis(c, start, axis=-1) > band)
+    return out
 
 
 def evaluate_guards(model, states, current, temp=None, time_s=None) -> GuardLog:
@@ -122,7 +150,8 @@ def estimate_domain(model, estimate, profile) -> dict:
     if estimate.x is not None:
         return domain_report(model, states=estimate.x, current=cur, temp=temp, time_s=profile.time_s,
                              voltage=estimate.v_pred, clamped=estimate.clamped)
-    return domain_report(model, soc=estimate.soc, temp=temp, voltage=estimate.v_pred, clamped=estimate.clamped)
+    return domain_report(model, soc=estimate.soc, current=cur, temp=temp, time_s=profile.time_s,
+                         voltage=estimate.v_pred, clamped=estimate.clamped)
 
 
 def guard_fractions(report: dict) -> dict:
@@ -175,8 +204,9 @@ def outside_message(report: dict, what: str, share: float = WARN_FRACTION) -> st
                      f"samples (min {report['soc_min']:.2f}, max {report['soc_max']:.2f})")
     if report.get("ocv_held"):
         parts.append(f"OCV held beyond its {EXCURSION_FLAG:g} extrapolation band on {pct('ocv_held'):.1f} %")
-    if report.get("soc_clamped"):
-        parts.append(f"SOC clamped on {pct('soc_clamped'):.1f} %")
+    if report.get("soc_pinned"):
+        parts.append(f"estimate held at 0 or 1 by the clamp while {EXCURSION_FLAG:g} of the capacity or more went "
+                     f"beyond, on {pct('soc_pinned'):.1f} %")
     if n_volt:
         parts.append(f"model voltage implausible on {n_volt} samples")
     busy = [f"{g} {100.0 * c / n:.1f} %" for g, c in report.get("guards", {}).items() if c >= share * n]

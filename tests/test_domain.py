@@ -142,3 +142,28 @@ def test_guards_are_evaluated_along_given_states_and_an_implausible_voltage_alwa
     d = domain_report(m, states=states, voltage=volts)
     assert d["voltage_implausible"] == 1
     assert "implausible on 1 samples" in outside_message(d, "rint")
+
+
+def test_a_clamp_counts_as_outside_only_once_the_record_has_gone_a_band_beyond_it():
+    """An estimate held at 0 over a constant discharge: the samples after more than 0.05 of the capacity has been
+    drawn since it got there are out of the domain; a brief clamp (at 1 at the start of a flight) is not."""
+    m = make_model("rint", paper_params("rint"))
+    q, dt, amps = m.capacity_ah, 10.0, m.capacity_ah  # 1 C: 1/360 of the capacity per step
+    T = 200
+    t = np.arange(T) * dt
+    i = np.full(T, amps)
+    soc = np.linspace(1.0, 0.5, T)
+    clamped = np.zeros(T, bool)
+    clamped[:3] = True  # at 1 at the start: the count went down, not up
+    soc[:3] = 1.0
+    soc[60:] = 0.0
+    clamped[60:] = True  # held at 0 from sample 60 on
+    d = domain_report(m, soc=soc, current=i, time_s=t, clamped=clamped)
+    drawn = (np.arange(T) - 60) * amps * dt / (3600.0 * q)  # since sample 60, into each sample
+    want = np.count_nonzero((np.arange(T) >= 60) & (drawn > EXCURSION_FLAG))
+    assert d["soc_clamped"] == 143 and d["soc_pinned"] == want == T - 60 - 19
+    assert d["outside"] == want
+    # charging while held at 1 counts the same way; without the current the clamp is only reported
+    d_hi = domain_report(m, soc=np.ones(T), current=-i, time_s=t, clamped=np.ones(T, bool))
+    assert d_hi["soc_pinned"] == np.count_nonzero(np.arange(T) * amps * dt / (3600.0 * q) > EXCURSION_FLAG)
+    assert domain_report(m, soc=soc, clamped=clamped)["outside"] == 0

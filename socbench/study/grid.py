@@ -34,8 +34,9 @@ DEFAULT_SEEDS = 10
 
 
 #: the package parts a fit's result depends on (its data is hashed separately), and a cell's
-FIT_CODE = ("models", "identify", "ocv.py", "profile.py", "data")
-CELL_CODE = ("models", "estimators", "scenarios", "metrics.py", "ocv.py", "profile.py", "data", "study/cell.py")
+FIT_CODE = ("models", "identify", "ocv.py", "profile.py", "segments.py", "data")
+CELL_CODE = ("models", "estimators", "scenarios", "metrics.py", "ocv.py", "profile.py", "segments.py", "domain.py",
+             "data", "study/cell.py")
 
 
 @functools.cache
