@@ -36,6 +36,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--ocv", default=None,
                         help="OCV curve JSON ({soc, voltage}) or a PARAMS.json whose curve to use "
                              "(default: the record's HPPC rest points)")
+    parser.add_argument("--no-segments", action="store_true",
+                        help="fit the record as one piece, through its gaps (default: restart each segment)")
 
 
 def _read_ocv(path: str) -> OCVCurve:
@@ -67,7 +69,8 @@ def run(args) -> int:
     profile = load(args.data, args.format)
     if profile.batched:
         raise DataError("fit needs a single record, not a batch of runs", file=str(args.data))
-    res = fit_model(args.model, profile, mode=args.mode, ocv=ocv, capacity_ah=args.capacity, soc0=args.soc0)
+    res = fit_model(args.model, profile, mode=args.mode, ocv=ocv, capacity_ah=args.capacity, soc0=args.soc0,
+                    segments=False if args.no_segments else None)
     save_params(args.out, args.model, res.params, fit=res.fit_summary())
     print(f"{args.model} fitted on {profile.name} ({args.mode} mode): RMS {1000 * res.rmse_v:.1f} mV over "
           f"{res.n_samples} samples in {res.seconds:.1f} s; {len(res.warnings)} warning(s); wrote {args.out}")

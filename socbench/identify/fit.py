@@ -289,8 +289,11 @@ def _warnings(prob: FitProblem, res: LsqResult, values: dict, stderr: dict) -> l
 def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | None = None,
               capacity_ah: float | None = None, soc0: float | None = None, *, knots=None, options: dict | None = None,
               compress: bool | dict = True, warm_start: bool = True, max_nfev: int | None = None,
-              time_weighted: bool = False, loss: str = "linear") -> FitResult:
-    """Fit model ``name`` to ``profile`` (see the module docstring). Returns a :class:`FitResult`."""
+              time_weighted: bool = False, loss: str = "linear", segments=None) -> FitResult:
+    """Fit model ``name`` to ``profile`` (see the module docstring). Returns a :class:`FitResult`.
+
+    ``segments``: a record of several discharges is fitted segment by segment (None: found in the record; False:
+    one piece; see :func:`~socbench.identify.lsq.fit_parameters` and :mod:`socbench.segments`)."""
     t0 = _time.perf_counter()
     if compress is True:
         compress = dict(FIT_COMPRESSION)
@@ -301,13 +304,13 @@ def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
         const = setup_fit(name, profile, "constant", prob.ocv, prob.capacity_ah, prob.soc0, None, prob.options)
         cres = fit_parameters(const.build, profile, const.theta0, const.lower, const.upper, names=const.labels,
                               soc0=prob.soc0, soc_jumps=prob.soc_jumps, compress=compress, max_nfev=max_nfev,
-                              time_weighted=time_weighted, loss=loss)
+                              time_weighted=time_weighted, loss=loss, segments=segments)
         for sl, ct in zip(prob.slices, cres.theta):  # one constant per parameter, in the same order
             theta0[sl] = ct
         theta0 = np.clip(theta0, prob.lower, prob.upper)
     res = fit_parameters(prob.build, profile, theta0, prob.lower, prob.upper, names=prob.labels, soc0=prob.soc0,
                          soc_jumps=prob.soc_jumps, compress=compress, max_nfev=max_nfev, time_weighted=time_weighted,
-                         loss=loss)
+                         loss=loss, segments=segments)
     params = prob.params(res.theta)
     values, stderr = {}, {}
     for s, f, sl in zip(prob.specs, prob.forms, prob.slices):
