@@ -192,7 +192,7 @@ class Model(ABC):
         voltage); no current is integrated across a boundary. ``Simulation.domain`` counts the samples outside the
         model's domain (:func:`socbench.domain.domain_report`).
         """
-        from ..domain import domain_report, guard_fractions  # here: socbench.domain imports this package
+        from ..domain import domain_report, guard_fractions
         from ..segments import REFERENCE, resolve, restart_soc
 
         i = profile.current_a
