@@ -66,8 +66,8 @@ def _rate(failed: int, runs: int) -> float:
     return failed / runs if runs else 0.0
 
 
-def cell_summary(rec: dict) -> dict:
-    """One cell record reduced to what the report shows."""
+def cell_summary(rec: dict, stale: set = frozenset()) -> dict:
+    """One cell record reduced to what the report shows (``stale``: keys of records computed by other code)."""
     row = rec["row"]
     nonfinite = rec.get("nonfinite") or {}
     failures = rec.get("failures") or []
@@ -86,6 +86,7 @@ def cell_summary(rec: dict) -> dict:
         "domain_guards": domain.get("guards", {}),
         "soc_rmse": row.get("soc_rmse"),
         "seconds": rec.get("seconds"),
+        "stale": rec.get("key") in stale,
     }
 
 
@@ -102,7 +103,8 @@ def _group(cells: list[dict], keys: tuple) -> dict:
 def analyse(result, store: Store) -> dict:
     """The sweep's findings from a finished :class:`~socbench.study.StudyResult` (module docstring)."""
     cfg = result.config
-    cells = [cell_summary(rec) for rec in result.cells]
+    stale = set(result.stale)
+    cells = [cell_summary(rec, stale) for rec in result.cells]
     frame = result.frame()
     metric_values = frame.drop(columns=["model", "estimator", "scenario"]).to_numpy(dtype=float)
     import numpy as np
@@ -138,6 +140,7 @@ def analyse(result, store: Store) -> dict:
                     "wall_all_invocations": sum(float(g.get("seconds") or 0.0) for g in logs),
                     "invocations": len(logs), "this_invocation": result.seconds},
         "stale": len(result.stale),
+        "stale_cells": sum(c["stale"] for c in cells),
         "backend": result.backend,
         "jobs": result.jobs,
         "cells_detail": cells,
@@ -147,6 +150,10 @@ def analyse(result, store: Store) -> dict:
 # ------------------------------------------------------------------------------------------------ the report
 def _pct(x, digits=1) -> str:
     return "—" if x is None else f"{100.0 * x:.{digits}f}"
+
+
+def _dagger(c: dict) -> str:
+    return " †" if c.get("stale") else ""
 
 
 def _group_pct(g: dict) -> str:
@@ -204,8 +211,8 @@ def markdown(an: dict, command: str) -> str:
         f"Time: {sec['wall_all_invocations'] / 60:.1f} min wall over {sec['invocations']} invocation(s) "
         f"({an['backend']} backend, {an['jobs']} jobs, {os.cpu_count()} CPUs, shared machine); worker time "
         f"{sec['worker_cells'] / 60:.1f} min in cells and {sec['worker_fits'] / 60:.1f} min in fits."
-        + (f" {an['stale']} stored fits/cells were computed by older code (rerun with `--recompute-stale`)."
-           if an["stale"] else ""),
+        + (f" {an['stale']} stored fits/cells were computed by other code than the rest ({an['stale_cells']} cells, "
+           "marked † below; `--recompute-stale` recomputes them)." if an["stale"] else ""),
         "",
         *([f"**Partial: {an['cells']} of the grid's {an['grid_cells']} cells had finished when this report was "
            "written (`--report-only` on a sweep still running); every number below covers those cells only.**", ""]
@@ -243,13 +250,15 @@ def markdown(an: dict, command: str) -> str:
                   "|---|---|---|---|---|---|"]
         for c in an["worst"]:
             reasons = ", ".join(f"{r} ({n})" for r, n in c["reasons"].items()) or (c["error"] or "—")
-            lines.append(f"| {c['model']} | {c['estimator']} | {c['scenario']} | {c['failed_runs']} / {c['n_runs']} "
+            lines.append(f"| {c['model']}{_dagger(c)} | {c['estimator']} | {c['scenario']} "
+                         f"| {c['failed_runs']} / {c['n_runs']} "
                          f"| {_pct(c['out_of_domain'])} | {reasons} |")
     else:
         lines.append("No cell has a failed run.")
     lines += ["", "## Every failed run explained, per cell", ""]
     if an["failed_cells"]:
-        lines += [f"- **{c['model']} + {c['estimator']} on {c['scenario']}** ({c['failed_runs']}/{c['n_runs']}): "
+        lines += [f"- **{c['model']} + {c['estimator']} on {c['scenario']}**{_dagger(c)} "
+                  f"({c['failed_runs']}/{c['n_runs']}): "
                   f"{explain(c)}." for c in an["failed_cells"]]
     else:
         lines.append("No failed runs.")
@@ -259,8 +268,8 @@ def markdown(an: dict, command: str) -> str:
                   "|---|---|---|---|---|"]
         for c in an["out_of_domain"]:
             guards = ", ".join(f"{g} {n}" for g, n in c["domain_guards"].items()) or "—"
-            lines.append(f"| {c['model']} | {c['estimator']} | {c['scenario']} | {_pct(c['out_of_domain'])} "
-                         f"| {guards} |")
+            lines.append(f"| {c['model']}{_dagger(c)} | {c['estimator']} | {c['scenario']} "
+                         f"| {_pct(c['out_of_domain'])} | {guards} |")
     else:
         lines.append("None.")
     lines += [
