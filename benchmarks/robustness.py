@@ -84,6 +84,8 @@ def cell_summary(rec: dict, stale: set = frozenset()) -> dict:
         "nonfinite_metrics": list(nonfinite.get("metrics", []) or []),
         "out_of_domain": row.get("out_of_domain"),
         "domain_guards": domain.get("guards", {}),
+        "domain_counts": {k: domain[k] for k in ("soc_pinned", "ocv_held", "soc_below_0", "soc_above_1",
+                                                 "voltage_implausible") if domain.get(k)},
         "soc_rmse": row.get("soc_rmse"),
         "seconds": rec.get("seconds"),
         "stale": rec.get("key") in stale,
@@ -264,18 +266,22 @@ def markdown(an: dict, command: str) -> str:
         lines.append("No failed runs.")
     lines += ["", f"## Estimates outside the model's domain (≥ {100 * DOMAIN_LIST:.0f} % of samples)", ""]
     if an["out_of_domain"]:
-        lines += ["| model | estimator | scenario | out of domain % | guards acting (samples) |",
-                  "|---|---|---|---|---|"]
+        lines += ["| model | estimator | scenario | out of domain % | why (samples) | guards acting (samples) |",
+                  "|---|---|---|---|---|---|"]
         for c in an["out_of_domain"]:
+            why = ", ".join(f"{k} {n}" for k, n in c.get("domain_counts", {}).items()) or "SOC clamp at 0 (old rule)"
             guards = ", ".join(f"{g} {n}" for g, n in c["domain_guards"].items()) or "—"
             lines.append(f"| {c['model']}{_dagger(c)} | {c['estimator']} | {c['scenario']} "
-                         f"| {_pct(c['out_of_domain'])} | {guards} |")
+                         f"| {_pct(c['out_of_domain'])} | {why} | {guards} |")
     else:
         lines.append("None.")
     lines += [
         "",
-        "Out of domain (socbench.domain): the SOC clamp holding the estimate at 0, the OCV curve held beyond its "
-        "0.05 extrapolation band, or a predicted voltage outside [½·U_oc(empty), 1.5·U_oc(full)].",
+        "Out of domain (socbench.domain): the SOC clamp holding the estimate at 0 (1) while the record went on to "
+        "discharge (charge) more than 0.05 of the capacity (`soc_pinned`), the OCV curve held beyond its 0.05 "
+        "extrapolation band (`ocv_held`), or a predicted voltage outside [½·U_oc(empty), 1.5·U_oc(full)] "
+        "(`voltage_implausible`). Cells marked † were computed before the `soc_pinned` rule, when every sample "
+        "the clamp held at 0 counted (the end of a test to empty included).",
         "",
         "## Causes found and fixed",
         "",
