@@ -8,7 +8,8 @@ specific to one filter:
 * :class:`Inputs`   the profile as ``(R, T)`` arrays (current, voltage, temperature), the step lengths;
 * initial state     ``x0 = model.x0(soc0)``; ``soc0`` scalar or ``(R,)`` (default: OCV inverse of the first voltage);
                     ``P0`` scalar (SOC variance), ``(n,)`` diagonal, ``(n, n)`` or ``(R, n, n)``; by default
-                    ``diag(soc0_sd², state0_sd², …)`` or the model's ``initial_sd`` if it declares one;
+                    ``diag(model.initial_sd(soc0_sd, state0_sd)²)`` (``soc0_sd²``, ``state0_sd²``, …; an augmented
+                    model's effect states declare their own);
 * :class:`Recorder` preallocated outputs, with the freeze of failed runs (outputs repeat their last finite values).
 
 Options common to all filters (all keyword): ``Q``, ``R`` (overrides, see :class:`~.noise.NoiseModel`),
@@ -99,7 +100,8 @@ class Estimator:
         self.model = model
         self.options = {**known, **options}
         self.n = int(model.n_states)
-        self.noise = NoiseModel(noise, self.n, self.options["Q"], self.options["R"])
+        walk = model.walk_var() if hasattr(model, "walk_var") else None
+        self.noise = NoiseModel(noise, self.n, self.options["Q"], self.options["R"], walk)
         for key in ("var_max", "nis_max", "soc0_sd", "state0_sd"):
             if not self.options[key] > 0:
                 raise ConfigError(f"{self.name}: option {key} must be > 0, got {self.options[key]!r}")
@@ -110,10 +112,14 @@ class Estimator:
         return f"{type(self).__name__}(model={getattr(self.model, 'name', '?')!r})"
 
     # ------------------------------------------------------------------ the one verb
-    def run(self, profile: Profile, soc0=None, P0=None, seed=None) -> Estimate:
-        """Estimate SOC over every run of ``profile`` (see the module docstring for ``soc0`` and ``P0``)."""
+    def run(self, profile: Profile, soc0=None, P0=None, seed=None, x0=None) -> Estimate:
+        """Estimate SOC over every run of ``profile`` (see the module docstring for ``soc0`` and ``P0``; ``x0``, a
+        full initial state ``(R, n)``, replaces ``model.x0(soc0)``)."""
         inputs = Inputs.from_profile(profile)
-        x0 = self.initial_state(inputs, soc0)
+        if x0 is None:
+            x0 = self.initial_state(inputs, soc0)
+        else:
+            x0 = np.ascontiguousarray(np.broadcast_to(np.asarray(x0, dtype=float), (inputs.n_runs, self.n)))
         P0 = self.initial_cov(inputs.n_runs, P0)
         return self._run(inputs, x0, P0, seed)
 
@@ -143,8 +149,9 @@ class Estimator:
 
     def initial_cov(self, R: int, P0) -> np.ndarray:
         n = self.n
-        sd = getattr(self.model, "initial_sd", None)
-        if sd is None:
+        if hasattr(self.model, "initial_sd"):
+            sd = self.model.initial_sd(self.options["soc0_sd"], self.options["state0_sd"])
+        else:
             sd = np.full(n, self.options["state0_sd"])
             sd[0] = self.options["soc0_sd"]
         base = np.diag(np.asarray(sd, dtype=float) ** 2)
