@@ -8,6 +8,6 @@
 """
 
 from .core import Diagnosis, diagnose, fit_base
-from .data import Split, bin_average, make_split
+from .data import Folds, bin_average, make_folds
 
-__all__ = ["Diagnosis", "diagnose", "fit_base", "Split", "bin_average", "make_split"]
+__all__ = ["Diagnosis", "diagnose", "fit_base", "Folds", "bin_average", "make_folds"]
