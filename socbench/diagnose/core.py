@@ -151,6 +151,8 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
 
 #: SOC knots of the lookup-mode base fit: denser towards empty, where resistances rise (few knots keep the fit cheap)
 LOOKUP_KNOTS = np.array([0.0, 0.1, 0.2, 0.4, 0.7, 1.0])
+#: the largest lag-1 autocorrelation of a model's residual the filters' voltage noise accounts for (×√1999 at most)
+MAX_RHO = 0.999
 #: samples per record for the SOC filters (their cost is per sample)
 SOC_MAX_SAMPLES = 1500
 #: filters run for the SOC before/after comparison
@@ -165,6 +167,31 @@ def _batched(profile: Profile, runs: int, offsets=None, record: int = 0) -> Prof
     if offsets is not None:
         v = v - np.broadcast_to(offsets, (runs, np.shape(offsets)[-1]))[:, record:record + 1]
     return profile.with_(current_a=np.broadcast_to(profile.current_a, (runs, profile.n)).copy(), voltage_v=v.copy())
+
+
+def filter_voltage_sd(residual, folds: Folds, j: int) -> float:
+    """The voltage noise a filter should assume for fold ``j``'s model: the white-noise equivalent of its training
+    residual (measured − model on the samples outside block ``j``), ``σ·√((1 + ρ)/(1 − ρ))``.
+
+    A model's error is not white: it is correlated over many samples (lag-1 autocorrelation ρ, pooled over the
+    records). The SOC a filter infers from the voltage is a slow quantity, and what it sees of an AR(1) error is its
+    power at low frequency, ``σ²(1 + ρ)/(1 − ρ)``; the RMSE alone would make it trust a correlated error as if it
+    averaged out — the more so, the better the model (what made a better voltage model a worse SOC estimator)."""
+    num = den = 0.0
+    k, sq, n = 0, 0.0, 0
+    for p, b in zip(folds.records, folds.blocks):
+        e = residual[k:k + p.n]
+        k += p.n
+        m = b != j
+        sq += float(e[m] @ e[m])
+        n += int(m.sum())
+        ec = np.where(m, e - e[m].mean() if m.any() else 0.0, 0.0)
+        both = m[1:] & m[:-1]
+        num += float(ec[1:][both] @ ec[:-1][both])
+        den += float(ec[m] @ ec[m])
+    sigma = np.sqrt(sq / max(n, 1))
+    rho = min(max(num / den if den > 0 else 0.0, 0.0), MAX_RHO)
+    return float(sigma * np.sqrt((1.0 + rho) / (1.0 - rho)))
 
 
 def fold_spread_sd(step, base) -> dict:
@@ -271,12 +298,12 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
         soc0s = [initial_soc(base, p) for p in soc_records]
 
         def train_rmse(model_or_build, thetas=None):
-            """Each fold's filter voltage noise: its model's RMSE on the fold's training samples."""
-            out = np.zeros(cv.k)
-            for j in range(cv.k):
-                r = cv_residual(model_or_build, cv, search.soc0s, None if thetas is None
-                                else np.repeat(thetas[j:j + 1], cv.k, axis=0))[0]
-                out[j] = float(np.sqrt(np.mean(r[search.rows[j]] ** 2)))
+            """Each fold's filter voltage noise (:func:`filter_voltage_sd`) on the filters' records."""
+            out = np.zeros(soc_folds.k)
+            for j in range(soc_folds.k):
+                r = cv_residual(model_or_build, soc_folds, soc0s, None if thetas is None
+                                else np.repeat(thetas[j:j + 1], soc_folds.k, axis=0))[0]
+                out[j] = filter_voltage_sd(r, soc_folds, j)
             return out
 
         vsd_b = train_rmse(base)
@@ -295,7 +322,8 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
                                                                             "after": vsd_a.tolist()},
                         "effect_state_sd": {k: list(v) for k, v in isd.items()},
                         "note": "EKF and UKF on every record once per fold, block j scored with fold j's model; "
-                                "filter voltage noise = each fold model's RMSE on its training samples; current "
+                                "filter voltage noise = each fold model's training residual as white-noise equivalent "
+                                "σ·√((1+ρ)/(1−ρ)); current "
                                 f"noise {100 * SOC_CURRENT_SD:g} % of C; an added state's initial SD = the spread of "
                                 "its fitted initial value over the folds"}
         else:

@@ -1,18 +1,16 @@
-"""One effect set fitted once per fold, all folds in one problem, and its cross-validated residual.
+"""One effect set fitted once per fold, and its cross-validated residual.
 
 With the blocked folds of :mod:`socbench.diagnose.data`, an effect set's parameters are fitted ``G`` times (fold ``j``
-on every sample outside block ``j``; the all-data fit is one more group with no sample left out). The ``G`` problems
-are independent least-squares problems in the same parameters, so they are solved as one::
+on every sample outside block ``j``; the all-data fit is one more group with no sample left out)::
 
-    θ = [θ_0, …, θ_{G−1}]          r(θ) = [m_0 ⊙ e(θ_0), …, m_{G−1} ⊙ e(θ_{G−1})]
+    θ_g = argmin ‖m_g ⊙ e(θ)‖²      (e the model-minus-measured voltage on every record, m_g group g's training mask)
 
-(``e`` the model-minus-measured voltage on every record, ``m_g`` the training mask of group ``g``). Its sum of squares
-is the sum of the groups', so its minimiser is the ``G`` separate minimisers, and its Jacobian is block-diagonal.
-Each residual evaluation simulates the ``G`` variants as one parameter batch of the whole-record open loop
-(:meth:`~socbench.models.base.Model.open_loop`, whose cost grows with the batch), each Jacobian the ``G·P`` forward
-differences as another; :func:`scipy.optimize.least_squares` (trust-region reflective, bounds) drives it with the
-Jacobian as a sparse block-diagonal matrix (its trust-region steps by LSMR: a dense SVD of the joint Jacobian would
-cost ``G²`` times the separate fits'). This is
+Each group is its own :func:`scipy.optimize.least_squares` problem (trust-region reflective, bounds): fold ``j``'s
+optimiser never evaluates a residual that contains block ``j``, so its parameters are independent of that block's
+voltage bit for bit (one joint problem over all folds would couple them through its shared trust region and
+stopping rule). Every residual evaluation simulates the records once (the whole-record open loop,
+:meth:`~socbench.models.base.Model.open_loop`, whose cost grows with the parameter batch, so nothing is gained by
+batching the folds), every Jacobian the ``P`` forward differences as one parameter batch. This is
 :func:`socbench.identify.fit_parameters` for several records and several masks at once; it fits on the same compressed
 records (:func:`~socbench.identify.compress.compress_profile`).
 
@@ -27,7 +25,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import block_diag
 
 from ..errors import ConfigError, ModelError
 from ..identify.compress import compress_profile
@@ -112,44 +109,41 @@ def fit_folds(build, folds: Folds, theta0, lower, upper, soc0s, *, groups=None, 
         masks.append(np.stack([folds.train_mask(r, g)[idx] for g in groups]).astype(float))
     v_meas = [p.voltage_v for p in recs]
 
-    def residuals(ys, rows):
-        """``(len(rows), N)``: masked model − measured of the variants ``ys`` (per record), row ``b`` of group
-        ``rows[b]``."""
+    def residuals(thetas, rows):
+        """``(len(rows), N)``: masked model − measured of the variants ``thetas`` on every record, row ``b`` with the
+        mask of group ``rows[b]``."""
         parts = []
-        for y, v, m in zip(ys, v_meas, masks):
+        for y, v, m in zip(simulate_records(build, thetas, recs, soc0s), v_meas, masks):
             e = y - v
             e = np.where(np.isfinite(e), e, NONFINITE_RESIDUAL)
             parts.append(e * m[rows])
         return np.concatenate(parts, axis=1)
 
-    cache = {}
     counts = {"nfev": 0, "njev": 0}
-    all_rows = np.arange(G)
+    out = np.empty((G, P))
+    for g in range(G):
+        cache = {}
 
-    def fun(theta):
-        key = theta.tobytes()
-        if key not in cache:
-            counts["nfev"] += 1
-            th = theta.reshape(G, P)
-            cache.clear()
-            cache[key] = residuals(simulate_records(build, th, recs, soc0s), all_rows)
-        return cache[key].ravel()
+        def fun(theta, g=g, cache=cache):
+            key = theta.tobytes()
+            if key not in cache:
+                counts["nfev"] += 1
+                cache.clear()
+                cache[key] = residuals(theta[None], [g])[0]
+            return cache[key]
 
-    def jac(theta):
-        counts["njev"] += 1
-        th = theta.reshape(G, P)
-        r0 = fun(theta).reshape(G, -1)
-        h = diff_step * np.maximum(1.0, np.abs(th))
-        h = np.where(th + h > upper, -h, h)
-        variants = (th[:, None, :] + h[:, :, None] * np.eye(P)[None]).reshape(G * P, P)
-        rows = np.repeat(all_rows, P)
-        rv = residuals(simulate_records(build, variants, recs, soc0s), rows).reshape(G, P, -1)
-        blocks = [((rv[g] - r0[g][None]) / h[g][:, None]).T for g in range(G)]  # (N, P) each
-        return block_diag(blocks, format="csr")
+        def jac(theta, g=g):
+            counts["njev"] += 1
+            r0 = fun(theta)
+            h = diff_step * np.maximum(1.0, np.abs(theta))
+            h = np.where(theta + h > upper, -h, h)
+            rv = residuals(theta[None] + np.diag(h), [g] * P)
+            return ((rv - r0[None]) / h[:, None]).T
 
-    sol = least_squares(fun, th0.ravel(), jac=jac, bounds=(np.tile(lower, G), np.tile(upper, G)), method="trf",
-                        x_scale="jac", tr_solver="lsmr", ftol=1e-6, xtol=1e-6, gtol=1e-8, max_nfev=max_nfev)
-    return FoldFit(sol.x.reshape(G, P), groups, names, counts["nfev"], counts["njev"], _time.perf_counter() - t0)
+        sol = least_squares(fun, th0[g], jac=jac, bounds=(lower, upper), method="trf", x_scale="jac", ftol=1e-6,
+                            xtol=1e-6, gtol=1e-8, max_nfev=max_nfev)
+        out[g] = sol.x
+    return FoldFit(out, groups, names, counts["nfev"], counts["njev"], _time.perf_counter() - t0)
 
 
 def cv_residual(model_or_build, folds: Folds, soc0s, thetas=None):

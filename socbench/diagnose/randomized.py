@@ -518,3 +518,54 @@ def rates(results) -> dict:
                      "wrongly_first": sum(r["first"] == name for r in results if name not in r["effects"])})
     out["rows"] = rows
     return out
+
+
+# ------------------------------------------------------------------------------------------------ report
+#: the rates issue 13 asks for ("Must show")
+TARGETS = {
+    "named_first_single": 0.90,
+    "cut_30_single": 0.90,
+    "nothing_added_null": 0.95,
+    "both_named_pair": 0.70,
+    "soc_not_worse": 0.90,
+}
+LABELS = {
+    "named_first_single": "hidden effect named first (single-effect cases)",
+    "cut_30_single": f"held-out voltage RMSE cut ≥ {100 * CUT:.0f} % (single-effect cases)",
+    "nothing_added_null": "nothing added (null cases)",
+    "both_named_pair": "both effects named (two-effect cases)",
+    "soc_not_worse": f"held-out SOC RMSE not worse by > {100 * SOC_SLACK:.1f} points, EKF and UKF (all cases)",
+}
+
+
+def _pct(x):
+    return "–" if x is None else f"{100 * x:.0f} %"
+
+
+def markdown(summary: dict) -> str:
+    """The benchmark's table (Markdown) from the summary ``benchmarks/undeclared_effects.py`` writes."""
+    R = summary["rates"]
+    L = [f"Command: `{summary['command']}` — {summary['cases']} cases, seed {summary['seed']}, {summary['jobs']} "
+         f"worker process(es) on {summary['machine']}; wall time {summary['wall_s']:.0f} s, CPU "
+         f"{summary['cpu_s']:.0f} s in total (per case: median {summary['case_cpu_median_s']:.1f} s, max "
+         f"{summary['case_cpu_max_s']:.1f} s CPU; slowest diagnosis {summary['diagnosis_wall_max_s']:.1f} s wall).",
+         "", "| rate | measured | target | met |", "|---|---|---|---|"]
+    for key, target in TARGETS.items():
+        v = R[key]
+        met = "yes" if v["rate"] is not None and v["rate"] >= target else "**no**"
+        L.append(f"| {LABELS[key]} | {v['hits']}/{v['n']} = {_pct(v['rate'])} | ≥ {100 * target:.0f} % | {met} |")
+    L += ["", "Per effect (single-effect cases; pairs: named when it was one of the two hidden; footprint: RMS voltage "
+          "the hidden effect adds on the evaluation records over the voltage noise, median; wrongly first: cases "
+          "where it was named first without being hidden):", "",
+          "| effect | single cases | named first | RMSE cut ≥ 30 % | SOC not worse | footprint / noise | "
+          "in pairs | named in pair | wrongly first |", "|---|---|---|---|---|---|---|---|---|"]
+    for row in R["rows"]:
+        fp = "–" if row["median_footprint"] is None else f"{row['median_footprint']:.1f}"
+        L.append(f"| {row['effect']} | {row['single']} | {_pct(row['named_first'])} | {_pct(row['cut_30'])} | "
+                 f"{_pct(row['soc_not_worse'])} | {fp} | {row['pairs']} | {_pct(row['named_in_pair'])} | "
+                 f"{row['wrongly_first']} |")
+    if R["errors"]:
+        L += ["", f"{R['errors']} case(s) stopped with an error (counted as misses)."]
+    return "\n".join(L) + "\n"
+
+

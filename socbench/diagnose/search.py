@@ -225,7 +225,7 @@ class Search:
             return str(exc)
         return None
 
-    def _params_of(self, name):
+    def params_of(self, name):
         """``(parameter names, lower, upper, defaults)`` of an effect, or of the base refit."""
         if name == BASE_REFIT:
             names = [f"log_{p}" for p in self.base_params] + [f"offset_{r}" for r in range(len(self.folds.records))]
@@ -245,7 +245,7 @@ class Search:
         filter SDs of its states (:meth:`~socbench.models.effects.Effect.initial_sd`)."""
         layout, lo, hi = [], [], []
         for name in names:
-            pnames, plo, phi, _ = self._params_of(name)
+            pnames, plo, phi, _ = self.params_of(name)
             layout.append((name, tuple(pnames)))
             lo += plo
             hi += phi
@@ -396,7 +396,7 @@ class Search:
 
     def _try(self, name, names, thetas, fold_sigs, sig, rmse_now, n_eff) -> Candidate:
         t0 = _time.perf_counter()
-        pnames, _, _, defaults = self._params_of(name)
+        pnames, _, _, defaults = self.params_of(name)
         start = np.array([[fold_sigs[g][name].guess.get(p, defaults[p]) if name in fold_sigs[g] else defaults[p]
                            for p in pnames] for g in self.groups])
         theta0 = start if thetas is None else np.hstack([thetas, start])
