@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
-from .errors import DataError
+from .errors import DataError, SocbenchWarning
 from .models.params import ModelParams
+from .ocv import T_REF_C
 from .profile import Profile
+
+#: share of samples outside a temperature-aware set's measured range above which the user is warned
+TEMPERATURE_OUTSIDE_WARN = 0.01
 
 
 def check_voltage_level(profile: Profile, params: ModelParams, params_name: str = "parameters") -> None:
@@ -27,3 +33,31 @@ def check_voltage_level(profile: Profile, params: ModelParams, params_name: str 
             file=profile.meta.source or profile.meta.name,
             column="voltage_v",
         )
+
+
+def check_temperature_range(profile: Profile, params: ModelParams, params_name: str = "parameters") -> dict:
+    """Warn (one line) when a temperature-aware parameter set meets data outside its measured temperatures.
+
+    A set with temperature tables holds its end tables outside ``[T_1, T_K]`` (no extrapolation), and uses the
+    reference temperature (:data:`~socbench.ocv.T_REF_C`, held likewise) when the data carry no temperature column.
+    Both are fine when rare and misleading when common: warn when more than 1 % of the samples are held, or when
+    there is no temperature at all. Returns ``{"temperatures", "below", "above"}`` (shares of samples; empty for a
+    set measured at one temperature) for the JSON outputs.
+    """
+    temps = params.temperatures
+    if len(temps) < 2:
+        return {}
+    src = profile.meta.source or profile.meta.name
+    lo, hi = temps[0], temps[-1]
+    if profile.temperature_c is None:
+        warnings.warn(f"{src}: no temperature column; {params_name} (measured at {lo:g}…{hi:g} °C) are used at "
+                      f"{min(max(T_REF_C, lo), hi):g} °C", SocbenchWarning, stacklevel=2)
+        return {"temperatures": list(temps), "below": None, "above": None}
+    t = np.asarray(profile.temperature_c)
+    below, above = float(np.mean(t < lo)), float(np.mean(t > hi))
+    for share, side, end in ((below, "below", lo), (above, "above", hi)):
+        if share > TEMPERATURE_OUTSIDE_WARN:
+            warnings.warn(f"{src}: {100 * share:.1f} % of the samples are {side} the {lo:g}…{hi:g} °C that "
+                          f"{params_name} were measured at; the {end:g} °C tables are held there (no extrapolation)",
+                          SocbenchWarning, stacklevel=2)
+    return {"temperatures": list(temps), "below": below, "above": above}

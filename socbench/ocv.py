@@ -8,6 +8,13 @@ Outside the rest points the curve is extended linearly with the end slopes; :met
 SOC lies outside (the spec asks to flag ``|Δz| > 0.05``).
 
 Inverse ``z = U_oc⁻¹(v)`` is exact on the monotone interpolant (bisection on the segment, then Newton polish).
+
+Temperature. Every curve takes the cell temperature ``temp`` [°C] (``None``: the reference temperature
+:data:`T_REF_C`); an :class:`OCVCurve` ignores it. :class:`TemperatureOCV` holds one curve per measured temperature, on
+one SOC axis (charge counted with one capacity for every temperature), and interpolates linearly in temperature
+between them, holding the end curves outside: ``U(z, T) = (1 − w) U_k(z) + w U_{k+1}(z)``, exact at the measured
+temperatures, monotone in ``z`` (a convex combination of monotone curves) and bounded by its two neighbours (the
+entropic ``∂U/∂T`` is then piecewise constant in ``T``).
 """
 
 from __future__ import annotations
@@ -21,6 +28,8 @@ from .errors import DataError
 
 #: |Δz| beyond the rest points at which an extrapolated OCV is flagged (ECM_SPEC §7.3).
 EXCURSION_FLAG = 0.05
+#: Reference temperature [°C]: what ``temp=None`` means for anything temperature-dependent (curves, parameters).
+T_REF_C = 25.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,8 +87,13 @@ class OCVCurve:
         j = np.searchsorted(self._inner, z, side="right")
         return j, z - np.take(self.soc, j)
 
-    def value_and_slope(self, z) -> tuple[np.ndarray, np.ndarray]:
-        """``(U_oc(z), dU_oc/dz)`` with linear extension outside the rest points."""
+    @property
+    def temperatures(self) -> tuple:
+        """Measured temperatures [°C] (none: this curve does not depend on temperature)."""
+        return ()
+
+    def value_and_slope(self, z, temp=None) -> tuple[np.ndarray, np.ndarray]:
+        """``(U_oc(z), dU_oc/dz)`` with linear extension outside the rest points (``temp`` is ignored)."""
         z = np.asarray(z, dtype=float)
         j, s = self._segment(z)
         c = np.take(self._coef, j, axis=0)  # (…, 4); np.take is much faster than fancy indexing here
@@ -93,7 +107,7 @@ class OCVCurve:
             dv = np.where(lo, self._slope_lo, np.where(hi, self._slope_hi, dv))
         return v, dv
 
-    def value(self, z) -> np.ndarray:
+    def value(self, z, temp=None) -> np.ndarray:
         """``U_oc(z)`` alone (the same numbers as :meth:`value_and_slope`, without the slope's work)."""
         z = np.asarray(z, dtype=float)
         j, s = self._segment(z)
@@ -105,27 +119,28 @@ class OCVCurve:
             v = np.where(hi, self.voltage[-1] + self._slope_hi * (z - self.soc[-1]), v)
         return v
 
-    def __call__(self, z) -> np.ndarray:
-        return self.value(z)
+    def __call__(self, z, temp=None) -> np.ndarray:
+        return self.value(z, temp)
 
-    def slope(self, z) -> np.ndarray:
-        return self.value_and_slope(z)[1]
+    def slope(self, z, temp=None) -> np.ndarray:
+        return self.value_and_slope(z, temp)[1]
 
-    def excursion(self, z) -> np.ndarray:
-        """How far ``z`` lies outside the rest points (0 inside)."""
+    def excursion(self, z, temp=None) -> np.ndarray:
+        """How far ``z`` lies outside the rest points (0 inside; ``temp`` is ignored)."""
         z = np.asarray(z, dtype=float)
         return np.maximum(self.soc[0] - z, 0.0) + np.maximum(z - self.soc[-1], 0.0)
 
-    def inverse(self, v, tol: float = 1e-12) -> np.ndarray:
+    def inverse(self, v, tol: float = 1e-12, temp=None) -> np.ndarray:
         """SOC whose OCV is ``v``; outside the curve the linear extension is inverted (flat ends clipped)."""
         v = np.asarray(v, dtype=float)
         lo = self.soc[0] - 0.2
         hi = self.soc[-1] + 0.2
-        a = np.full(v.shape, lo)
-        b = np.full(v.shape, hi)
+        shape = np.broadcast_shapes(v.shape, np.shape(temp)) if temp is not None else v.shape
+        a = np.full(shape, lo)
+        b = np.full(shape, hi)
         for _ in range(60):  # bisection on a monotone function: 60 halvings reach 1e-18 of the bracket
             m = 0.5 * (a + b)
-            below = self(m) < v
+            below = self.value(m, temp) < v
             a = np.where(below, m, a)
             b = np.where(below, b, m)
             if np.max(b - a, initial=0.0) < tol:
@@ -146,6 +161,98 @@ class OCVCurve:
     def scaled(self, n_series: int) -> OCVCurve:
         """The curve of ``n_series`` identical cells in series."""
         return OCVCurve(self.soc, self.voltage * n_series, self.source + f" ×{n_series} in series")
+
+
+class TemperatureOCV(OCVCurve):
+    """OCV curves measured at several temperatures, ``curves[j]`` at ``temps[j]`` [°C], on one SOC axis; linear in
+    temperature between them (module docstring). It is an :class:`OCVCurve` whose rest points (``soc``, ``voltage``)
+    are those of the curve nearest :data:`T_REF_C`, so code that only needs "the" curve (level checks, plots) works."""
+
+    def __init__(self, temps, curves, source: str = ""):
+        t = np.asarray(temps, dtype=float).ravel()
+        curves = tuple(curves)
+        if t.size < 1 or t.size != len(curves) or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+            raise DataError(f"a temperature OCV needs >= 1 strictly increasing temperatures and one curve per "
+                            f"temperature (got {list(t)} and {len(curves)} curves)")
+        if any(not isinstance(c, OCVCurve) or isinstance(c, TemperatureOCV) for c in curves):
+            raise DataError("a temperature OCV's curves must be plain OCV curves")
+        ref = curves[int(np.argmin(np.abs(t - T_REF_C)))]
+        super().__init__(ref.soc, ref.voltage, source or ref.source)
+        object.__setattr__(self, "temps", tuple(float(x) for x in t))
+        object.__setattr__(self, "curves", curves)
+
+    @property
+    def temperatures(self) -> tuple:
+        return self.temps
+
+    def at(self, temp: float) -> OCVCurve:
+        """The measured curve nearest ``temp``."""
+        return self.curves[int(np.argmin(np.abs(np.asarray(self.temps) - float(temp))))]
+
+    def _blend(self, z, temp, slope: bool):
+        from .models.params import temperature_weights  # one weighting rule for every temperature table
+
+        z = np.asarray(z, dtype=float)
+        if len(self.curves) == 1:
+            c = self.curves[0]
+            return c.value_and_slope(z) if slope else (c.value(z), None)
+        k, w = temperature_weights(self.temps, temp)
+        shape = np.broadcast_shapes(z.shape, w.shape)
+        k, zb = np.broadcast_to(k, shape).ravel(), np.broadcast_to(z, shape).ravel()
+        w = np.broadcast_to(w, shape)
+        v = np.empty((2, zb.size))
+        d = np.empty((2, zb.size)) if slope else None
+        for j in np.unique(k):
+            m = k == j
+            for side in (0, 1):
+                c = self.curves[j + side]
+                if slope:
+                    v[side, m], d[side, m] = c.value_and_slope(zb[m])
+                else:
+                    v[side, m] = c.value(zb[m])
+        val = (1.0 - w) * v[0].reshape(shape) + w * v[1].reshape(shape)
+        if not slope:
+            return val, None
+        return val, (1.0 - w) * d[0].reshape(shape) + w * d[1].reshape(shape)
+
+    def value_and_slope(self, z, temp=None):
+        return self._blend(z, temp, True)
+
+    def value(self, z, temp=None):
+        return self._blend(z, temp, False)[0]
+
+    def excursion(self, z, temp=None):
+        """How far ``z`` lies outside the rest points of the measured curve(s) used at ``temp`` (0 inside)."""
+        from .models.params import temperature_weights
+
+        z = np.asarray(z, dtype=float)
+        if len(self.curves) == 1:
+            return self.curves[0].excursion(z)
+        k, w = temperature_weights(self.temps, temp)
+        lo_ends = np.array([c.soc[0] for c in self.curves])
+        hi_ends = np.array([c.soc[-1] for c in self.curves])
+        # a curve with zero weight takes no part: its range does not matter
+        lo = np.maximum(np.where(w < 1.0, lo_ends[k], -np.inf), np.where(w > 0.0, lo_ends[k + 1], -np.inf))
+        hi = np.minimum(np.where(w < 1.0, hi_ends[k], np.inf), np.where(w > 0.0, hi_ends[k + 1], np.inf))
+        return np.maximum(lo - z, 0.0) + np.maximum(z - hi, 0.0)
+
+    def to_dict(self) -> dict:
+        return {"by_temperature": {"temps": list(self.temps), "curves": [c.to_dict() for c in self.curves]},
+                "source": self.source}
+
+    def scaled(self, n_series: int) -> TemperatureOCV:
+        return TemperatureOCV(self.temps, [c.scaled(n_series) for c in self.curves], self.source + f" ×{n_series}")
+
+
+def ocv_from_dict(d: dict) -> OCVCurve:
+    """An :class:`OCVCurve` or :class:`TemperatureOCV` from its JSON form."""
+    if isinstance(d, dict) and "by_temperature" in d:
+        bt = d["by_temperature"]
+        try:
+            return TemperatureOCV(bt["temps"], [OCVCurve.from_dict(c) for c in bt["curves"]], d.get("source", ""))
+        except (KeyError, TypeError):
+            raise DataError("a 'by_temperature' OCV curve needs keys 'temps' and 'curves'") from None
+    return OCVCurve.from_dict(d)
 
 
 def monotone_points(soc, voltage) -> tuple[np.ndarray, np.ndarray]:

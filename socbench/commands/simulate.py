@@ -9,7 +9,7 @@ import json
 
 import pandas as pd
 
-from ..checks import check_voltage_level
+from ..checks import check_temperature_range, check_voltage_level
 from ..datasets import load
 from ..errors import DataError
 from ..io import atomic_write_frame, atomic_write_text
@@ -41,10 +41,13 @@ def run(args) -> int:
     if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
         raise DataError(f"--soc0 must be in [0, 1], got {args.soc0}")
     check_voltage_level(profile, params, f"the '{args.params}' parameter set")
+    temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set")
     model = make_model(name, params)
     sim = model.simulate(profile, soc0=args.soc0)
     stats = voltage_error_stats(profile.voltage_v, sim.voltage_v)
     stats.update({"model": name, "data": str(args.data), "guard_fractions": sim.guard_fractions})
+    if temperature:
+        stats["temperature_range"] = temperature
     print(
         f"{name} on {profile.name}: n={stats['n']}  RMS {1000 * stats['rmse_v']:.1f} mV  "
         f"mean {1000 * stats['mean_v']:.1f} mV  SD {1000 * stats['sd_v']:.1f} mV  max {1000 * stats['max_v']:.1f} mV"

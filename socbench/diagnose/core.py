@@ -327,7 +327,10 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
                                 f"noise {100 * SOC_CURRENT_SD:g} % of C; an added state's initial SD = the spread of "
                                 "its fitted initial value over the folds"}
         else:
-            soc_info = {"note": "no reference SOC in the evaluation data: SOC error not reported"}
+            refused = [f"{p.name}: {p.soc_ref_error.message}" for p in eval_profiles
+                       if getattr(p, "soc_ref_error", None) is not None]
+            soc_info = {"note": "no reference SOC in the evaluation data: SOC error not reported"
+                        + (f" (refused: {'; '.join(refused)})" if refused else "")}
     t_end = _time.perf_counter()
     seconds = {"fit": t_fit - t0, "search": t_search - t_fit, "soc": t_end - t_search, "total": t_end - t0}
     before_d["rmse_v_per_record"] = _per_record(residuals["before"], cv)

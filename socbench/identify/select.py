@@ -35,8 +35,9 @@ def validation_rmse(fit: FitResult, record: Profile) -> float:
     inverse of its first voltage, as the diagnosis starts its simulations)."""
     record.require("voltage_v")
     model = make_model(fit.name, fit.params)
-    if record.soc_ref is not None:
-        soc0 = float(record.soc_ref[0])
+    ref = record.get("soc_ref")
+    if ref is not None:
+        soc0 = float(ref[0])
     else:
         soc0 = float(np.clip(model.ocv.inverse(record.voltage_v[0]), 0.0, 1.0))
     e = record.voltage_v - model.simulate(record, soc0=soc0).voltage_v

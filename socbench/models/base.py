@@ -6,7 +6,11 @@ Conventions (DESIGN.md, ECM_SPEC §2):
   discharge) and temperature ``T`` (°C) broadcast to ``x.shape[:-1]``; ``dt`` may vary per step;
 * ``x_{k+1} = f(x_k, I_k, dt_k, T_k)`` with zero-order hold on ``I``; ``y_k = h(x_k, I_k, T_k)`` with direct
   feed-through of the same-sample current;
-* ``F = ∂f/∂x`` ``(..., n, n)``, ``B = ∂f/∂I`` ``(..., n)``, ``H = ∂h/∂x`` ``(..., n)``, ``D = ∂h/∂I`` ``(...)``.
+* ``F = ∂f/∂x`` ``(..., n, n)``, ``B = ∂f/∂I`` ``(..., n)``, ``H = ∂h/∂x`` ``(..., n)``, ``D = ∂h/∂I`` ``(...)``;
+* temperature: every parameter and the OCV curve are looked up at the cell temperature ``T`` (:meth:`Model.p`,
+  :meth:`Model.params_at`, ``self.ocv.value_and_slope(z, temp)``); a parameter set measured at one temperature ignores
+  it, a set with temperature tables (:class:`~socbench.models.params.TemperatureTable`,
+  :class:`~socbench.ocv.TemperatureOCV`) interpolates in it. ``T`` is an input like ``I``: no Jacobian w.r.t. it.
 
 A model implements two methods, each returning the value and, on request, its Jacobians from the same intermediate
 quantities (one evaluation per filter step):
@@ -27,13 +31,13 @@ from typing import ClassVar
 import numpy as np
 
 from ..errors import ConfigError
+from ..ocv import T_REF_C
 from ..profile import Profile
 from .blocks import ROBUST, STRICT, GuardLog, soc_step
 from .params import ModelParams, Polynomial
 from .recurrence import running_sum
 
-#: Reference temperature of the parameter sets [°C] when a profile carries none.
-T_REF_C = 25.0
+__all__ = ["Model", "Simulation", "T_REF_C"]  # T_REF_C: the reference temperature when a profile carries none
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,22 +159,23 @@ class Model(ABC):
         return self.output(x, i, temp, jac=True)[2]
 
     # ------------------------------------------------------------------ helpers for subclasses
-    def p(self, name: str, z):
-        """Parameter ``name`` and its z-derivative at SOC ``z``."""
-        return self.params[name].value_and_deriv(z)
+    def p(self, name: str, z, temp=None):
+        """Parameter ``name`` and its z-derivative at SOC ``z`` and cell temperature ``temp`` [°C]."""
+        return self.params[name].value_and_deriv(z, temp)
 
-    def params_at(self, names: tuple, z, deriv: bool = True):
-        """``(values (m, …), derivatives (m, …) or None)``: the parameters ``names`` at SOC ``z``, stacked first.
+    def params_at(self, names: tuple, z, deriv: bool = True, temp=None):
+        """``(values (m, …), derivatives (m, …) or None)``: the parameters ``names`` at SOC ``z`` (and cell
+        temperature ``temp``), stacked first.
 
         One call per filter step instead of one per parameter: the plain polynomials (the paper's 6th-degree fits)
         go through one Horner pass over an ``(m, …)`` array, bit-for-bit the values of :meth:`p`; other forms (and
-        parameter batches) are evaluated one by one. ``deriv=False`` skips the derivatives (steps without Jacobians).
-        The parameter axis comes first so that every inner loop runs over the contiguous batch.
+        parameter batches, temperature tables) are evaluated one by one. ``deriv=False`` skips the derivatives (steps
+        without Jacobians). The parameter axis comes first so that every inner loop runs over the contiguous batch.
         """
         plan = self._plans.get(names)
         if plan is None:
             plan = self._plans[names] = _ParamPlan([self.params[n] for n in names])
-        return plan(np.asarray(z, dtype=float), deriv)
+        return plan(np.asarray(z, dtype=float), deriv, temp)
 
     @staticmethod
     def _broadcast(x, *args):
@@ -188,7 +193,7 @@ class Model(ABC):
         i = profile.current_a
         if x0 is None:
             if soc0 is None:
-                if profile.soc_ref is not None:
+                if profile.get("soc_ref") is not None:
                     soc0 = profile.soc_ref[..., 0]
                 elif profile.voltage_v is not None:
                     soc0 = np.clip(self.ocv.inverse(profile.voltage_v[..., 0]), 0.0, 1.0)
@@ -218,7 +223,7 @@ class Model(ABC):
         xs = np.empty(i_t.shape[:1] + x.shape)
         dz = soc_step(0.0, i_t[:-1], dt, self.capacity_ah, self.eta_charge)[0]
         xs[..., 0] = running_sum(x[..., 0], dz, jumps)  # B1 over the record: the loop's additions, in order
-        self._states_given_soc(xs, x, i_t[:-1], dt, guards)
+        self._states_given_soc(xs, x, i_t[:-1], dt, None if temp_t is None else temp_t[:-1], guards)
         return self._time_first_result(xs, i_t, temp_t, guards)
 
     def open_loop_stepwise(self, x0, time_s, current_a, temp_c=None, soc_jumps=None,
@@ -238,10 +243,10 @@ class Model(ABC):
                     x[..., 0] += soc_jumps[k + 1]
         return states, volts
 
-    def _states_given_soc(self, xs, x0, i, dt, guards):
+    def _states_given_soc(self, xs, x0, i, dt, temp, guards):
         """Fill ``xs[..., 1:]`` (time first, ``(T, …, n)``) from the SOC path ``xs[..., 0]``, the initial state
-        ``x0 (…, n)``, the step currents ``i (T − 1, …)`` and steps ``dt (T − 1, 1, …)``. Not implemented: the
-        step loop runs instead (see :meth:`open_loop`)."""
+        ``x0 (…, n)``, the step currents ``i (T − 1, …)``, steps ``dt (T − 1, 1, …)`` and cell temperatures ``temp
+        (T − 1, …)`` or None. Not implemented: the step loop runs instead (see :meth:`open_loop`)."""
         raise NotImplementedError
 
     def _record(self, x0, time_s, current_a, temp_c):
@@ -318,7 +323,7 @@ class _ParamPlan:
             d[:, np.broadcast_to(outside, shape)] = 0.0
         return v, d
 
-    def __call__(self, z, deriv: bool):
+    def __call__(self, z, deriv: bool, temp=None):
         if len(self.groups) == 1 and not self.other:
             _, batch, coef = self.groups[0]
             return self._horner(z, batch, coef, deriv)
@@ -328,7 +333,7 @@ class _ParamPlan:
             for j, k in enumerate(ks):
                 parts[k] = (v[j], None if d is None else d[j])
         for k in self.other:
-            parts[k] = self.funcs[k].value_and_deriv(z)
+            parts[k] = self.funcs[k].value_and_deriv(z, temp)
         shape = np.broadcast_shapes(*(p[0].shape for p in parts))
         out_v = np.empty((self.m,) + shape)
         out_d = np.empty((self.m,) + shape) if deriv else None

@@ -196,7 +196,7 @@ class Temperature(Effect):
 
     def scale_output(self, y, H, D, z, temp, base, jac):
         k, tk = self.factor(temp, np.shape(y))
-        u, du = base.ocv.value_and_slope(z)
+        u, du = base.ocv.value_and_slope(z, temp)
         y = (1.0 - k) * u + k * y + self["dUdT"] * (tk - KELVIN - self["t_ref"])
         if not jac:
             return y, None, None, None
@@ -345,6 +345,39 @@ class CurrentBias(Effect):
     record_states = _constant_states
 
 
+class ResistanceOffset(Effect):
+    """An offset on the ohmic resistance, ``ΔR0`` (a random-walk state, ``ΔR0⁺ = ΔR0``): ``y −= ΔR0·I``.
+
+    Not one of the missing physical effects (the base model already has its R0), so it is not in :data:`EFFECTS` and
+    the diagnosis never proposes it: it is the state through which a joint estimator tracks resistance growth
+    (``estimators.dual``). ``∂y/∂ΔR0 = −I``, ``∂y/∂I = −ΔR0``. Parameter ``dR0`` is its initial value [Ω].
+    """
+
+    name = "r0_offset"
+    state_names = ("dR0",)
+    param_names = ("dR0",)
+    defaults = {"dR0": 0.0}
+
+    def bounds(self, model):
+        return {"dR0": (-resistance_scale(model), resistance_scale(model))}
+
+    def initial(self):
+        return self["dR0"][..., None]
+
+    def advance(self, e, z, i, dt, temp, base, jac):
+        if not jac:
+            return e, None, None, None
+        return e, np.ones(e.shape + (1,)), np.zeros(e.shape), np.zeros(e.shape)
+
+    record_states = _constant_states
+
+    def output_term(self, e, z, i, temp, base, jac):
+        dy = -e[..., 0] * i
+        if not jac:
+            return dy, None, None, None
+        return dy, -np.broadcast_to(i, dy.shape)[..., None], np.zeros(dy.shape), -e[..., 0] * np.ones(dy.shape)
+
+
 class ExtraRC(Effect):
     """A further RC branch (diffusion, ECM_SPEC §9.7): ``U_x⁺ = a U_x + b I``, ``y −= U_x`` (block B2).
 
@@ -439,8 +472,9 @@ class CoulombicEfficiency(Effect):
 class SelfDischarge(Effect):
     """Self-discharge through a leak (ECM_SPEC §9.8): ``ż = −r_sd·U_oc(z)/U_oc(1)/3600`` (per hour at full charge).
 
-    This is the spec's ``U_oc(z)/(3600 Q R_sd)`` with ``r_sd = U_oc(1)/(Q R_sd)``. With ``U_oc`` frozen at ``z_k`` over
-    the step (as every SOC-dependent quantity): ``Δz = −r_sd·U(z_k)·dt/(3600 U(1))``,
+    This is the spec's ``U_oc(z)/(3600 Q R_sd)`` with ``r_sd = U_oc(1)/(Q R_sd)``; ``U_oc`` is the curve at the
+    reference temperature (the temperature of a temperature-aware curve is ignored here). With ``U_oc`` frozen at
+    ``z_k`` over the step (as every SOC-dependent quantity): ``Δz = −r_sd·U(z_k)·dt/(3600 U(1))``,
     ``∂Δz/∂z = −r_sd U'(z) dt/(3600 U(1))``.
     Parameter ``rate`` [1/h], at most 5 %/h.
     """
@@ -651,7 +685,7 @@ class AugmentedModel(Model):
         xs[..., 0] = running_sum(x[..., 0], inc, jumps)
         if leaky:
             xs[..., 0] = self._leaky_soc_path(xs, x[..., 0], inc, dt, jumps, leaky)
-        self.base._states_given_soc(xs[..., :nb], x[..., :nb], ie, dt, guards)
+        self.base._states_given_soc(xs[..., :nb], x[..., :nb], ie, dt, None if temp_t is None else temp_t[:-1], guards)
         return self._time_first_result(xs, i_t, temp_t, guards)
 
     #: the leaky SOC path's fixed-point iteration stops when no sample moves by more than this (SOC fraction)

@@ -60,9 +60,9 @@ class ESC(Model):
     def state_names(self):
         return ("z",) + tuple(f"iR{j}" for j in range(1, self._n + 1)) + ("h", "s")
 
-    def _hysteresis_rate(self, i, z):
+    def _hysteresis_rate(self, i, z, temp=None):
         """``(r, ∂r/∂z, ∂r/∂I)`` of the hysteresis rate ``r = η(I) I γ(z)/(3600 Q)`` [1/s]; ``u = r·dt``."""
-        g, dg = self.p("gamma", z)
+        g, dg = self.p("gamma", z, temp)
         c = eta(i, self.eta_charge) / (3600.0 * self.capacity_ah)
         return c * i * g, c * i * dg, c * g
 
@@ -84,13 +84,13 @@ class ESC(Model):
             B = np.zeros_like(x)
             B[..., 0] = dz_di
         for j in range(1, n + 1):
-            a, a_z = lowpass_coefficients(*self.p(f"tau{j}", z), dt)
+            a, a_z = lowpass_coefficients(*self.p(f"tau{j}", z, temp), dt)
             xn[..., j] = a * x[..., j] + (1.0 - a) * i
             if jac:
                 F[..., j, 0] = a_z * (x[..., j] - i)
                 F[..., j, j] = a
                 B[..., j] = 1.0 - a
-        rate, rate_z, rate_i = self._hysteresis_rate(i, z)
+        rate, rate_z, rate_i = self._hysteresis_rate(i, z, temp)
         u = rate * dt
         ah = np.exp(-np.abs(u))
         sg = np.sign(i)
@@ -106,15 +106,15 @@ class ESC(Model):
         B[..., jh] = dah_du * rate_i * dt * (h + sg)
         return xn, F, B
 
-    def _states_given_soc(self, xs, x0, i, dt, guards):
+    def _states_given_soc(self, xs, x0, i, dt, temp, guards):
         """Whole-record states (see :meth:`Model.open_loop`) by :mod:`socbench.models.recurrence`: the low-pass
         currents ``iR⁺ = a(z_k) iR + (1 − a) I`` (B4, ``lowpass_path``), the dynamic hysteresis
         ``h⁺ = a_h h − (1 − a_h) sgn I`` and the sign memory (``hysteresis_path``)."""
         z = xs[:-1, ..., 0]
         n = self._n
         for j in range(1, n + 1):
-            xs[..., j] = lowpass_path(lowpass_coefficients(*self.p(f"tau{j}", z), dt)[0], i, x0[..., j])
-        decay = np.exp(-np.abs(self._hysteresis_rate(i, z)[0] * dt))
+            xs[..., j] = lowpass_path(lowpass_coefficients(*self.p(f"tau{j}", z, temp), dt)[0], i, x0[..., j])
+        decay = np.exp(-np.abs(self._hysteresis_rate(i, z, temp)[0] * dt))
         moving = self._sign_memory(x0[..., n + 2], i)[0]
         xs[..., n + 1], xs[..., n + 2] = hysteresis_path(decay, i, moving, x0[..., n + 1], x0[..., n + 2])
 
@@ -124,8 +124,8 @@ class ESC(Model):
         d = np.zeros_like(x)
         d[..., 0] = soc_rate(i, self.capacity_ah, self.eta_charge)
         for j in range(1, self._n + 1):
-            d[..., j] = (i - x[..., j]) / self.p(f"tau{j}", zp)[0]
-        rate = self._hysteresis_rate(i, zp)[0]
+            d[..., j] = (i - x[..., j]) / self.p(f"tau{j}", zp, temp)[0]
+        rate = self._hysteresis_rate(i, zp, temp)[0]
         d[..., self._n + 1] = -np.abs(rate) * (x[..., self._n + 1] + np.sign(i))
         return d  # s (last) has no continuous dynamics: 0
 
@@ -135,15 +135,15 @@ class ESC(Model):
         n = self._n
         h = x[..., n + 1]
         moving, s = self._sign_memory(x[..., n + 2], i)
-        u, du = self.ocv.value_and_slope(z)
-        r0, dr0 = floor_value(*self.p("R0", z), R_FLOOR, self.mode, guards, "R0_floor")
-        m, dm = self.p("M", z)
-        m0, dm0 = self.p("M0", z)
+        u, du = self.ocv.value_and_slope(z, temp)
+        r0, dr0 = floor_value(*self.p("R0", z, temp), R_FLOOR, self.mode, guards, "R0_floor")
+        m, dm = self.p("M", z, temp)
+        m0, dm0 = self.p("M0", z, temp)
         y = u + m0 * s + m * h - r0 * i
         dy_z = du + dm0 * s + dm * h - dr0 * i
         H = np.empty_like(x) if jac else None
         for j in range(1, n + 1):
-            r, dr = self.p(f"R{j}", z)
+            r, dr = self.p(f"R{j}", z, temp)
             y = y - r * x[..., j]
             dy_z = dy_z - dr * x[..., j]
             if jac:

@@ -57,10 +57,10 @@ class ImprovedRC(Model):
             raise ModelError(f"{self.name}: {name} = {np.ravel(c)[k]:.4g} F ≤ 0 at z = {zk:.4f}")
         return floor_value(c, dc, C_FLOOR, self.mode, guards, f"{name}_floor")
 
-    def _network(self, z, guards=None, deriv=True):
+    def _network(self, z, guards=None, deriv=True, temp=None):
         """``(R_e, R_e', R_c, R_c', C_e, C_e', C_c, C_c')`` at ``z`` with the mode's guards applied (derivatives None
         unless ``deriv``)."""
-        v, d = self.params_at(("R1", "R2", "C1", "C2"), z, deriv=deriv)
+        v, d = self.params_at(("R1", "R2", "C1", "C2"), z, deriv=deriv, temp=temp)
         d = [None] * 4 if d is None else d
         rc, re = v[0], v[1]
         if np.any(re + rc <= 0):
@@ -80,7 +80,7 @@ class ImprovedRC(Model):
         x, (i, dt) = self._broadcast(x, i, dt)
         z = x[..., 0]
         w = x[..., 1:]
-        net = self._network(z, guards, deriv=jac)
+        net = self._network(z, guards, deriv=jac, temp=temp)
         Phi, Gam, dPhi, dGam, lam = coupled_rc_coefficients(*net, dt, derivatives=jac)
         self._check_stable(lam, z)
         xn = np.empty_like(x)
@@ -97,18 +97,19 @@ class ImprovedRC(Model):
         B[..., 1:] = Gam
         return xn, F, B
 
-    def _states_given_soc(self, xs, x0, i, dt, guards):
+    def _states_given_soc(self, xs, x0, i, dt, temp, guards):
         """Whole-record states (see :meth:`Model.open_loop`): ``w⁺ = Φ(z_k) w + Γ(z_k) I`` (B5) by
         :func:`~socbench.models.recurrence.matrix_affine_scan`."""
         z = xs[:-1, ..., 0]
-        Phi, Gam, _, _, lam = coupled_rc_coefficients(*self._network(z, guards, deriv=False), dt, derivatives=False)
+        Phi, Gam, _, _, lam = coupled_rc_coefficients(*self._network(z, guards, deriv=False, temp=temp), dt,
+                                                       derivatives=False)
         self._check_stable(lam, z)
         xs[..., 1:] = matrix_affine_scan(Phi, Gam * i[..., None], x0[..., 1:])
 
     def dxdt(self, x, i, temp=None, z_params=None):
         x, (i,) = self._broadcast(x, i)
         zp = x[..., 0] if z_params is None else np.broadcast_to(z_params, x.shape[:-1])
-        re, _, rc, _, ce, _, cc, _ = self._network(zp)
+        re, _, rc, _, ce, _, cc, _ = self._network(zp, temp=temp)
         rs = re + rc
         ue, uc = x[..., 1], x[..., 2]
         d = np.empty_like(x)
@@ -121,10 +122,10 @@ class ImprovedRC(Model):
         x, (i,) = self._broadcast(x, i)
         z = x[..., 0]
         ue, uc = x[..., 1], x[..., 2]
-        u, du = self.ocv.value_and_slope(z)
-        r0, dr0 = floor_value(*self.p("R0", z), R_FLOOR, self.mode, guards, "R0_floor")
-        rc, drc = self.p("R1", z)
-        re, dre = self.p("R2", z)
+        u, du = self.ocv.value_and_slope(z, temp)
+        r0, dr0 = floor_value(*self.p("R0", z, temp), R_FLOOR, self.mode, guards, "R0_floor")
+        rc, drc = self.p("R1", z, temp)
+        re, dre = self.p("R2", z, temp)
         rs, drs = re + rc, dre + drc
         num = rc * ue + re * uc
         par = re * rc / rs  # R_e ∥ R_c

@@ -7,6 +7,9 @@ Every model parameter is a function of SOC with its derivative (the Jacobians ne
                         (the paper's 6th-degree fits for models 1–6; coefficients stored highest degree first,
                         as Table 3 prints them)
 * :class:`Lookup`       piecewise linear in SOC between breakpoints, held flat outside (``p' = 0`` there)
+* :class:`TemperatureTable`  one of the above per measured temperature ``T_1 < … < T_K`` (a table over SOC ×
+                        temperature), interpolated in temperature (see its docstring); every SOC function takes the
+                        cell temperature ``temp`` [°C] and the others ignore it
 
 Parameter batches (for fitting: one simulation runs many parameter variants at once). ``Constant.value`` may be an
 array of shape ``P``, ``Polynomial.coeffs`` an array ``P + (degree + 1,)`` and ``Lookup.value`` an array ``P + (K,)``
@@ -20,7 +23,8 @@ coulombic efficiency and model options, plus provenance notes::
     {"model": "thevenin", "capacity_ah": 22.0, "eta_charge": 1.0,
      "ocv": {"soc": [...], "voltage": [...], "source": "..."},
      "params": {"R0": {"poly": [c6, ..., c0]}, "R1": {"const": 0.006},
-                "C1": {"lookup": {"soc": [...], "value": [...]}}},
+                "C1": {"lookup": {"soc": [...], "value": [...]}},
+                "R1": {"by_temperature": {"temps": [-10, 25], "scale": "log", "nodes": [{...}, {...}]}}},
      "options": {"mode": "robust"}, "source": "...", "notes": ["..."]}
 """
 
@@ -35,17 +39,23 @@ from types import MappingProxyType
 import numpy as np
 
 from ..errors import ConfigError, DataError
-from ..ocv import OCVCurve
+from ..ocv import T_REF_C, OCVCurve, ocv_from_dict
 
 
 class SocFunction:
-    """A parameter as a function of SOC: ``value_and_deriv(z) -> (p, dp/dz)``."""
+    """A parameter as a function of SOC (and of the cell temperature ``temp`` [°C], which only
+    :class:`TemperatureTable` uses): ``value_and_deriv(z, temp=None) -> (p, dp/dz)``."""
 
-    def value_and_deriv(self, z):  # pragma: no cover - interface
+    def value_and_deriv(self, z, temp=None):  # pragma: no cover - interface
         raise NotImplementedError
 
-    def __call__(self, z):
-        return self.value_and_deriv(z)[0]
+    def __call__(self, z, temp=None):
+        return self.value_and_deriv(z, temp)[0]
+
+    @property
+    def temperatures(self) -> tuple:
+        """The temperatures [°C] the function was measured at (empty: it does not depend on temperature)."""
+        return ()
 
     def to_dict(self) -> dict:  # pragma: no cover - interface
         raise NotImplementedError
@@ -72,7 +82,7 @@ class Constant(SocFunction):
 
     value: float
 
-    def value_and_deriv(self, z):
+    def value_and_deriv(self, z, temp=None):
         z = np.asarray(z, dtype=float)
         if np.ndim(self.value) == 0:
             return np.full(z.shape, self.value), np.zeros(z.shape)
@@ -111,7 +121,7 @@ class Polynomial(SocFunction):
     def batched(self) -> bool:
         return isinstance(self.coeffs, np.ndarray)
 
-    def value_and_deriv(self, z):
+    def value_and_deriv(self, z, temp=None):
         z = np.asarray(z, dtype=float)
         zp = np.clip(z, 0.0, 1.0)
         if self.batched:
@@ -160,7 +170,7 @@ class Lookup(SocFunction):
     def batched(self) -> bool:
         return self.value.ndim > 1
 
-    def value_and_deriv(self, z):
+    def value_and_deriv(self, z, temp=None):
         z = np.asarray(z, dtype=float)
         j = np.clip(np.searchsorted(self.soc, z, side="right") - 1, 0, self.soc.size - 2)
         outside = (z < self.soc[0]) | (z > self.soc[-1])
@@ -186,6 +196,105 @@ class Lookup(SocFunction):
         return {"lookup": {"soc": self.soc.tolist(), "value": self.value.tolist()}}
 
 
+def temperature_weights(temps, temp):
+    """``(k, w)``: ``temp`` lies in ``[temps[k], temps[k+1]]`` at fraction ``w`` (clamped to [0, 1] outside the nodes;
+    ``temp=None`` means :data:`T_REF_C`). A single node gives ``k = 0, w = 0``. Shared by every temperature table (the
+    parameters here and the OCV curves of :class:`~socbench.ocv.TemperatureOCV`)."""
+    nodes = np.asarray(temps, dtype=float)
+    t = np.asarray(T_REF_C if temp is None else temp, dtype=float)
+    if nodes.size == 1:
+        return np.zeros(t.shape, dtype=np.intp), np.zeros(t.shape)
+    k = np.clip(np.searchsorted(nodes, t, side="right") - 1, 0, nodes.size - 2)
+    lo = nodes[k]
+    w = np.clip((t - lo) / (nodes[k + 1] - lo), 0.0, 1.0)
+    return k, w
+
+
+@dataclass(frozen=True, eq=False)
+class TemperatureTable(SocFunction):
+    """A parameter measured at several temperatures: ``nodes[j]`` is its SOC function at ``temps[j]`` [°C].
+
+    Between two measured temperatures ``T_k ≤ T ≤ T_{k+1}``, ``w = (T − T_k)/(T_{k+1} − T_k)``::
+
+        "linear"   p(z, T) = (1 − w) p_k(z) + w p_{k+1}(z)       dp/dz = (1 − w) p_k' + w p_{k+1}'
+        "log"      p(z, T) = p_k(z)^(1 − w) · p_{k+1}(z)^w        dp/dz = p·((1 − w) p_k'/p_k + w p_{k+1}'/p_{k+1})
+
+    "log" (for resistances, capacitances, time constants: positive quantities with an Arrhenius-like temperature
+    dependence, exact for ``p ∝ e^{aT}`` between nodes) needs every node positive on [0, 1]. Outside ``[T_1, T_K]`` the
+    end node is held (no extrapolation); ``temp=None`` means :data:`T_REF_C` (held likewise).
+
+    Why piecewise (C⁰) and not a smooth spline: an interpolant that is linear in the node values and never leaves the
+    range of its two neighbouring nodes (monotone between them, exact at every measured temperature, no overshoot when
+    the nodes are few and far apart) is piecewise linear; a C¹ monotone interpolant (PCHIP) is nonlinear in the node
+    values, which would make ``dp/dz`` depend on every node's derivative through the PCHIP slopes.
+    """
+
+    temps: tuple
+    nodes: tuple
+    scale: str = "linear"
+
+    def __post_init__(self):
+        t = np.asarray(self.temps, dtype=float)
+        nodes = tuple(soc_function(n) for n in self.nodes)
+        if t.ndim != 1 or t.size < 1 or t.size != len(nodes) or not np.all(np.isfinite(t)) \
+                or np.any(np.diff(t) <= 0):
+            raise ConfigError("a temperature table needs >= 1 strictly increasing temperatures and one SOC function "
+                              f"per temperature (got temps {list(np.atleast_1d(t))} and {len(nodes)} functions)")
+        if any(isinstance(n, TemperatureTable) for n in nodes):
+            raise ConfigError("a temperature table's nodes must be SOC functions, not temperature tables")
+        if self.scale not in ("linear", "log"):
+            raise ConfigError(f"a temperature table's scale must be 'linear' or 'log', got {self.scale!r}")
+        if self.scale == "log":
+            for tk, n in zip(t, nodes):
+                lo = n.range_on_unit()[0]
+                if not lo > 0:
+                    raise ConfigError(f"a 'log' temperature table needs positive values: at {tk:g} °C the minimum on "
+                                      f"[0, 1] is {lo:.4g}")
+        object.__setattr__(self, "temps", tuple(float(x) for x in t))
+        object.__setattr__(self, "nodes", nodes)
+
+    @property
+    def temperatures(self) -> tuple:
+        return self.temps
+
+    def value_and_deriv(self, z, temp=None):
+        z = np.asarray(z, dtype=float)
+        if len(self.nodes) == 1:
+            return self.nodes[0].value_and_deriv(z)
+        k, w = temperature_weights(self.temps, temp)
+        shape = np.broadcast_shapes(z.shape, w.shape)
+        k, zb = np.broadcast_to(k, shape).ravel(), np.broadcast_to(z, shape).ravel()
+        w = np.broadcast_to(w, shape)
+        lo_v, lo_d, hi_v, hi_d = (np.empty(zb.size) for _ in range(4))
+        for j in np.unique(k):  # each node pair evaluated only where the temperature needs it
+            m = k == j
+            lo_v[m], lo_d[m] = self.nodes[j].value_and_deriv(zb[m])
+            hi_v[m], hi_d[m] = self.nodes[j + 1].value_and_deriv(zb[m])
+        lo_v, lo_d, hi_v, hi_d = (a.reshape(shape) for a in (lo_v, lo_d, hi_v, hi_d))
+        if self.scale == "linear":
+            v, d = (1.0 - w) * lo_v + w * hi_v, (1.0 - w) * lo_d + w * hi_d
+        else:
+            v = np.exp((1.0 - w) * np.log(lo_v) + w * np.log(hi_v))
+            d = v * ((1.0 - w) * lo_d / lo_v + w * hi_d / hi_v)
+        # at (and beyond) a measured temperature: that node's own numbers, bit for bit
+        at_lo, at_hi = w == 0.0, w == 1.0
+        return (np.where(at_lo, lo_v, np.where(at_hi, hi_v, v)),
+                np.where(at_lo, lo_d, np.where(at_hi, hi_d, d)))
+
+    def at(self, temp: float) -> SocFunction:
+        """The SOC function at a measured temperature (a node), for reports."""
+        j = int(np.argmin(np.abs(np.asarray(self.temps) - float(temp))))
+        return self.nodes[j]
+
+    def range_on_unit(self, n: int = 2001) -> tuple[float, float]:
+        lows, highs = zip(*(f.range_on_unit(n) for f in self.nodes))
+        return float(min(lows)), float(max(highs))
+
+    def to_dict(self):
+        return {"by_temperature": {"temps": list(self.temps), "scale": self.scale,
+                                   "nodes": [n.to_dict() for n in self.nodes]}}
+
+
 def soc_function(spec) -> SocFunction:
     """Build a :class:`SocFunction` from its JSON form (a bare number is a constant)."""
     if isinstance(spec, SocFunction):
@@ -201,7 +310,12 @@ def soc_function(spec) -> SocFunction:
     if "lookup" in spec:
         lk = spec["lookup"]
         return Lookup(tuple(lk["soc"]), tuple(lk["value"]))
-    raise ConfigError(f"unknown parameter form {sorted(spec)}; expected const, poly or lookup")
+    if "by_temperature" in spec:
+        bt = spec["by_temperature"]
+        if not isinstance(bt, Mapping) or "temps" not in bt or "nodes" not in bt:
+            raise ConfigError("a 'by_temperature' parameter needs keys 'temps' and 'nodes'")
+        return TemperatureTable(tuple(bt["temps"]), tuple(bt["nodes"]), bt.get("scale", "linear"))
+    raise ConfigError(f"unknown parameter form {sorted(spec)}; expected const, poly, lookup or by_temperature")
 
 
 @dataclass(frozen=True, eq=False)
@@ -245,6 +359,15 @@ class ModelParams:
         d.update(changes)
         return ModelParams(**d)
 
+    @property
+    def temperatures(self) -> tuple:
+        """Every temperature [°C] a parameter or the OCV curve was measured at, sorted (empty: no temperature
+        dependence; the set is then valid at whatever temperature it was fitted at)."""
+        ts = set(getattr(self.ocv, "temperatures", ()))
+        for f in self.values.values():
+            ts.update(f.temperatures)
+        return tuple(sorted(ts))
+
     def with_values(self, **values) -> ModelParams:
         new = dict(self.values)
         new.update({k: soc_function(v) for k, v in values.items()})
@@ -274,7 +397,7 @@ def params_from_dict(d: Mapping, *, ocv: OCVCurve | None = None, file: str = "")
     for key in ("model", "params"):
         if key not in d:
             raise ConfigError(f"{file or 'parameters'}: missing key '{key}'")
-    curve = OCVCurve.from_dict(d["ocv"]) if "ocv" in d else ocv
+    curve = ocv_from_dict(d["ocv"]) if "ocv" in d else ocv
     if curve is None:
         raise ConfigError(f"{file or 'parameters'}: no OCV curve (key 'ocv')")
     if "capacity_ah" not in d:

@@ -90,7 +90,7 @@ class RCNetwork(Model):
             B[..., 0] = dz_di
         if self.has_integrator:
             if self.c0_mode == C0_AS_PRINTED:
-                g, g_z = integrator_coefficients(*self.p("C0", z), dt)
+                g, g_z = integrator_coefficients(*self.p("C0", z, temp), dt)
             else:
                 g, g_z = np.zeros_like(z), np.zeros_like(z)
             xn[..., 1] = x[..., 1] + g * i
@@ -100,7 +100,7 @@ class RCNetwork(Model):
                 B[..., 1] = g
         n = self._n
         if n:  # every branch at once: parameters stacked on a first axis (n, …), one B2 evaluation
-            vals, ders = self.params_at(self._branch_params, z, deriv=jac)
+            vals, ders = self.params_at(self._branch_params, z, deriv=jac, temp=temp)
             a, b, a_z, b_z = rc_coefficients(vals[:n], None if ders is None else ders[:n], vals[n:],
                                              None if ders is None else ders[n:], dt, self.mode, guards,
                                              name=self._branch_names, derivatives=jac)
@@ -114,20 +114,20 @@ class RCNetwork(Model):
                 _front(B[..., cols])[...] = b
         return (xn, F, B) if jac else (xn, None, None)
 
-    def _states_given_soc(self, xs, x0, i, dt, guards):
+    def _states_given_soc(self, xs, x0, i, dt, temp, guards):
         """Whole-record states (see :meth:`Model.open_loop`): the integrator a running sum of ``dt·I/C0(z_k)`` (B3),
         each branch the affine recurrence ``U⁺ = a(z_k) U + b(z_k) I`` (B2) by
         :func:`~socbench.models.recurrence.affine_scan`."""
         z = xs[:-1, ..., 0]
         if self.has_integrator:
             if self.c0_mode == C0_AS_PRINTED:
-                g = integrator_coefficients(*self.p("C0", z), dt)[0]
+                g = integrator_coefficients(*self.p("C0", z, temp), dt)[0]
                 xs[..., 1] = running_sum(x0[..., 1], g * i)
             else:
                 xs[..., 1] = x0[..., 1]
         n = self._n
         if n:
-            vals, _ = self.params_at(self._branch_params, z, deriv=False)
+            vals, _ = self.params_at(self._branch_params, z, deriv=False, temp=temp)
             a, b, _, _ = rc_coefficients(vals[:n], None, vals[n:], None, dt, self.mode, guards,
                                          name=self._branch_names, derivatives=False)  # (n, T − 1, …)
             cols = slice(self._first_branch, self._first_branch + n)
@@ -139,10 +139,10 @@ class RCNetwork(Model):
         d = np.empty_like(x)
         d[..., 0] = soc_rate(i, self.capacity_ah, self.eta_charge)
         if self.has_integrator:
-            d[..., 1] = i / self.p("C0", zp)[0] if self.c0_mode == C0_AS_PRINTED else 0.0
+            d[..., 1] = i / self.p("C0", zp, temp)[0] if self.c0_mode == C0_AS_PRINTED else 0.0
         for j in range(1, self._n + 1):
             col = self._first_branch + j - 1
-            R, C = self.p(f"R{j}", zp)[0], self.p(f"C{j}", zp)[0]
+            R, C = self.p(f"R{j}", zp, temp)[0], self.p(f"C{j}", zp, temp)[0]
             d[..., col] = -x[..., col] / (R * C) + i / C
         return d
 
@@ -160,11 +160,11 @@ class RCNetwork(Model):
         x, (i,) = self._broadcast(x, i)
         z = x[..., 0]
         if not jac:
-            r0 = floor_value(self.params_at(("R0",), z, deriv=False)[0][0], None, R_FLOOR, self.mode, guards,
+            r0 = floor_value(self.params_at(("R0",), z, deriv=False, temp=temp)[0][0], None, R_FLOOR, self.mode, guards,
                              "R0_floor")[0]
-            return self.ocv.value(z) - r0 * i - self._polarisation(x), None, None
-        u, du = self.ocv.value_and_slope(z)
-        r0, dr0 = floor_value(*self.p("R0", z), R_FLOOR, self.mode, guards, "R0_floor")
+            return self.ocv.value(z, temp) - r0 * i - self._polarisation(x), None, None
+        u, du = self.ocv.value_and_slope(z, temp)
+        r0, dr0 = floor_value(*self.p("R0", z, temp), R_FLOOR, self.mode, guards, "R0_floor")
         y = u - r0 * i - self._polarisation(x)
         H = np.full(x.shape, -1.0)
         H[..., 0] = du - dr0 * i

@@ -28,7 +28,7 @@ from .base import Model
 from .blocks import R_FLOOR, clipped_exp, floor_value, guarded_inv, guarded_log, guarded_log1m, soc_rate, soc_step
 
 
-def exponential_zone(model: Model, z, A="A", B="B"):
+def exponential_zone(model: Model, z, temp=None, A="A", B="B"):
     """Tremblay's exponential zone ``A·e^{−B·it}``, ``it = Q(1 − z)``, and its total z-derivative.
 
     ``arg = −B Q (1 − z)`` is clipped at ±50 (``clipped_exp``)::
@@ -37,8 +37,8 @@ def exponential_zone(model: Model, z, A="A", B="B"):
 
     Shared by Tremblay1 here and by Liu/Tremblay2 (``tremblay.py``).
     """
-    a, da = model.p(A, z)
-    b, db = model.p(B, z)
+    a, da = model.p(A, z, temp)
+    b, db = model.p(B, z, temp)
     q = model.capacity_ah
     arg = -b * q * (1.0 - z)
     e, de = clipped_exp(arg)
@@ -50,8 +50,8 @@ class StaticTermModel(Model):
 
     param_units = {"R0": "Ω"}
 
-    def term(self, z, guards=None):
-        """``(g, dg/dz)`` at SOC ``z``."""
+    def term(self, z, temp=None, guards=None):
+        """``(g, dg/dz)`` at SOC ``z`` and cell temperature ``temp``."""
         raise NotImplementedError
 
     def step(self, x, i, dt, temp=None, jac=False, guards=None):
@@ -62,7 +62,7 @@ class StaticTermModel(Model):
             return xn, None, None
         return xn, np.ones(x.shape + (1,)), dz_di[..., None]
 
-    def _states_given_soc(self, xs, x0, i, dt, guards):
+    def _states_given_soc(self, xs, x0, i, dt, temp, guards):
         """SOC is the only state: nothing beyond the SOC path (see :meth:`Model.open_loop`)."""
 
     def dxdt(self, x, i, temp=None, z_params=None):
@@ -72,9 +72,9 @@ class StaticTermModel(Model):
     def output(self, x, i, temp=None, jac=False, guards=None):
         x, (i,) = self._broadcast(x, i)
         z = x[..., 0]
-        u, du = self.ocv.value_and_slope(z)
-        r0, dr0 = floor_value(*self.p("R0", z), R_FLOOR, self.mode, guards, "R0_floor")
-        g, dg = self.term(z, guards)
+        u, du = self.ocv.value_and_slope(z, temp)
+        r0, dr0 = floor_value(*self.p("R0", z, temp), R_FLOOR, self.mode, guards, "R0_floor")
+        g, dg = self.term(z, temp, guards)
         y = u + g - r0 * i
         if not jac:
             return y, None, None
@@ -92,8 +92,8 @@ class Shepherd(StaticTermModel):
     param_units = {"K": "V", "R0": "Ω"}
     corrections = "K in V (printed Ω); 1/z guarded at ε = 1e-3; K < 0 raises the voltage toward z → 0 (+30 mV at 0.01)"
 
-    def term(self, z, guards=None):
-        k, dk = self.p("K", z)
+    def term(self, z, temp=None, guards=None):
+        k, dk = self.p("K", z, temp)
         inv, dinv = guarded_inv(z, guards=guards)
         return -k * inv, -dk * inv - k * dinv
 
@@ -109,8 +109,8 @@ class Unnewehr(StaticTermModel):
     param_units = {"K": "V", "R0": "Ω"}
     corrections = "K in V (printed Ω)"
 
-    def term(self, z, guards=None):
-        k, dk = self.p("K", z)
+    def term(self, z, temp=None, guards=None):
+        k, dk = self.p("K", z, temp)
         return -k * z, -k - dk * z
 
 
@@ -125,9 +125,9 @@ class Nernst(StaticTermModel):
     param_units = {"K0": "V", "K1": "V", "R0": "Ω"}
     corrections = "K's in V (printed Ω); ln z, ln(1 − z) guarded at ε = 1e-3 (finite at z = 1, the flight start)"
 
-    def term(self, z, guards=None):
-        k0, dk0 = self.p("K0", z)
-        k1, dk1 = self.p("K1", z)
+    def term(self, z, temp=None, guards=None):
+        k0, dk0 = self.p("K0", z, temp)
+        k1, dk1 = self.p("K1", z, temp)
         lz, dlz = guarded_log(z, guards=guards)
         l1z, dl1z = guarded_log1m(z)  # same clip as ln z: noted once
         return -k0 * lz + k1 * l1z, -dk0 * lz - k0 * dlz + dk1 * l1z + k1 * dl1z
@@ -147,11 +147,11 @@ class Fang(StaticTermModel):
     param_units = {"K0": "V", "K1": "V", "R0": "Ω", "tau1": "-", "tau2": "-"}
     corrections = "K's in V (printed Ω); K0 ln(τ1 + z) is a near-constant offset (τ1 ≈ 847)"
 
-    def term(self, z, guards=None):
-        k0, dk0 = self.p("K0", z)
-        k1, dk1 = self.p("K1", z)
-        t1, dt1 = self.p("tau1", z)
-        t2, dt2 = self.p("tau2", z)
+    def term(self, z, temp=None, guards=None):
+        k0, dk0 = self.p("K0", z, temp)
+        k1, dk1 = self.p("K1", z, temp)
+        t1, dt1 = self.p("tau1", z, temp)
+        t2, dt2 = self.p("tau2", z, temp)
         a, b = t1 + z, t2 + 1.0 - z
         la, lb = np.log(a), np.log(b)
         g = -k0 * la + k1 * lb
@@ -170,10 +170,10 @@ class Tremblay1(StaticTermModel):
     param_units = {"K": "V", "A": "V", "B": "1/Ah", "R0": "Ω"}
     corrections = "eq. 29 I_L·t → it = ∫i dt = Q(1 − z) (the cause of the kV errors); K in V; = Shepherd + exp term"
 
-    def term(self, z, guards=None):
-        k, dk = self.p("K", z)
+    def term(self, z, temp=None, guards=None):
+        k, dk = self.p("K", z, temp)
         inv, dinv = guarded_inv(z, guards=guards)
-        ex, dex = exponential_zone(self, z)
+        ex, dex = exponential_zone(self, z, temp)
         return -k * inv + ex, -dk * inv - k * dinv + dex
 
 
@@ -192,8 +192,8 @@ class Plett(StaticTermModel):
         "1/z, ln z, ln(1 − z) guarded at ε = 1e-3"
     )
 
-    def term(self, z, guards=None):
-        k = [self.p(f"K{j}", z) for j in range(5)]
+    def term(self, z, temp=None, guards=None):
+        k = [self.p(f"K{j}", z, temp) for j in range(5)]
         inv, dinv = guarded_inv(z, guards=guards)
         lz, dlz = guarded_log(z)  # same clip as 1/z: the guard is noted once per sample
         l1z, dl1z = guarded_log1m(z)

@@ -46,7 +46,7 @@ class TremblayGeneric(Model):
     def step(self, x, i, dt, temp=None, jac=False, guards=None):
         x, (i, dt) = self._broadcast(x, i, dt)
         z, istar = x[..., 0], x[..., 1]
-        a, a_z = lowpass_coefficients(*self.p("tc", z), dt)
+        a, a_z = lowpass_coefficients(*self.p("tc", z, temp), dt)
         xn = np.empty_like(x)
         xn[..., 0], dz_di = soc_step(z, i, dt, self.capacity_ah, self.eta_charge)
         xn[..., 1] = a * istar + (1.0 - a) * i
@@ -59,24 +59,24 @@ class TremblayGeneric(Model):
         B = np.stack([dz_di, 1.0 - a], axis=-1)
         return xn, F, B
 
-    def _states_given_soc(self, xs, x0, i, dt, guards):
+    def _states_given_soc(self, xs, x0, i, dt, temp, guards):
         """Whole-record ``I*`` (see :meth:`Model.open_loop`): ``I*⁺ = a(z_k) I* + (1 − a) I`` (B4) by
         :func:`~socbench.models.recurrence.lowpass_path`."""
-        xs[..., 1] = lowpass_path(lowpass_coefficients(*self.p("tc", xs[:-1, ..., 0]), dt)[0], i, x0[..., 1])
+        xs[..., 1] = lowpass_path(lowpass_coefficients(*self.p("tc", xs[:-1, ..., 0], temp), dt)[0], i, x0[..., 1])
 
     def dxdt(self, x, i, temp=None, z_params=None):
         x, (i,) = self._broadcast(x, i)
         zp = x[..., 0] if z_params is None else np.broadcast_to(z_params, x.shape[:-1])
-        tc = self.p("tc", zp)[0]
+        tc = self.p("tc", zp, temp)[0]
         return np.stack([soc_rate(i, self.capacity_ah, self.eta_charge), (i - x[..., 1]) / tc], axis=-1)
 
     def output(self, x, i, temp=None, jac=False, guards=None):
         x, (i,) = self._broadcast(x, i)
         z, istar = x[..., 0], x[..., 1]
         q = self.capacity_ah
-        u, du = self.ocv.value_and_slope(z)
-        r0, dr0 = floor_value(*self.p("R0", z), R_FLOOR, self.mode, guards, "R0_floor")
-        k, dk = self.p("K", z)
+        u, du = self.ocv.value_and_slope(z, temp)
+        r0, dr0 = floor_value(*self.p("R0", z, temp), R_FLOOR, self.mode, guards, "R0_floor")
+        k, dk = self.p("K", z, temp)
         inv, dinv = guarded_inv(z, guards=guards)
         # it-term −K·Q/(Q − it)·it = −K Q (1 − z)/z_s
         it_term = -k * q * (1.0 - z) * inv
@@ -91,7 +91,7 @@ class TremblayGeneric(Model):
         dinv_c = np.where(w > EPS_SINGULAR, 1.0 / wc**2, 0.0)  # d/dz 1/(1.1 − z)
         g_star = np.where(charge, inv_c, inv)
         dg_star = np.where(charge, dinv_c, dinv)
-        ex, dex = exponential_zone(self, z)
+        ex, dex = exponential_zone(self, z, temp)
         y = u + it_term - k * g_star * istar + ex - r0 * i
         if not jac:
             return y, None, None
