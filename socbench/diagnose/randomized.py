@@ -47,8 +47,9 @@ Tests and loads
     rests and partial recharges between flights), or a **mission day** (drives or flights, rests of 10 min–2 h and
     partial CC recharges to 60–95 %, 6–12 h).
 
-Sensors: voltage noise 0.5–5 mV (evaluation), 0.5–2 mV (fit), voltage offset ±1 mV; current noise 0–1 % of 1C on the
-evaluation sensor; the fit cycler's current is clean until the robust HPPC analysis (issue 13, items 1–2) lands.
+Sensors: voltage noise 0.5–5 mV (evaluation), 0.5–2 mV (fit), voltage offset ±1 mV; current noise 0–1 % of 1C on
+both sensors, a current offset of ±0.3 % of 1C on the lab cycler (the HPPC analysis measures it at the rests) and none
+on the field sensor unless the current-bias effect is drawn.
 
 Case mix (``case_kind``): of every ten consecutive indices, two are null cases, two carry two effects and six carry
 one, the single effects cycling through the eight in turn.
@@ -400,14 +401,16 @@ def draw_case(index: int, seed: int = 0) -> Case:
     t, i, layout = hppc_current(rng, q, fit_dt)
     v_sd_fit = float(rng.uniform(0.0005, 0.002))
     v_off_fit = float(rng.uniform(-0.001, 0.001))
-    fit_prof, _ = _measure(truth_fit, t, i, np.full(t.size, 25.0), 1.0, rng, v_sd_fit, v_off_fit, 0.0, 0.0, q,
-                           "fit-hppc")
+    i_sd_fit = float(rng.uniform(0.0, 0.01)) * q
+    i_off_fit = float(rng.uniform(-0.003, 0.003)) * q
+    fit_prof, _ = _measure(truth_fit, t, i, np.full(t.size, 25.0), 1.0, rng, v_sd_fit, v_off_fit, i_sd_fit, i_off_fit,
+                           q, "fit-hppc")
     fits = [fit_prof]
     slow = bool(rng.random() < 1.0 / 3.0)
     if slow:
         ts, isl = slow_ocv_current(q)
-        fits.insert(0, _measure(truth_fit, ts, isl, np.full(ts.size, 25.0), 1.0, rng, v_sd_fit, v_off_fit, 0.0,
-                                0.0, q, "fit-slow-ocv")[0])
+        fits.insert(0, _measure(truth_fit, ts, isl, np.full(ts.size, 25.0), 1.0, rng, v_sd_fit, v_off_fit, i_sd_fit,
+                                i_off_fit, q, "fit-slow-ocv")[0])
     # --- the evaluation records (field sensor)
     load = str(rng.choice(["drive", "uav", "day"]))
     dt = _loguniform(rng, 0.1, 10.0)
@@ -422,7 +425,7 @@ def draw_case(index: int, seed: int = 0) -> Case:
     ev, _ = _measure(truth_use, t, i_true, temp, 0.98, rng, v_sd, v_off, i_sd, i_off, q, "eval")
     draws.update({"hppc": layout, "slow_ocv_test": slow, "load": load, "load_desc": load_desc,
                   "eval_dt_s": dt, "eval_hours": round(float(t[-1]) / 3600.0, 2), "v_sd": v_sd, "i_sd_c": i_sd / q,
-                  "v_offset": v_off, "fit_v_sd": v_sd_fit})
+                  "v_offset": v_off, "fit_v_sd": v_sd_fit, "fit_i_sd_c": i_sd_fit / q, "fit_i_offset_c": i_off_fit / q})
     return Case(index, seed, kind, effects, base, chemistry, q, draws, fits, [ev], aged, truth_use)
 
 

@@ -63,8 +63,10 @@ SOC_DRIFT = ("capacity", "current_bias", "coulombic_efficiency", "self_discharge
 #: the pseudo-candidate "the base model's own parameters (scaled) and each record's voltage offset, refitted on the
 #: evaluation data": what a refit of the base absorbs is not an effect (it is never named as one)
 BASE_REFIT = "base_refit"
-#: the base refit scales each base parameter by at most this factor's e-power either way (ln 2: ×0.5…×2)
-BASE_SCALE = float(np.log(2.0))
+#: the base refit scales each base parameter by at most this factor's e-power either way (ln 4: ×0.25…×4)
+BASE_SCALE = float(np.log(4.0))
+#: the base refit's voltage offset per record is at most this per cell (an OCV read from rests too short to relax)
+BASE_OFFSET_V = 0.05
 #: an effect is preferred to the base refit when its held-out RMSE is within this share of the refit's
 PARSIMONY = 0.10
 #: compression of the training record for the fits (the held-out part is scored on every sample)
@@ -229,7 +231,7 @@ class Search:
         """``(parameter names, lower, upper, defaults)`` of an effect, or of the base refit."""
         if name == BASE_REFIT:
             names = [f"log_{p}" for p in self.base_params] + [f"offset_{r}" for r in range(len(self.folds.records))]
-            v = 0.02 * self.n_cells
+            v = BASE_OFFSET_V * self.n_cells
             lo = [-BASE_SCALE] * len(self.base_params) + [-v] * len(self.folds.records)
             hi = [BASE_SCALE] * len(self.base_params) + [v] * len(self.folds.records)
             return names, lo, hi, {n: 0.0 for n in names}
@@ -376,13 +378,13 @@ class Search:
     def _choose(self, cands):
         """The best-scoring candidate, except that an effect within :data:`PARSIMONY` of a winning base refit is
         preferred (a named effect with fewer parameters explains the same), and that a current-sensor offset the
-        rests measure is preferred to the other SOC drifts (leak, capacity, efficiency) when it explains a share of the
-        residual of its own (:attr:`min_gain`): the rest current *is* the offset, a leak or a fade reads none."""
+        rests measure comes first when it explains a share of the residual of its own (:attr:`min_gain`): the rest
+        current *is* the offset (direct evidence, no model needed), while a leak or a fade reads none."""
         ok = [c for c in cands if np.isfinite(c.score)]
         if not ok:
             return cands[0] if cands else None
         best = max(ok, key=lambda c: c.score)
-        if self.bias_measured and best.effect in SOC_DRIFT:
+        if self.bias_measured:
             bias = [c for c in ok if c.effect == "current_bias" and c.score > 0
                     and c.rmse_after <= (1.0 - self.min_gain) * c.rmse_before]
             if bias:
