@@ -1,16 +1,25 @@
 """``diagnose``: fit a model on the fit data, find what its residual on the evaluation data lacks, add it, refit.
 
-1. **Fit** the base model on the fit data with :func:`socbench.identify.fit_model`. A fit record that moves most of
-   its charge below C/10 is a slow OCV test: it gives the OCV curve (:func:`~socbench.identify.ocv_from_slow_test`:
-   the mean of the charge and discharge branches when both are there, or with ``slow_ocv="discharge"`` the discharge
-   branch, the paper's convention of rest points taken after discharge steps) and the capacity, and the model is
-   fitted on the other record with that curve. Nothing is read from names or metadata but the declared capacity.
-2. **Prepare** the evaluation data (:mod:`socbench.diagnose.data`): bins of ≥ ``dt`` s — coarser where a record
-   would keep more than ``max_samples`` samples, which bounds the cost of every fit — and the train / held-out split.
-3. **Search** (:mod:`socbench.diagnose.search`): signatures, bounded fits on the training part, held-out scores, the
-   forward steps while the held-out RMSE falls by ≥ 10 %.
-4. **SOC** (where the data carry a reference SOC): the EKF on the original and on the augmented model, scored on the
-   held-out part with :func:`socbench.estimators.scoring.score`.
+1. **Prepare** the evaluation data (:mod:`socbench.diagnose.data`): charge-preserving bins of ≥ ``dt`` s, coarser
+   where a record would keep more than ``max_samples`` bins (which bounds the cost of every fit).
+2. **Fit** the base model on the fit data (:func:`fit_base`). A fit record that moves most of its charge below C/10 is
+   a slow OCV test: it gives the OCV curve (:func:`~socbench.identify.ocv_from_slow_test`: the mean of the charge and
+   discharge branches when both are there, or with ``slow_ocv="discharge"`` the discharge branch, the paper's
+   convention of rest points taken after discharge steps) and the capacity. The fit setting is chosen by validation
+   on the evaluation records (:func:`~socbench.identify.select_fit`: constant mode with each sample weighting, then
+   the winner in lookup mode), so that the effects are not spent on base-fit error. Nothing is read from names or
+   metadata but the declared capacity.
+3. **Search** (:mod:`socbench.diagnose.search`): blocked cross-validation over every evaluation record
+   (:func:`~socbench.diagnose.data.make_folds`), signatures, one bounded fit per fold, held-out scores, the forward
+   steps while the held-out RMSE falls by ≥ 10 %.
+4. **SOC** (where the data carry a reference SOC): the EKF and the UKF on the base model and on the augmented model of
+   every fold, block ``j`` scored with fold ``j``'s run (:func:`soc_errors`); the filters' voltage noise is the
+   white-noise equivalent of each fold model's correlated training residual (:func:`filter_voltage_sd`), an added
+   state's initial SD the spread of its fitted initial value over the folds (:func:`fold_spread_sd`).
+
+``before`` is the base model's error on every averaged sample (no parameter of it was fitted there); ``after`` the
+cross-validated error of the final set (every block scored by parameters fitted without it). The returned final model
+holds the all-data fit.
 """
 
 from __future__ import annotations
@@ -28,10 +37,12 @@ from ..models.effects import EFFECTS
 from ..profile import Profile
 from .cv import cv_residual
 from .data import Folds, bin_average, make_folds
-from .search import BASE_REFIT, Search, initial_soc, residual_noise
+from .search import BASE_REFIT, Search, initial_soc, residual_noise, rest_current
 
 #: a fit record whose |I| never exceeds this C-rate is a slow OCV test
 SLOW_TEST_C_RATE = 0.1
+#: bins of a slow OCV test before its branches are read [s]
+SLOW_TEST_BIN_S = 60.0
 
 
 @dataclass
@@ -109,10 +120,21 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
     ocv = capacity = None
     info = {"records": [p.name for p in fit_profiles]}
     if slow:
-        cur = np.abs(slow[0].current_a)
+        # a slow test moves 0.1 % of its charge a minute: one-minute bins lose nothing of its OCV and average a noisy
+        # current sensor down, so that a noise spike does not cut a branch into pieces
+        test = bin_average(slow[0], SLOW_TEST_BIN_S)
+        # over tens of hours a current-sensor offset counts as much charge as the test moves in hours: the rests
+        # measure it (their true current is zero), and it is taken off before the charge is counted
+        cur = np.abs(test.current_a)
         moving = cur[cur > 1e-3 * float(cur.max())]
+        rest = rest_current(test, _capacity(slow[0]) or float(np.ptp(test.amp_hours())) or 1.0,
+                            quiet_a=0.25 * float(np.median(moving)))
+        if rest is not None:
+            test = test.with_(current_a=test.current_a - rest[0])
+            info["slow_test_current_offset_a"] = rest[0]
+            cur = np.abs(test.current_a)
         # the branches are the runs at the test's typical (median) current, whatever a CV top-off did before
-        s = ocv_from_slow_test(slow[0], capacity_ah=_capacity(slow[0]), i_min=0.5 * float(np.median(moving)))
+        s = ocv_from_slow_test(test, capacity_ah=_capacity(slow[0]), i_min=0.5 * float(np.median(moving)))
         use_mean = slow_ocv == "mean" and s.mean is not None
         ocv = s.mean if use_mean else s.discharge
         capacity = s.capacity_ah
