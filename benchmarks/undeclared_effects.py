@@ -32,7 +32,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # o
 
 import numpy as np  # noqa: E402
 
-from socbench.diagnose.randomized import TARGETS, draw_case, markdown, rates, run_case  # noqa: E402
+from socbench.diagnose.randomized import TARGETS, case_kind, draw_case, markdown, rates, run_case  # noqa: E402
 
 
 def one(index: int, seed: int) -> dict:
@@ -40,7 +40,13 @@ def one(index: int, seed: int) -> dict:
 
     warnings.filterwarnings("ignore")
     w0, c0 = time.perf_counter(), time.process_time()
-    case = draw_case(index, seed)
+    try:
+        case = draw_case(index, seed)
+    except Exception as exc:  # a generator failure is reported with the case, never hidden or fatal to the run
+        kind, _ = case_kind(index)
+        return {"index": index, "seed": seed, "kind": kind, "effects": [], "added": [], "first": None,
+                "error": f"generator: {type(exc).__name__}: {exc}", "wall_s": 0.0, "cpu_s": 0.0,
+                "case_wall_s": time.perf_counter() - w0, "case_cpu_s": time.process_time() - c0}
     gen = time.process_time() - c0
     r = run_case(case)
     r["generate_cpu_s"] = gen

@@ -20,8 +20,9 @@ Effects and magnitudes (``EFFECT_RANGES``; a drawn case uses one value in the ra
 rates spanning decades)
   * temperature — the evaluation runs at an ambient −10…10 °C or 35…45 °C against a 25 °C fit, with E_a 20–50 kJ/mol
     for the over-potential and an entropic coefficient −0.3…+0.1 mV/K (lithium-ion cells' dU/dT is of order 0.1 mV/K);
-  * hysteresis — half the gap between the charge and discharge OCV branches: LFP 5–20 mV (LFP gaps of 10–40 mV:
-    Roscher & Sauer, J. Power Sources 196, 331, 2011; Marongiu et al., Appl. Energy 171, 629, 2016), NMC/NCA 2–8 mV;
+  * hysteresis — half the gap between the charge and discharge OCV branches: LFP 5–20 mV (LFP's branches lie some
+    tens of mV apart: Roscher & Sauer, J. Power Sources 196, 331, 2011; Marongiu et al., Appl. Energy 171, 629,
+    2016), NMC/NCA 2–8 mV (a few mV: the layered oxides' gap is far smaller);
     Plett's rate γ 20–200, an instantaneous part up to 30 % of it;
   * capacity — an aged cell: 5–25 % capacity fade (20 % is the usual end-of-life criterion), with the resistances
     grown by up to as much;
@@ -29,8 +30,9 @@ rates spanning decades)
     the cell's 1C);
   * extra_rc — a diffusion branch the fitted structure lacks: R 0.2–1 × R0, τ 100–2000 s;
   * butler_volmer — the charge-transfer over-potential ``(2RT/F)·asinh(I/2I₀)`` with I₀ 0.3–2 × the 1C current;
-  * coulombic_efficiency — η_c 0.99–0.999 on charge (healthy cells measure above 0.999: Smith et al.,
-    J. Electrochem. Soc. 158, A447, 2011; the range is that of worn or hot cells);
+  * coulombic_efficiency — η_c 0.99–0.999 on charge (healthy commercial cells measure above 0.999 with
+    high-precision coulometry: Smith et al., J. Electrochem. Soc. 157, A196, 2010; the range is that of worn or hot
+    cells);
   * self_discharge — a soft internal short: 0.1–2 % of the capacity per hour (normal self-discharge, a few % per
     month, is invisible within a test day).
 
@@ -221,6 +223,12 @@ def eval_current(rng, kind: str, q: float, dt: float, soc0: float = 0.98):
         pieces.append(i)
         z -= float(np.sum(i)) * dt / (3600.0 * q)
 
+    def recharge_some():
+        """A partial recharge to 60–95 % (at least 10 points above the SOC now; none when that is above 95 %)."""
+        lo = max(z + 0.1, 0.6)
+        if lo < 0.95:
+            recharge(float(rng.uniform(lo, 0.95)))
+
     def recharge(to):
         nonlocal z
         c = float(rng.uniform(0.3, 1.0))
@@ -246,7 +254,7 @@ def eval_current(rng, kind: str, q: float, dt: float, soc0: float = 0.98):
             flights += 1
             add(np.zeros(max(1, int(round(rng.uniform(300.0, 1800.0) / dt)))))
             if rng.random() < 0.5:
-                recharge(float(rng.uniform(max(z + 0.1, 0.6), 0.95)))
+                recharge_some()
         desc.append(f"{flights} UAV flights")
     else:  # a mission day: drives or flights, rests, partial recharges
         hours = float(rng.uniform(6.0, 12.0))
@@ -254,7 +262,7 @@ def eval_current(rng, kind: str, q: float, dt: float, soc0: float = 0.98):
             i = drive_current(rng, q, dt, float(rng.uniform(10.0, 40.0))) if rng.random() < 0.5 \
                 else flight_current(rng, q, dt)
             if z - float(np.sum(i)) * dt / (3600.0 * q) < 0.1:
-                recharge(float(rng.uniform(max(z + 0.1, 0.6), 0.95)))
+                recharge_some()
                 continue
             add(i)
             add(np.zeros(max(1, int(round(_loguniform(rng, 600.0, 7200.0) / dt)))))
