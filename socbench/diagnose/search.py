@@ -24,6 +24,8 @@ to U(z)/U(1) and charge weighting) are one family, fitted together. Beside the e
 (``BASE_REFIT``): the base model's own parameters scaled and a voltage offset per record, fitted the same way. It stands
 for what a better base fit would absorb (an OCV read from unrelaxed rests, a slow branch a short pulse cannot
 identify) and is never named an effect; an effect within ``PARSIMONY`` of a winning base refit is preferred to it.
+For the same reason an extra RC branch whose time constant lies within ×``TWIN_TAU`` of one of the base model's
+branches is not named: it cannot be told from a misfit of that branch.
 
 The current sensor gets evidence of its own: where the records hold rests (at least ``REST_MIN_S`` below C/20 whose
 spread is the sensor's noise), the true current is zero, so the measured rest current *is* the offset. ``b`` is
@@ -71,6 +73,8 @@ BASE_SCALE = float(np.log(4.0))
 BASE_OFFSET_V = 0.05
 #: an effect is preferred to the base refit when its held-out RMSE is within this share of the refit's
 PARSIMONY = 0.10
+#: an extra RC branch whose time constant lies within this factor of one of the base model's is that branch misfitted
+TWIN_TAU = 3.0
 #: compression of the training record for the fits (the held-out part is scored on every sample)
 FIT_COMPRESS = {"max_step_s": 60.0}
 
@@ -432,8 +436,27 @@ class Search:
                         f"{1000 * rmse_after:.1f} mV ({100 * (1 - rmse_after / rmse_now):.0f} % lower)")
         if name == "current_bias" and self.bias_rest is not None:
             evidence += f"; rests read {1000 * self.bias_rest[0]:.1f} mA (bounds b to it)"
+        if name == "extra_rc":
+            twin = self.twin_branch(10.0 ** params["log10_tau"])
+            if twin is not None:  # not an effect the structure lacks: a branch it has, misfitted
+                score = -np.inf
+                evidence += (f"; its τ = {10.0 ** params['log10_tau']:.0f} s lies within ×{TWIN_TAU:g} of the base "
+                             f"model's branch {twin[0]} (τ = {twin[1]:.0f} s): a misfit of that branch, left to the "
+                             "base refit")
         return Candidate(name, score, rmse_now, rmse_after, params, r2, evidence,
                          tuple(getattr(final, "effects", ())), _time.perf_counter() - t0, r_after, sse, fit, layout)
+
+    def twin_branch(self, tau: float):
+        """``(branch, τ_j)`` of a base-model RC branch whose time constant (``R_j·C_j`` at SOC 0.5) lies within
+        ×``TWIN_TAU`` of ``tau``, or None: a further branch there cannot be told from a misfit of that one."""
+        vals = self.base.params.values
+        for p in self.base.required_params():
+            j = p[1:]
+            if p[:1] == "R" and j.isdigit() and int(j) >= 1 and f"C{j}" in vals:
+                tj = float(np.ravel(vals[p](0.5))[0] * np.ravel(vals[f"C{j}"](0.5))[0])
+                if tj > 0 and abs(np.log(tau / tj)) <= np.log(TWIN_TAU):
+                    return f"R{j}C{j}", tj
+        return None
 
     def fold_models(self, step: Candidate, layout=None, initial_sd=None):
         """``(model, offsets)`` of every fold after ``step`` (one variant per fold on a leading batch axis of shape
