@@ -63,7 +63,14 @@ def main(argv=None) -> int:
     ap.add_argument("--json", required=True, help="summary JSON (rates, rows, every case)")
     ap.add_argument("--md", help="Markdown table")
     ap.add_argument("--resume", action="store_true", help="keep the finished cases of OUT.json.cases.jsonl")
+    ap.add_argument("--render-only", action="store_true", help="rewrite the Markdown (--md) from the JSON (--json)")
     args = ap.parse_args(argv)
+    if args.render_only:
+        text = markdown(json.loads(Path(args.json).read_text()))
+        if args.md:
+            Path(args.md).write_text(text)
+        print(text)
+        return 0
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     log = Path(str(out) + ".cases.jsonl")

@@ -540,6 +540,9 @@ TARGETS = {
     "both_named_pair": 0.70,
     "soc_not_worse": 0.90,
 }
+#: the run-time targets of issue 13: the whole 200-case run, one diagnosis [s]
+RUN_WALL_S = 600.0
+DIAGNOSIS_WALL_S = 30.0
 LABELS = {
     "named_first_single": "hidden effect named first (single-effect cases)",
     "cut_30_single": f"held-out voltage RMSE cut ≥ {100 * CUT:.0f} % (single-effect cases)",
@@ -565,6 +568,11 @@ def markdown(summary: dict) -> str:
         v = R[key]
         met = "yes" if v["rate"] is not None and v["rate"] >= target else "**no**"
         L.append(f"| {LABELS[key]} | {v['hits']}/{v['n']} = {_pct(v['rate'])} | ≥ {100 * target:.0f} % | {met} |")
+    wall, slow = summary["wall_s"], summary["diagnosis_wall_max_s"]
+    L.append(f"| wall time of the whole run ({summary['jobs']} workers) | {wall:.0f} s | ≤ {RUN_WALL_S:.0f} s | "
+             f"{'yes' if wall <= RUN_WALL_S else '**no**'} |")
+    L.append(f"| slowest single diagnosis (wall) | {slow:.1f} s | < {DIAGNOSIS_WALL_S:.0f} s | "
+             f"{'yes' if slow < DIAGNOSIS_WALL_S else '**no**'} |")
     L += ["", "Per effect (single-effect cases; pairs: named when it was one of the two hidden; footprint: RMS voltage "
           "the hidden effect adds on the evaluation records over the voltage noise, median; wrongly first: cases "
           "where it was named first without being hidden):", "",
