@@ -8,7 +8,8 @@ specific to one filter:
 * :class:`Inputs`   the profile as ``(R, T)`` arrays (current, voltage, temperature), the step lengths;
 * initial state     ``x0 = model.x0(soc0)``; ``soc0`` scalar or ``(R,)`` (default: OCV inverse of the first voltage);
                     ``P0`` scalar (SOC variance), ``(n,)`` diagonal, ``(n, n)`` or ``(R, n, n)``; by default
-                    ``diag(soc0_sd², state0_sd², …)`` or the model's ``initial_sd`` if it declares one;
+                    ``diag(model.initial_sd(soc0_sd, state0_sd)²)`` (``soc0_sd²``, ``state0_sd²``, …; an augmented
+                    model's effect states declare their own);
 * :class:`Recorder` preallocated outputs, with the freeze of failed runs (outputs repeat their last finite values).
 
 Options common to all filters (all keyword): ``Q``, ``R`` (overrides, see :class:`~.noise.NoiseModel`),
@@ -109,7 +110,8 @@ class Estimator:
         self.model = model
         self.options = {**known, **options}
         self.n = int(model.n_states)
-        self.noise = NoiseModel(noise, self.n, self.options["Q"], self.options["R"])
+        walk = model.walk_var() if hasattr(model, "walk_var") else None
+        self.noise = NoiseModel(noise, self.n, self.options["Q"], self.options["R"], walk)
         for key in ("var_max", "nis_max", "soc0_sd", "state0_sd"):
             if not self.options[key] > 0:
                 raise ConfigError(f"{self.name}: option {key} must be > 0, got {self.options[key]!r}")
@@ -120,12 +122,13 @@ class Estimator:
         return f"{type(self).__name__}(model={getattr(self.model, 'name', '?')!r})"
 
     # ------------------------------------------------------------------ the one verb
-    def run(self, profile: Profile, soc0=None, P0=None, seed=None, segments=None) -> Estimate:
+    def run(self, profile: Profile, soc0=None, P0=None, seed=None, segments=None, x0=None) -> Estimate:
         """Estimate SOC over every run of ``profile`` (see the module docstring for ``soc0`` and ``P0``).
 
         A record of several discharges (battery swaps, recharges: :mod:`socbench.segments`) is filtered segment by
         segment: ``segments=None`` finds them, ``False`` filters the record as one piece, or pass a
-        :class:`~socbench.segments.Segments`. ``soc0`` starts the first segment; every later one restarts the
+        :class:`~socbench.segments.Segments`. ``soc0`` (or ``x0``, a full initial state ``(R, n)`` that replaces
+        ``model.x0(soc0)``) starts the first segment; every later one restarts the
         filter as at a record's start — SOC from the OCV inverse of its first voltage (an estimator never reads
         the reference it is scored against), the other states at rest, covariance ``P0`` — and the current across
         a boundary is never used. ``Estimate.domain`` is :func:`socbench.domain.estimate_domain` of the result.
@@ -136,14 +139,16 @@ class Estimator:
         inputs = Inputs.from_profile(profile)
         segs = resolve(segments, profile, self.model.ocv, self.model.capacity_ah)
         P0 = self.initial_cov(inputs.n_runs, P0)
+        if x0 is not None:
+            x0 = np.ascontiguousarray(np.broadcast_to(np.asarray(x0, dtype=float), (inputs.n_runs, self.n)))
         if segs.count == 1:
-            est = self._run(inputs, self.initial_state(inputs, soc0), P0, seed)
+            est = self._run(inputs, self.initial_state(inputs, soc0) if x0 is None else x0, P0, seed)
         else:
             parts = []
             for s, (a, b) in enumerate(segs.spans()):
                 part = inputs.slice(a, b)
-                parts.append(self._run(part, self.initial_state(part, soc0 if s == 0 else None), P0,
-                                       segment_seed(seed, s)))
+                first = self.initial_state(part, soc0 if s == 0 else None) if s or x0 is None else x0
+                parts.append(self._run(part, first, P0, segment_seed(seed, s)))
             est = Estimate.join(parts, inputs.time_s, segs)
         t0 = time.perf_counter()
         domain = estimate_domain(self.model, est, profile)
@@ -176,8 +181,9 @@ class Estimator:
         return self.model.x0(np.broadcast_to(soc0, (R,)), (R,))
 
     def initial_cov(self, R: int, P0) -> np.ndarray:
-        sd = getattr(self.model, "initial_sd", None)
-        if sd is None:
+        if hasattr(self.model, "initial_sd"):
+            sd = np.asarray(self.model.initial_sd(self.options["soc0_sd"], self.options["state0_sd"]), dtype=float)
+        else:
             sd = np.full(self.n, self.options["state0_sd"])
             sd[0] = self.options["soc0_sd"]
         return initial_cov(R, P0, self.n, sd)

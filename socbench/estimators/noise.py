@@ -96,13 +96,14 @@ DEFAULT_NOISE = SensorNoise(voltage_sd=0.01, current_sd=0.1)
 
 
 class NoiseModel:
-    """Q and R for one estimator: derived from a :class:`SensorNoise`, or overridden.
+    """Q and R for one estimator: derived from a :class:`SensorNoise` (plus the model's own random walks,
+    ``walk_var`` per second, e.g. an effect state declared to drift), or overridden.
 
     ``Q`` override: an ``(n, n)`` array (per step, constant) or a callable ``Q(B, dt) -> (…, n, n)``.
     ``R`` override: a scalar variance [V²] or a callable ``R(D) -> (…)``.
     """
 
-    def __init__(self, noise: SensorNoise | None, n_states: int, Q=None, R=None):
+    def __init__(self, noise: SensorNoise | None, n_states: int, Q=None, R=None, walk_var=None):
         self.sensor = noise if noise is not None else DEFAULT_NOISE
         if not isinstance(self.sensor, SensorNoise):
             raise ConfigError(f"noise must be a SensorNoise, got {type(noise).__name__}")
@@ -119,6 +120,8 @@ class NoiseModel:
                 raise ConfigError(f"R must be a variance > 0 [V²], got {R!r}")
         self.Q_override = Q
         self.R_override = R
+        w = None if walk_var is None else np.asarray(walk_var, dtype=float)
+        self.walk = w if w is not None and np.any(w > 0) else None
 
     @property
     def needs_B(self) -> bool:
@@ -130,7 +133,11 @@ class NoiseModel:
 
     def Q(self, B, dt) -> np.ndarray:
         if self.Q_override is None:
-            return self.sensor.process_cov(B, dt)
+            Q = self.sensor.process_cov(B, dt)
+            if self.walk is not None:  # the model's own random walks (an effect state that may drift)
+                idx = np.arange(self.n)
+                Q[..., idx, idx] += self.walk * np.asarray(dt, dtype=float)[..., None]
+            return Q
         if callable(self.Q_override):
             return np.asarray(self.Q_override(B, dt), dtype=float)
         return self.Q_override

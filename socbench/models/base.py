@@ -134,6 +134,17 @@ class Model(ABC):
         x[..., 0] = soc
         return x
 
+    def initial_sd(self, soc0_sd: float, state0_sd: float) -> np.ndarray:
+        """SD of every state's initial value for a filter ``(n,)``: ``soc0_sd`` for the SOC, ``state0_sd`` for the
+        others (a model with states of other kinds overrides this)."""
+        sd = np.full(self.n_states, float(state0_sd))
+        sd[0] = soc0_sd
+        return sd
+
+    def walk_var(self) -> np.ndarray:
+        """Random-walk variance of every state per second ``(n,)`` the filters add to Q (0: none)."""
+        return np.zeros(self.n_states)
+
     def f(self, x, i, dt, temp=None):
         return self.step(x, i, dt, temp)[0]
 

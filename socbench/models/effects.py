@@ -70,19 +70,33 @@ class Effect:
     defaults: ClassVar[dict] = {}
     #: settings that are not fitted (e.g. the reference temperature)
     settings: ClassVar[dict] = {}
+    #: for a filter, per state: the SD of its initial value (None: the estimator's default for a dynamic state) and
+    #: of its random walk per √hour (a constant's is 0: capacity and a sensor offset do not move within a record)
+    state_sd: ClassVar[tuple] = ()
+    walk_sd: ClassVar[tuple] = ()
+    #: state -> the parameter that is its initial value (a fitted initial value's spread is its filter uncertainty)
+    initial_params: ClassVar[dict] = {}
 
-    def __init__(self, **values):
+    def __init__(self, *, initial_sd=None, **values):
         unknown = sorted(set(values) - set(self.param_names) - set(self.settings))
         if unknown:
             raise ConfigError(f"effect '{self.name}' has no parameter '{unknown[0]}' (have {list(self.param_names)})")
         # a value may carry a leading batch axis (one parameter variant per run): the fits simulate variants together
         self.values = {k: np.asarray(v, dtype=float) for k, v in {**self.defaults, **self.settings, **values}.items()}
+        if initial_sd is not None and len(initial_sd) != self.n_states:
+            raise ConfigError(f"effect '{self.name}': initial_sd needs one entry per state {self.state_names}")
+        self._initial_sd = None if initial_sd is None else tuple(initial_sd)
 
     def __getitem__(self, key):
         return self.values[key]
 
     def with_values(self, **values) -> Effect:
-        return type(self)(**{**self.values, **values})
+        return type(self)(initial_sd=self._initial_sd, **{**self.values, **values})
+
+    def initial_sd(self, base) -> tuple:
+        """SD of each state's initial value for a filter (None: the estimator's default): the one given at
+        construction (e.g. the spread of a fitted initial value), else the class's declaration."""
+        return self._initial_sd if self._initial_sd is not None else self.state_sd
 
     def __repr__(self) -> str:
         vals = ", ".join(f"{k}={np.array2string(v, precision=4)}" for k, v in self.values.items())
@@ -211,6 +225,10 @@ class Hysteresis(Effect):
     param_names = ("M", "M0", "gamma", "h0")
     defaults = {"M": 0.01, "M0": 0.0, "gamma": 50.0, "h0": 0.0}
     settings = {"h_ref": 0.0}
+    #: h ∈ [−1, 1] starts at the fitted h0; the sign memory s is a bookkeeping state (no uncertainty of its own)
+    state_sd = (0.1, 1e-6)
+    walk_sd = (0.0, 0.0)
+    initial_params = {"h": "h0"}
 
     def bounds(self, model):
         n = n_cells(model)
@@ -271,6 +289,9 @@ class Capacity(Effect):
     state_names = ("cap",)
     param_names = ("cap0",)
     defaults = {"cap0": 1.0}
+    state_sd = (0.01,)
+    walk_sd = (0.0,)
+    initial_params = {"cap": "cap0"}
 
     def bounds(self, model):
         return {"cap0": (0.6, 1.6)}
@@ -300,6 +321,12 @@ class CurrentBias(Effect):
     state_names = ("b",)
     param_names = ("b0",)
     defaults = {"b0": 0.0}
+    walk_sd = (0.0,)
+    initial_params = {"b": "b0"}
+
+    def initial_sd(self, base):
+        """0.1 % of 1C unless given (a fitted offset is known to about a sensor's resolution)."""
+        return self._initial_sd if self._initial_sd is not None else (1e-3 * base.capacity_ah,)
 
     def bounds(self, model):
         return {"b0": (-0.05 * model.capacity_ah, 0.05 * model.capacity_ah)}
@@ -362,6 +389,8 @@ class ExtraRC(Effect):
     state_names = ("Ux",)
     param_names = ("R", "log10_tau")
     defaults = {"R": 1e-3, "log10_tau": 2.5}
+    state_sd = (None,)
+    walk_sd = (0.0,)
 
     def bounds(self, model):
         return {"R": (1e-6, resistance_scale(model)), "log10_tau": (0.5, 4.0)}
@@ -530,6 +559,22 @@ class AugmentedModel(Model):
                 return e
         raise KeyError(name)
 
+    def initial_sd(self, soc0_sd: float, state0_sd: float) -> np.ndarray:
+        """SD of every state's initial value for a filter ``(n,)``: the base model's, then each effect's declaration
+        (:meth:`Effect.initial_sd`; None takes ``state0_sd``)."""
+        sd = list(self.base.initial_sd(soc0_sd, state0_sd))
+        for e in self.effects:
+            sd += [state0_sd if v is None else float(v) for v in e.initial_sd(self.base)]
+        return np.asarray(sd, dtype=float)
+
+    def walk_var(self) -> np.ndarray:
+        """Random-walk variance of every state per second ``(n,)``: the base model's, then the effects' declared
+        ``walk_sd`` (per √hour)."""
+        w = list(self.base.walk_var())
+        for e in self.effects:
+            w += [(float(v) ** 2 / 3600.0) if v else 0.0 for v in (e.walk_sd or (0.0,) * e.n_states)]
+        return np.asarray(w, dtype=float)
+
     def x0(self, soc, batch=()):
         xb = self.base.x0(soc, batch)
         parts = [xb] + [np.broadcast_to(e.initial(), xb.shape[:-1] + (e.n_states,)) for e in self.effects]
@@ -615,7 +660,7 @@ class AugmentedModel(Model):
         2. the SOC path ``z_{k+1} = z_k + g_k·Δz_k − leak(z_k) (+ jump_{k+1})``, ``Δz_k`` the base model's B1
            increment on ``i_e``, ``g_k`` the product of the effects' SOC gains (capacity, coulombic efficiency): a
            running sum (:func:`~socbench.models.recurrence.running_sum`); with a leak (self_discharge, which depends
-           on ``U_oc(z_k)``) a loop over the SOC alone;
+           on ``U_oc(z_k)``) running sums iterated to the fixed point (:meth:`_leaky_soc_path`);
         3. the base model's other states given that SOC path and ``i_e`` (its :meth:`Model._states_given_soc`);
         4. the output on every sample in one :meth:`output` call.
 
@@ -637,20 +682,42 @@ class AugmentedModel(Model):
                 gain = gain * g[0]
         inc = gain * soc_step(0.0, ie, dt, self.base.capacity_ah, self.base.eta_charge)[0]
         leaky = [(e, sl) for e, sl in zip(self.effects, self._slices) if type(e).soc_leak is not Effect.soc_leak]
-        if not leaky:
-            xs[..., 0] = running_sum(x[..., 0], inc, jumps)
-        else:
-            z = x[..., 0]
-            for k in range(T):  # the leak depends on U_oc(z_k): only the SOC runs step by step
-                xs[k, ..., 0] = z
-                if k + 1 < T:
-                    z = z + inc[k]
-                    for e, sl in leaky:
-                        z = z - e.soc_leak(xs[k, ..., 0], xs[k, ..., sl], dt[k], self.base)[0]
-                    if jumps is not None:
-                        z = z + jumps[k + 1]
+        xs[..., 0] = running_sum(x[..., 0], inc, jumps)
+        if leaky:
+            xs[..., 0] = self._leaky_soc_path(xs, x[..., 0], inc, dt, jumps, leaky)
         self.base._states_given_soc(xs[..., :nb], x[..., :nb], ie, dt, None if temp_t is None else temp_t[:-1], guards)
         return self._time_first_result(xs, i_t, temp_t, guards)
+
+    #: the leaky SOC path's fixed-point iteration stops when no sample moves by more than this (SOC fraction)
+    LEAK_TOL = 1e-14
+    LEAK_MAX_ITER = 200
+
+    def _leaky_soc_path(self, xs, z0, inc, dt, jumps, leaky):
+        """The SOC path under a leak that depends on ``U_oc(z_k)`` (self-discharge), time first.
+
+        ``z_{k+1} = z_k + inc_k − leak(z_k) (+ jump_{k+1})`` is a Volterra recurrence: its fixed point is found by
+        Picard iteration on the whole path, ``z^{(m+1)} = running_sum(z_0, inc − leak(z^{(m)}))`` from the leak-free
+        path ``xs[..., 0]``. The error after ``m`` sweeps is bounded by ``(L·t)^m/m!`` (``L`` the leak's Lipschitz
+        constant, ``t`` the record length): a day at the largest admissible rate takes about twenty whole-record
+        sweeps instead of a Python step per sample. Should it not settle in ``LEAK_MAX_ITER`` sweeps, the step loop
+        runs."""
+        z = xs[..., 0]
+        for _ in range(self.LEAK_MAX_ITER):
+            leak = sum(e.soc_leak(z[:-1], xs[:-1, ..., sl], dt, self.base)[0] for e, sl in leaky)
+            z_new = running_sum(z0, inc - leak, jumps)
+            done = np.max(np.abs(z_new - z)) <= self.LEAK_TOL
+            z = z_new
+            if done:
+                return z
+        z = np.empty_like(xs[..., 0])
+        zk = z0
+        for k in range(z.shape[0]):
+            z[k] = zk
+            if k + 1 < z.shape[0]:
+                zk = zk + inc[k] - sum(e.soc_leak(z[k], xs[k, ..., sl], dt[k], self.base)[0] for e, sl in leaky)
+                if jumps is not None:
+                    zk = zk + jumps[k + 1]
+        return z
 
     def output(self, x, i, temp=None, jac=False, guards=None):
         x, (i,) = self._broadcast(x, i)

@@ -64,6 +64,10 @@ class SocFunction:
     def is_constant(self) -> bool:
         return False
 
+    def scaled(self, factor) -> SocFunction:
+        """A copy multiplied by ``factor`` (a number, or a parameter batch of factors on the leading axes)."""
+        raise NotImplementedError(f"{type(self).__name__} cannot be scaled")
+
     def range_on_unit(self, n: int = 2001) -> tuple[float, float]:
         """(min, max) of the function on z ∈ [0, 1]."""
         v = self(np.linspace(0.0, 1.0, n))
@@ -87,6 +91,9 @@ class Constant(SocFunction):
             return value.copy(), np.zeros(z.shape)
         shape = np.broadcast_shapes(z.shape, value.shape)
         return np.broadcast_to(value, shape).copy(), np.zeros(shape)
+
+    def scaled(self, factor):
+        return Constant(np.asarray(self.value, dtype=float) * np.asarray(factor, dtype=float))
 
     def to_dict(self):
         return {"const": float(self.value)}
@@ -134,6 +141,9 @@ class Polynomial(SocFunction):
         d = np.where((z < 0.0) | (z > 1.0), 0.0, d)
         return v, d
 
+    def scaled(self, factor):
+        return Polynomial(np.asarray(self.coeffs, dtype=float) * np.asarray(factor, dtype=float)[..., None])
+
     def to_dict(self):
         if self.batched:
             raise ConfigError("a batched polynomial (parameter batch) cannot be saved")
@@ -176,6 +186,9 @@ class Lookup(SocFunction):
         v = v0 + s * (zc - self.soc[j])
         d = np.where(outside, 0.0, s)
         return v, d
+
+    def scaled(self, factor):
+        return Lookup(self.soc, np.asarray(self.value, dtype=float) * np.asarray(factor, dtype=float)[..., None])
 
     def to_dict(self):
         if self.batched:
