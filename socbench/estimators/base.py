@@ -8,7 +8,8 @@ specific to one filter:
 * :class:`Inputs`   the profile as ``(R, T)`` arrays (current, voltage, temperature), the step lengths;
 * initial state     ``x0 = model.x0(soc0)``; ``soc0`` scalar or ``(R,)`` (default: OCV inverse of the first voltage);
                     ``P0`` scalar (SOC variance), ``(n,)`` diagonal, ``(n, n)`` or ``(R, n, n)``; by default
-                    ``diag(soc0_sd², state0_sd², …)`` or the model's ``initial_sd`` if it declares one;
+                    ``diag(soc0_sd², state0_sd², …)`` or the model's ``initial_sd`` if it declares one; states
+                    listed in the model's ``initial_sd_overrides`` (``{index: sd}``) take that SD instead;
 * :class:`Recorder` preallocated outputs, with the freeze of failed runs (outputs repeat their last finite values).
 
 Options common to all filters (all keyword): ``Q``, ``R`` (overrides, see :class:`~.noise.NoiseModel`),
@@ -147,6 +148,9 @@ class Estimator:
         if sd is None:
             sd = np.full(n, self.options["state0_sd"])
             sd[0] = self.options["soc0_sd"]
+            # states whose initial spread the model knows (an effect's noise state starts at its stationary SD)
+            for k, v in (getattr(self.model, "initial_sd_overrides", None) or {}).items():
+                sd[k] = v
         base = np.diag(np.asarray(sd, dtype=float) ** 2)
         if P0 is None:
             P = base

@@ -27,7 +27,9 @@ from .truth import TEMP, TruthCell, TruthParams, Z
 
 #: step of the truth simulation of everything the sensors record [s]
 TRUTH_DT = 1.0
-KINDS = ("mission", "replay", "hppc")
+KINDS = ("mission", "replay", "hppc", "measured")
+#: how a measured scenario's models are fitted (socbench.scenarios.measured.Characterisation)
+FIT_METHODS = ("hppc", "ocv+dynamic", "flights")
 #: smallest white-noise SDs handed to the estimators (an ideal sensor still needs R > 0)
 MIN_VOLTAGE_SD = 1e-3
 MIN_CURRENT_SD = 1e-3
@@ -73,6 +75,38 @@ class HppcSpec:
 
 
 @dataclass(frozen=True)
+class MeasuredSpec:
+    """Which measured record a ``measured`` scenario replays and what its models are fitted on
+    (:mod:`socbench.scenarios.measured`)."""
+
+    dataset: str = ""
+    record: str = ""
+    format: str = "auto"
+    fit: str = "hppc"
+    characterisation: tuple = ()
+    ocv_test: str = ""
+    validation: tuple = ()
+    #: white-noise SDs of the recording instruments, declared for the filters' covariances [V], [A]
+    voltage_sd: float = 1e-3
+    current_sd: float = 0.01
+    reference: str = ""  # how the record's reference SOC is defined, for the docs
+
+    def __post_init__(self):
+        for name in ("characterisation", "validation"):
+            v = getattr(self, name)
+            require(isinstance(v, tuple) and all(isinstance(x, str) for x in v), name,
+                    f"must be a list of record names, got {v!r}")
+        require(bool(self.dataset) and bool(self.record), "record", "a measured scenario needs dataset and record")
+        require(self.fit in FIT_METHODS, "fit", f"must be one of {', '.join(FIT_METHODS)}, got {self.fit!r}")
+        require(len(self.characterisation) > 0, "characterisation", "needs at least one identification record")
+        require(self.record not in self.characterisation, "characterisation",
+                "must not contain the scored record (models are fitted on characterisation tests only)")
+        require(self.record not in self.validation, "validation", "must not contain the scored record")
+        require(self.fit != "ocv+dynamic" or bool(self.ocv_test), "ocv_test", "fit 'ocv+dynamic' needs an ocv_test")
+        require(self.voltage_sd > 0 and self.current_sd > 0, "voltage_sd", "instrument SDs must be > 0")
+
+
+@dataclass(frozen=True)
 class ScenarioSpec:
     name: str
     description: str = ""
@@ -84,12 +118,16 @@ class ScenarioSpec:
     replay: ReplaySpec = field(default_factory=ReplaySpec)
     hppc: HppcSpec = field(default_factory=HppcSpec)
     sensors: SensorSpec = field(default_factory=SensorSpec)
+    measured: MeasuredSpec | None = None
+    group: str = ""
     file: str = ""
 
     def __post_init__(self):
         require(self.kind in KINDS, "kind", f"must be one of {', '.join(KINDS)}, got {self.kind!r}")
+        require((self.kind == "measured") == (self.measured is not None), "measured",
+                "a [measured] table is what a kind = \"measured\" scenario needs, and only it")
         ratio = self.sensors.dt / TRUTH_DT
-        require(abs(ratio - round(ratio)) < 1e-9 and ratio >= 1, "sensors.dt",
+        require(self.kind == "measured" or (abs(ratio - round(ratio)) < 1e-9 and ratio >= 1), "sensors.dt",
                 f"must be a multiple of the truth step {TRUTH_DT:g} s, got {self.sensors.dt}")
 
 
@@ -184,6 +222,29 @@ class Scenario:
     @property
     def declared_capacity_ah(self) -> float:
         return self.spec.truth.capacity_ah * (1.0 + self.spec.sensors.capacity_mismatch)
+
+    @property
+    def group(self) -> str:
+        """The catalog group (``measured``: the measured-data scenarios; empty: none)."""
+        return self.spec.group
+
+    def missing(self) -> str | None:
+        """Why the scenario cannot run here (None: it can; a simulated scenario always can)."""
+        return None
+
+    def available(self) -> bool:
+        return self.missing() is None
+
+    def noise_records(self) -> list:
+        """Records with a known SOC on which the noise recipe measures a fitted model's error: the characterisation
+        test (the only one a simulated scenario's models may learn from)."""
+        return [self.characterisation()]
+
+    @property
+    def added_voltage_sd(self) -> float:
+        """White voltage noise on the filtered record that no residual record carries (0: the characterisation
+        test is measured by the same sensors)."""
+        return 0.0
 
     def __repr__(self) -> str:
         return f"Scenario({self.name!r}, kind={self.kind!r})"
