@@ -1,15 +1,20 @@
-"""``socbench estimate --data PATH --params PARAMS.json --estimator coulomb|ekf|ukf|pf [--soc0 Z] [--noise model|sensor]
---out DIR``.
+"""``socbench estimate --data PATH --params PARAMS.json --estimator NAME [--soc0 Z] [--noise model|sensor] --out DIR``
+(NAME: any registered estimator, ``socbench.estimators.ESTIMATORS``: coulomb, ekf, ukf, pf, aekf, ckf, srukf, hinf,
+dual).
 
 Writes ``DIR/estimate.csv`` (``time_s, soc, soc_std, v_pred, innovation``, plus ``innovation_var``) and
 ``DIR/metrics.json`` (``soc_rmse, soc_max_abs, rmse_v, nis_mean`` and, when the data carries a reference SOC,
 ``nees_mean, frac_within_3sigma``; the SOC keys are null without one; ``nis_band`` is the two-sided 95 % χ² band of
-the NIS mean). ``--data builtin:hppc`` and ``--params paper:MODEL`` name the embedded profile and Table 3 sets.
+the NIS mean). An estimator that tracks parameters (``dual``) adds each final estimate and its 3σ half-width:
+``capacity_ah, capacity_ah_3sigma, r0_ohm, r0_ohm_3sigma`` (one number per run: a float for a single record, else a
+list), and a ``parameters`` list naming them. ``--data builtin:hppc`` and ``--params paper:MODEL`` name the embedded
+profile and Table 3 sets.
 
 Noise (``--noise``): ``model`` (default) builds the filter covariances from the parameter file's ``model_error`` block
 (:mod:`socbench.estimators.model_error`: the fitted model's voltage error measured by ``socbench fit``), so that the
-±3σ band covers the model's error too; ``sensor`` uses the sensor noise alone. A file without that block (``paper:``
-sets, files from older versions) falls back to ``sensor`` with a warning. The coulomb counter never reads the voltage:
+±3σ band covers the model's error too; ``sensor`` uses the sensor noise alone. A file without that block (files
+from older versions) falls back to ``sensor`` with a warning; a ``paper:`` set (no identification data) silently
+(``metrics.json`` says which was used, ``noise.mode``). The coulomb counter never reads the voltage:
 it always uses the sensor noise.
 
 SOC axis: the SOC written, scored and given as ``--soc0`` follows the data's own definition when its loader counted the
@@ -25,7 +30,7 @@ from pathlib import Path
 from ..checks import check_temperature_range
 from ..datasets import load
 from ..errors import ConfigError, DataError, SocbenchWarning
-from ..estimators import SensorNoise, estimator_class, make_estimator
+from ..estimators import SensorNoise, estimator_class, estimator_names, make_estimator
 from ..estimators import model_error as recipe
 from ..estimators.scoring import score
 from ..io import atomic_write_frame, atomic_write_text
@@ -37,7 +42,7 @@ from .simulate import resolve_params
 def add_arguments(parser) -> None:
     parser.add_argument("--data", required=True, help="profile file, or builtin:hppc / builtin:1c")
     parser.add_argument("--params", required=True, help="PARAMS.json from `socbench fit`, or paper:MODEL")
-    parser.add_argument("--estimator", required=True, help="coulomb, ekf, ukf or pf")
+    parser.add_argument("--estimator", required=True, help=", ".join(estimator_names()))
     parser.add_argument("--format", default="auto", help="data format (default auto)")
     parser.add_argument("--soc0", type=float, default=None,
                         help="initial SOC guess in [0, 1] on the data's SOC axis (default: OCV inverse of the first "
@@ -86,8 +91,9 @@ def run(args) -> int:
     noise_mode = args.noise if args.estimator != "coulomb" else "sensor"
     stats = model_error_of(args.params) if noise_mode == "model" else None
     if noise_mode == "model" and stats is None:
-        warnings.warn(f"{args.params} has no measured model error (fit it with `socbench fit` to get one): the "
-                      "filter uses the sensor noise alone", SocbenchWarning, stacklevel=2)
+        if not args.params.startswith("paper:"):  # a reference set has no identification data to measure it on
+            warnings.warn(f"{args.params} has no measured model error (fit it with `socbench fit` to get one): the "
+                          "filter uses the sensor noise alone", SocbenchWarning, stacklevel=2)
         noise_mode = "sensor"
     run_model, noise = recipe.apply(model, sensor, stats, profile, noise=noise_mode)
     options = {"soc0_sd": args.soc0_sd}
@@ -107,6 +113,11 @@ def run(args) -> int:
         metrics.update({"nees_mean": None, "frac_within_3sigma": None})
     if temperature:
         metrics["temperature_range"] = temperature
+    for key in est.info.get("parameters", ()):  # parameter estimates (the joint estimator): final value and 3σ
+        metrics["parameters"] = list(est.info["parameters"])
+        for k in (key, f"{key}_3sigma"):
+            v = [float(a) for a in est.info[k]]
+            metrics[k] = v[0] if len(v) == 1 else v
     out = Path(args.out)
     frame = est.to_frame(0)[["time_s", "soc", "soc_std", "v_pred", "innovation", "innovation_var"]]
     if est.n_runs > 1:
@@ -120,8 +131,10 @@ def run(args) -> int:
                 if profile.soc_ref is not None else "no reference SOC  ")
     band = s.get("nis_band")
     nis_band = f" [{band[0]:.2f}, {band[1]:.2f}]" if band else ""
+    params_text = "".join(f"  {k} {float(est.info[k][0]):.4g} ± {float(est.info[k + '_3sigma'][0]):.2g} (3σ)"
+                          for k in est.info.get("parameters", ()))
     print(f"{args.estimator} on {name}, {profile.name}: n={profile.n}  {soc_part}"
-          f"V RMSE {_fmt(s['rmse_v'], 1000, 1)} mV  NIS {_fmt(s['nis_mean'])}{nis_band}  "
+          f"V RMSE {_fmt(s['rmse_v'], 1000, 1)} mV  NIS {_fmt(s['nis_mean'])}{nis_band}{params_text}  "
           f"noise {noise_mode}  failed runs {s['failed_runs']}  -> {out}")
     return 0
 

@@ -116,9 +116,11 @@ def run(args) -> int:
     save_params(args.out, args.model, params, fit=summary,
                 **({"model_error": stats.to_dict()} if stats is not None else {}))
     if stats is not None:
-        print(f"noise recipe on {used}: slow error {_mv(stats.slow_sd)} mV (τ {stats.tau_slow_s:.0f} s), fast "
-              f"{_mv(stats.fast_sd)} mV (τ {stats.tau_fast_s:.1f} s), white {_mv(stats.white_sd)} mV "
-              f"at {', '.join(f'{t:.1f}' for t in stats.temps)} °C")
+        sm = stats.summary()
+        print(f"noise recipe on {used}: model error (RMS over SOC) slow {_mv(sm['slow'])} mV "
+              f"(τ {stats.tau_slow_s:.0f} s), fast {_mv(sm['fast'])} mV (τ {stats.tau_fast_s:.1f} s), resistive "
+              f"{_mv(sm['r'])} mΩ (τ {stats.tau_r_s:.0f} s), white {_mv(sm['white'])} mV at "
+              f"{', '.join(f'{t:.1f}' for t in stats.temps)} °C")
     print(f"{len(warnings)} fit warning(s); wrote {args.out}")
     for w in warnings[:5]:
         print(f"  warning: {w}")

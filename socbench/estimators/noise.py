@@ -41,8 +41,9 @@ class SensorNoise:
     current_bias_sd  A, standard deviation of a constant current offset
     soc_walk_sd      SOC random walk per ``dt`` for model error (fraction; 0 = none)
     state_walk_sd    random walk per ``dt`` on every other state (model units; 0 = none)
-    walk_sd          one random-walk SD per ``dt`` for every state, in state order (replaces the two above when
-                     given; its length must be the model's number of states)
+    walk_sd          one random-walk SD per ``dt`` for the model's states, in state order (replaces the two above
+                     when given); states beyond it (an estimator's own parameter states, appended after the model's,
+                     which carry their own walk) get none
     """
 
     voltage_sd: float
@@ -80,10 +81,11 @@ class SensorNoise:
     def walk_var(self, n_states: int, dt) -> np.ndarray:
         """Diagonal random-walk allowance ``(…, n)`` for steps ``dt``."""
         if self.walk_sd:
-            if len(self.walk_sd) != n_states:
+            if len(self.walk_sd) > n_states:
                 raise ConfigError(f"SensorNoise.walk_sd has {len(self.walk_sd)} entries for a model with {n_states} "
                                   "states")
-            sd = np.asarray(self.walk_sd)
+            sd = np.zeros(n_states)
+            sd[: len(self.walk_sd)] = self.walk_sd
         else:
             sd = np.full(n_states, self.state_walk_sd)
             sd[0] = self.soc_walk_sd
