@@ -102,5 +102,7 @@ def run_on_data_axis(estimator, profile: Profile, axis: SocAxis, soc0=None, soc0
         z0 = np.clip(axis.to_model(soc0), 0.0, 1.0)
     sd = estimator.options["soc0_sd"] if soc0_sd is None else soc0_sd
     P0 = float(axis.to_model(1.0, sd)[1]) ** 2
+    if not axis.identity:  # on the model's axis the record's charge counts with Q_ref (the coulomb counter reads it)
+        profile = profile.with_(meta=dataclasses.replace(profile.meta, capacity_ah=axis.model_capacity_ah))
     est = estimator.run(profile, soc0=z0, P0=P0, seed=seed)
     return axis.estimate_to_data(est)
