@@ -21,7 +21,7 @@ from ..estimators.noise import SensorNoise
 from ..profile import Profile, ProfileMeta
 from .config import require
 from .mission import Mission, Vehicle, fly
-from .schedule import Record, Schedule, lab_schedule, prepare, run_current
+from .schedule import Record, Schedule, lab_schedule, prepare, rest, run_current
 from .sensors import SensorSpec, apply_channel, initial_soc_guess, jitter_offsets
 from .truth import TEMP, TruthCell, TruthParams, Z
 
@@ -177,6 +177,18 @@ def _hppc_record(truth: TruthParams, hppc: HppcSpec) -> Record:
     return rec
 
 
+@lru_cache(maxsize=8)
+def _capacity_record(truth: TruthParams, hppc: HppcSpec) -> Record:
+    """The capacity test of the truth cell at the HPPC ambient, 1 s: from full (relaxed, on the charge branch) a 1 C
+    discharge to the under-voltage limit, then a 30 min rest."""
+    cell = TruthCell(truth)
+    x = cell.initial_state(1.0, hppc.ambient_c, hyst=1.0, batch=1)
+    amps = np.full(int(1.05 * 3600.0 / TRUTH_DT), truth.capacity_ah)
+    dis = run_current(cell, x, amps, TRUTH_DT, hppc.ambient_c, stop_uv=True, phases=[("1C", 0.0)])
+    after = rest(cell, dis.last_state, 1800.0, TRUTH_DT, hppc.ambient_c)
+    return Record.concat([dis, after])
+
+
 def _key(name: str) -> int:
     return zlib.crc32(name.encode("utf-8"))
 
@@ -236,9 +248,18 @@ class Scenario:
         return self.missing() is None
 
     def noise_records(self) -> list:
-        """Records with a known SOC on which the noise recipe measures a fitted model's error: the characterisation
-        test (the only one a simulated scenario's models may learn from)."""
-        return [self.characterisation()]
+        """Records with a known SOC on which the noise recipe measures a fitted model's error: the lab tests of the
+        truth cell, never the scenario's load — the characterisation HPPC and the capacity test (:meth:`capacity_test`,
+        a sustained discharge into the knee that the HPPC's short pulses do not show)."""
+        return [self.characterisation(), self.capacity_test()]
+
+    def capacity_test(self, seed: int = 0) -> Profile:
+        """The 1 C capacity test of the same truth cell (to the under-voltage limit, then 30 min rest), measured like
+        :meth:`characterisation`."""
+        rec = _capacity_record(self.spec.truth, self.spec.hppc)
+        sensors = self.spec.sensors.without_faults()
+        key = _key("capacity/" + repr((self.spec.truth, self.spec.hppc, sensors)))
+        return self._measure(rec, sensors, _seeds(seed), key, f"{self.name}/capacity").run(0)
 
     @property
     def added_voltage_sd(self) -> float:
