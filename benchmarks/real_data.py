@@ -164,8 +164,27 @@ def _pool(jobs: int):
     return ProcessPoolExecutor(max_workers=jobs) if jobs > 1 else None
 
 
-def _map(pool, fn, items):
-    return list(pool.map(fn, items)) if pool is not None else [fn(x) for x in items]
+def _guarded(fn, item):
+    """``fn(item)``, or ``{"error": "..."}`` when it raises: one failed run is a result, not the end of the study."""
+    try:
+        return fn(item)
+    except (KeyboardInterrupt, MemoryError):
+        raise
+    except Exception as exc:  # a model that refuses its state mid-run (a guard), a diverged filter...
+        return {"error": f"{type(exc).__name__}: {exc}".splitlines()[0][:300]}
+
+
+def _each(pool, fn, items):
+    """``(index, result)`` pairs as they finish (each saved at once by the caller: an interrupt loses little)."""
+    from concurrent.futures import as_completed
+
+    if pool is None:
+        for k, x in enumerate(items):
+            yield k, _guarded(fn, x)
+        return
+    futures = {pool.submit(_guarded, fn, x): k for k, x in enumerate(items)}
+    for f in as_completed(futures):
+        yield futures[f], f.result()
 
 
 # ------------------------------------------------------------------------------------------------ 5: studies
@@ -311,10 +330,14 @@ def main(argv=None) -> int:
     # ---- 1-2: five-temperature fits of every candidate, validation on Cycle_1
     todo = [(m, TAGS, str(cache.path("fits", f"{m}_5T.json"))) for m in candidates
             if not cache.path("fits", f"{m}_5T.summary.json").exists()]
-    for out in _map(pool, fit_job, todo):
+    for k, out in _each(pool, fit_job, todo):
+        if "error" in out:
+            print(f"fit {todo[k][0]} failed: {out['error']}", flush=True)
+            continue
         cache.path("fits", f"{out['model']}_5T.summary.json").write_text(json.dumps(out))
         print(f"fit {out['model']}: validation " + ", ".join(f"{1000 * v:.0f}" for v in
                                                              out["validation_rmse_v"].values()) + " mV", flush=True)
+    candidates = [m for m in candidates if cache.path("fits", f"{m}_5T.summary.json").exists()]
     fits = {m: json.loads(cache.path("fits", f"{m}_5T.summary.json").read_text()) for m in candidates}
     ranked = sorted(candidates, key=lambda m: np.mean(list(fits[m]["validation_rmse_v"].values())))
     # models that fit to the same numbers are one model here (PNGV = Thevenin and GNL = DP without the C0 integrator,
@@ -354,9 +377,12 @@ def main(argv=None) -> int:
                     jobs.append((model, str(cache.path("fits", f"{model}_{fit}.json")), stats[(model, fit)], tag, est,
                                  "model", str(cache.path("traces", f"{key}.npz"))))
                     keys.append(key)
-    for key, out in zip(keys, _map(pool, run_job, jobs)):
-        cache.path("runs", f"{key}.json").write_text(json.dumps(out, default=_jsonable))
-        print(f"run {key}: SOC RMSE {100 * out['soc_rmse']:.2f} %, within 3σ {out['frac_within_3sigma']:.3f}, "
+    for k, out in _each(pool, run_job, jobs):
+        cache.path("runs", f"{keys[k]}.json").write_text(json.dumps(out, default=_jsonable))
+        if "error" in out:
+            print(f"run {keys[k]} failed: {out['error']}", flush=True)
+            continue
+        print(f"run {keys[k]}: SOC RMSE {100 * out['soc_rmse']:.2f} %, within 3σ {out['frac_within_3sigma']:.3f}, "
               f"NIS {out['nis_mean']:.2f} ({out['seconds']:.0f} s)", flush=True)
     runs = {p.stem: json.loads(p.read_text()) for p in cache.path("runs").glob("*.json")}
     rjobs, rkeys = [], []
@@ -367,8 +393,8 @@ def main(argv=None) -> int:
                 rjobs.append((str(cache.path("fits", f"{best}_{fit}.json")), tag,
                               str(cache.path("residuals", f"{key}.npz"))))
                 rkeys.append(key)
-    for key, out in zip(rkeys, _map(pool, residual_job, rjobs)):
-        cache.path("residuals", f"{key}.json").write_text(json.dumps(out))
+    for k, out in _each(pool, residual_job, rjobs):
+        cache.path("residuals", f"{rkeys[k]}.json").write_text(json.dumps(out))
     resid = {p.stem: json.loads(p.read_text()) for p in cache.path("residuals").glob("*.json")}
     if pool is not None:
         pool.shutdown()
@@ -441,8 +467,8 @@ def write_doc(path: Path, v: dict):
     w("| US06 | cell temperature at the start | maximum | reference SOC capacity Q_data [Ah] |")
     w("|---|---|---|---|")
     for tag in TAGS:
-        r = runs.get(f"{best}_5T_ekf_{tag}")
-        if r:
+        r = runs.get(f"{best}_5T_coulomb_{tag}")
+        if r and "error" not in r:
             w(f"| {LABEL[tag]} | {r['t_start']:.1f} °C | {r['t_max']:.1f} °C | {r['axis']['data_capacity_ah']:.5g} |")
     w("\nReported SOC follows the data: z_data = 1 − (1 − z_model)·Q_ref/Q_data, σ_data = σ_model·Q_ref/Q_data "
       "(`socbench.socaxis`; the initial guess the other way).\n")
@@ -488,6 +514,10 @@ def write_doc(path: Path, v: dict):
             e, u = runs.get(f"{best}_{fit}_ekf_{tag}"), runs.get(f"{best}_{fit}_ukf_{tag}")
             if not (e and u):
                 continue
+            if "error" in e or "error" in u:
+                why = "; ".join(f"{n} failed ({r['error']})" for n, r in (("EKF", e), ("UKF", u)) if "error" in r)
+                w(f"| {LABEL[tag]} | {'5 temperatures' if fit == '5T' else '25 °C only'} | {why} |||||||| **no** |")
+                continue
             met = (max(e["soc_rmse"], u["soc_rmse"]) <= TARGET["soc_rmse"]
                    and min(e["frac_within_3sigma"], u["frac_within_3sigma"]) >= TARGET["coverage"]
                    and abs(e["soc_rmse"] - u["soc_rmse"]) <= TARGET["ekf_ukf"])
@@ -508,6 +538,9 @@ def write_doc(path: Path, v: dict):
             for est in ("ekf", "ukf", "coulomb"):
                 r = runs.get(f"{m}_5T_{est}_{tag}")
                 if not r:
+                    continue
+                if "error" in r:
+                    w(f"| {LABEL[tag]} | {m} | {est} | failed: {r['error']} ||||||")
                     continue
                 ol = resid.get(f"{m}_5T_{tag}")
                 w(f"| {LABEL[tag]} | {m} | {est} | {pc(r['soc_rmse'])} | {pc(r['soc_max_abs'])} | "

@@ -120,3 +120,14 @@ def test_every_measured_scenario_is_available_with_the_data(data_dir):
     missing = {n: load_scenario(n).missing() for n in MEASURED}
     assert all(v is None for v in missing.values()), missing
     assert set(MEASURED) <= set(scenario_names())
+
+
+def test_simulated_scenarios_measure_the_model_error_on_lab_tests_only():
+    sc = load_scenario("flight-0kg")
+    hppc, cap = sc.noise_records()
+    assert hppc.name.endswith("/hppc") and cap.name.endswith("/capacity")
+    # the capacity test runs the truth cell from full into the knee at 1 C: the region the HPPC's pulses skip
+    assert cap.soc_ref[0] == pytest.approx(1.0, abs=1e-6) and cap.soc_ref.min() < 0.05
+    assert np.median(cap.current_a[cap.current_a > 1.0]) == pytest.approx(sc.true_capacity_ah, rel=0.05)
+    flight = sc.realize([0])
+    assert flight.n != cap.n and not np.array_equal(flight.current_a[0, :100], cap.current_a[:100])

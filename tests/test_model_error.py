@@ -128,7 +128,8 @@ def test_apply_adds_three_states_inside_the_kernel_noise_form():
     sensor = SensorNoise(voltage_sd=0.002, current_sd=0.05)
     m, n = recipe.apply(model, sensor, st, prof)
     assert m.n_states == model.n_states + 3 and m.state_names[-3:] == ("eps_slow", "eps_fast", "eps_r")
-    assert n.voltage_sd == pytest.approx(0.004) and n.current_sd == 0.05 and n.dt == 0.5
+    # white at 1 s resolution: a record sampled every 0.5 s gets twice the variance per sample
+    assert n.voltage_sd == pytest.approx(0.004 * np.sqrt(2.0)) and n.current_sd == 0.05 and n.dt == 0.5
     walk = np.asarray(n.walk_sd) ** 2
     assert np.all(walk[: model.n_states] == 0)
     np.testing.assert_allclose(walk[-3:], 1 - np.exp(-2 * 0.5 / np.array([400.0, 2.0, 600.0])))

@@ -7,6 +7,11 @@ own axis). Which records: the *validation* records when there are any (other dri
 one that is scored), else the identification record the model was fitted on (an HPPC: optimistic, it saw those
 samples). Nothing from the record being estimated is ever used.
 
+Resolution. The error is measured at :data:`RESOLUTION_S` = 1 s: records sampled faster are bin-averaged to 1 s
+first (:func:`bin_average`). Finer than that a residual is no longer a model error the filter may average: a 10 Hz
+record's sample-to-sample differences are dominated by the logger's channel skew and by errors correlated over a
+second, and treating them as independent would let a filter learn ten times more per second than the data hold.
+
 Decomposition (``W`` = :data:`WINDOW_S` = 10 s, ``W_r`` = :data:`RESISTANCE_WINDOW_S` = 60 s; ``⟨·⟩_W`` a centred
 moving average over a window)::
 
@@ -50,9 +55,11 @@ Filter noise, inside the form every filter (and the compiled kernels) take, ``R_
   its SOC band would collapse. The resistive state matters wherever a parameter varies with SOC: without it every
   current edge would be an independent look at ``R0(z)``, and a filter would read SOC off the model's resistance
   table to a precision the model does not have;
-* ``σ_V² = σ_extra² + mean_k σ_0²(T_k)`` over the samples of the record to be filtered (its own temperature
-  column), at least the sensor's ``σ_V²``. The residual already holds the sensor noise of the residual records;
-  ``σ_extra`` is noise added on top of the filtered record afterwards (a measured scenario's optional sensor noise);
+* ``σ_V² = σ_extra² + mean_k σ_0²(T_k)·max(1, 1 s/dt₀)`` over the samples of the record to be filtered (its own
+  temperature column), at least the sensor's ``σ_V²``: white noise of the same spectral density as a 1 s white error
+  (a 10 Hz record: ten samples, each ten times as noisy, make one second's worth). The residual already holds the
+  sensor noise of the residual records; ``σ_extra`` is noise added on top of the filtered record afterwards (a
+  measured scenario's optional sensor noise);
 * ``σ_I`` stays the current sensor's (model error is not current noise), and the SOC gets no random walk.
 
 With ``noise="sensor"`` the model and the sensor covariance are used as they are (the covariance without model error).
@@ -72,6 +79,8 @@ from .noise import SensorNoise
 
 #: width of the moving average that separates the slow part of the error from the fast part [s]
 WINDOW_S = 10.0
+#: the time resolution the error is measured at [s]: faster records are bin-averaged to it first
+RESOLUTION_S = 1.0
 #: longest lag searched for the slow part's correlation time [s]
 MAX_LAG_S = 4 * 3600.0
 #: longest lag searched for the fast part's correlation time [s]
@@ -308,11 +317,30 @@ def _fill(num, den, temps, soc):
     return val
 
 
-def estimate(model, records, temps=None, window_s: float = WINDOW_S, soc=SOC_GRID) -> ModelErrorStats:
+def bin_average(profile: Profile, width_s: float = RESOLUTION_S) -> Profile:
+    """``profile`` averaged over consecutive ``width_s`` bins of its time axis (current, voltage, temperature and
+    reference alike; a bin is stamped at its start; bins with no sample, inside a gap, do not exist). A profile whose
+    median step is already ``width_s`` or more is returned as is."""
+    if profile.n < 2 or float(np.median(profile.dt)) >= width_s:
+        return profile
+    t = profile.time_s
+    b = np.floor((t - t[0]) / width_s).astype(np.int64)
+    ub, inv, cnt = np.unique(b, return_inverse=True, return_counts=True)
+
+    def avg(a):
+        return None if a is None else np.bincount(inv, weights=a) / cnt
+
+    soc = avg(profile.soc_ref)
+    return Profile(t[0] + ub * width_s, avg(profile.current_a), avg(profile.voltage_v), avg(profile.temperature_c),
+                   None if soc is None else np.clip(soc, 0.0, 1.0), profile.meta)
+
+
+def estimate(model, records, temps=None, window_s: float = WINDOW_S, soc=SOC_GRID,
+             resolution_s: float = RESOLUTION_S) -> ModelErrorStats:
     """Measure the model error of ``model`` on ``records`` (see the module docstring). ``temps``: the temperature
     nodes (default: the parameter set's measured temperatures, else one node at the records' median temperature);
-    ``soc``: the SOC grid of the scales."""
-    records = list(records)
+    ``soc``: the SOC grid of the scales; ``resolution_s``: records sampled faster are bin-averaged to it first."""
+    records = [bin_average(p, resolution_s) for p in records]
     if not records:
         raise ConfigError("the noise recipe needs at least one record with a reference SOC")
     temps = tuple(float(t) for t in (temps or model.params.temperatures or
@@ -378,9 +406,10 @@ def apply(model, sensor: SensorNoise, stats: ModelErrorStats | None, profile: Pr
         return model, sensor
     aug = augment(model, [stats.effect()])
     temp = None if profile is None else profile.temperature_c
-    var = extra_voltage_sd ** 2 + stats.white_var(temp)
     # the walk variances are exact at the record's typical step dt₀ (first order in dt_k/dt₀ around it)
     dt0 = float(np.median(profile.dt)) if profile is not None and profile.n > 1 else sensor.dt
+    # white at the measured resolution: a faster record gets the same information per second, not more
+    var = extra_voltage_sd ** 2 + stats.white_var(temp) * max(1.0, RESOLUTION_S / dt0)
     walk = np.zeros(aug.n_states)
     walk[-3:] = np.sqrt(aug.effects[-1].walk_var(dt0))
     tuned = replace(sensor, dt=dt0, voltage_sd=float(np.sqrt(max(var, sensor.voltage_sd ** 2))),
