@@ -14,8 +14,8 @@ Writes ``docs/real_data.md`` (every number in it comes from this run) and ``docs
    full), ``soc0_sd`` 0.1, on the record at its own 10 Hz, SOC on the data's axis (:mod:`socbench.socaxis`): the best
    model with both fits, the next two models with the five-temperature fit, and coulomb counting.
 5. **Leaderboard of the measured group** (``socbench leaderboard --scenarios measured``: Panasonic, CALCE, DJI) on the
-   three best models, coulomb/EKF/UKF, 3 seeds; and the default flight scenarios' NIS with the recipe (every model,
-   the default estimators, 10 seeds) beside the sensor-only covariance on two models.
+   two best models (``--lb-models``), coulomb/EKF/UKF, 3 seeds; and the default flight scenarios' NIS with the recipe
+   (every model, the default estimators, 10 seeds) beside the sensor-only covariance on two models.
 
 Every step is cached in ``--cache`` (JSON per fit and per run): an interrupted run resumes, a finished one rewrites
 the document in seconds.
@@ -316,7 +316,9 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--seeds", type=int, default=3, help="seeds of the measured-group leaderboard (default 3)")
     ap.add_argument("--models", default=None, help="candidate models (default: every registered model)")
-    ap.add_argument("--skip-studies", action="store_true", help="no leaderboard studies (sections 5-6 left out)")
+    ap.add_argument("--skip-studies", action="store_true", help="no leaderboard studies (sections 6-7 left out)")
+    ap.add_argument("--lb-models", type=int, default=2,
+                    help="models in the measured-group leaderboard: the best N on validation (default 2)")
     args = ap.parse_args(argv)
     if not os.environ.get("SOCBENCH_DATA_DIR"):
         print("set SOCBENCH_DATA_DIR (the Panasonic, CALCE and DJI folders)", file=sys.stderr)
@@ -406,7 +408,8 @@ def main(argv=None) -> int:
         from socbench.study import DEFAULT_ESTIMATORS, DEFAULT_SCENARIOS
 
         t0 = time.perf_counter()
-        lb = study(cache, "measured", top, ("coulomb", "ekf", "ukf"), group_names("measured"), args.seeds, args.jobs)
+        lb = study(cache, "measured", top[: args.lb_models], ("coulomb", "ekf", "ukf"), group_names("measured"),
+                   args.seeds, args.jobs)
         lb_wall = time.perf_counter() - t0
         t0 = time.perf_counter()
         flights = study(cache, "flights", list(model_names()), DEFAULT_ESTIMATORS, DEFAULT_SCENARIOS, 10, args.jobs)
@@ -423,7 +426,7 @@ def main(argv=None) -> int:
     if lb is not None:
         dji_cells = [r for r in lb.cells if r["row"]["scenario"].startswith("dji") and r["row"]["estimator"] == "ekf"
                      and r["row"]["soc_rmse"] is not None]
-        dji_best = min(top, key=lambda m: np.mean([r["row"]["soc_rmse"] for r in dji_cells
+        dji_best = min(lb.config.models, key=lambda m: np.mean([r["row"]["soc_rmse"] for r in dji_cells
                                                    if r["row"]["model"] == m] or [np.inf]))
     dji_rows = cache.json(f"dji_{dji_best or best}.json",
                           lambda: fig_dji(figdir / "real_data_dji.png", cache, dji_best or best))
@@ -431,6 +434,50 @@ def main(argv=None) -> int:
     write_doc(Path(args.doc), locals())
     print(f"wrote {args.doc} in {time.perf_counter() - wall0:.0f} s", flush=True)
     return 0
+
+
+def verdict(v: dict) -> str:
+    """The must-show targets, counted from the tables above, and why they are (not) met."""
+    best, runs, fits = v["best"], v["runs"], v["fits"]
+    lines = []
+    for fit, label in (("5T", "five-temperature fit"), ("25", "25 °C fit")):
+        met, missed = [], []
+        for tag in TAGS:
+            e, u = runs.get(f"{best}_{fit}_ekf_{tag}"), runs.get(f"{best}_{fit}_ukf_{tag}")
+            if not (e and u) or "error" in e or "error" in u:
+                missed.append(f"{LABEL[tag]} (a run failed)")
+                continue
+            why = []
+            if max(e["soc_rmse"], u["soc_rmse"]) > TARGET["soc_rmse"]:
+                why.append(f"SOC RMSE {pc(e['soc_rmse'])}/{pc(u['soc_rmse'])} %")
+            if min(e["frac_within_3sigma"], u["frac_within_3sigma"]) < TARGET["coverage"]:
+                why.append(f"within 3σ {e['frac_within_3sigma']:.2f}/{u['frac_within_3sigma']:.2f}")
+            if abs(e["soc_rmse"] - u["soc_rmse"]) > TARGET["ekf_ukf"]:
+                why.append(f"EKF−UKF {100 * abs(e['soc_rmse'] - u['soc_rmse']):.1f} points")
+            (missed if why else met).append(LABEL[tag] + (f" ({', '.join(why)})" if why else ""))
+        lines.append(f"- **{best}, {label}, US06 from a 20-point error**: all three targets met at "
+                     f"{', '.join(met) if met else 'no temperature'}; missed at {', '.join(missed) if missed else '—'}"
+                     " (EKF/UKF).")
+    val = fits[best]["validation_rmse_v"]
+    lines.append(f"- **Why, first: the model.** The best model's open-loop error on the validation drive cycles is "
+                 f"{mv(val['25degC'], 0)} mV at 25 °C but {mv(val['0degC'], 0)}, {mv(val['n10degC'], 0)} and "
+                 f"{mv(val['n20degC'], 0)} mV at 0, −10 and −20 °C (section 2), an order of magnitude above its HPPC "
+                 "fit at those temperatures (section 1). Fitted on HPPC pulses only (and the Panasonic HPPC files "
+                 "leave out the discharges between the pulse sets, so a fit never sees polarisation build up under "
+                 "a sustained load), no ECM here predicts the long polarisation of a cold cell on a drive cycle. An "
+                 "honest filter cannot tell a 20-point SOC error (≈ 0.1–0.2 V of OCV) from a model error of the same "
+                 "size, and the EKF and UKF, linearising differently, settle in different places.")
+    lines.append("- **Why, second: the recipe's assumptions.** On synthetic records with a planted stationary error "
+                 "the recipe's band holds the truth 95–99 % of the time (`tests/test_model_error.py`); the real "
+                 "error is not stationary: it depends on the current history, on SOC and on temperature in ways the "
+                 "three Gauss–Markov states only approximate, and wherever the model's parameters vary with SOC a "
+                 "filter can read structure into it. The consistency columns (within 3σ, NIS) say where this "
+                 "happens instead of hiding it; with the sensor-only covariance they are far worse (section 7).")
+    lines.append("- **What carries:** the five-temperature set runs every record at its measured cell temperature "
+                 "(one mechanism for every model); the SOC-axis conversion makes counting on the model's axis "
+                 "reproduce each temperature's own reference; the measured group runs in the leaderboard and is "
+                 "skipped cleanly without data.")
+    return "\n".join(lines) + "\n"
 
 
 def write_doc(path: Path, v: dict):
@@ -553,7 +600,8 @@ def write_doc(path: Path, v: dict):
         from socbench.report import ranked as ranked_cells
 
         w("## 6. Leaderboard of the measured group\n")
-        w(f"`socbench leaderboard --scenarios measured --models {','.join(top)} --estimators coulomb,ekf,ukf --seeds "
+        w(f"`socbench leaderboard --scenarios measured --models {','.join(lb.config.models)} --estimators "
+          f"coulomb,ekf,ukf --seeds "
           f"{v['args'].seeds}` ({len(lb.cells)} cells, {v['lb_wall']:.0f} s wall). Every scenario replays a measured "
           "record with its own voltage; seeds perturb the initial SOC guess (20 points low ± 2); the models are fitted "
           "on characterisation tests only (Panasonic: the five HPPCs; CALCE: the C/22 OCV test + one other dynamic "
@@ -608,7 +656,7 @@ def write_doc(path: Path, v: dict):
                 w(f"| {r['scenario']} | {r['model']} | {r['estimator']} | {r['nis_mean']:.1f} | "
                   f"{r['frac_within_3sigma']:.3f} | {pc(r['soc_rmse'])} |")
     w("\n## What is met and what is not\n")
-    w(v.get("verdict", "See the tables above."))
+    w(verdict(v))
     path.write_text("\n".join(L) + "\n")
 
 
