@@ -1,6 +1,9 @@
 """``socbench simulate --data PATH --params PARAMS.json [--out PRED.csv] [--json METRICS.json] [--no-segments]``.
 
-``--data builtin:hppc`` and ``--params paper:MODEL`` name the embedded paper-pack profile and Table 3 sets.
+``--data builtin:hppc`` and ``--params paper:MODEL`` name the embedded paper-pack profile and Table 3 sets. The model
+looks its parameters up at the record's measured cell temperature, sample by sample (a temperature-aware set); the
+initial SOC (``--soc0``, default the record's reference at its start) and the SOC written follow the data's SOC
+definition (:mod:`socbench.socaxis`).
 
 A record of several discharges (battery swaps, recharges) is simulated segment by segment, each restarting at its
 reference SOC (:mod:`socbench.segments`); ``--no-segments`` runs it as one piece. The JSON holds the DESIGN.md keys,
@@ -22,6 +25,7 @@ from ..errors import DataError
 from ..io import atomic_write_frame, atomic_write_text, output_file
 from ..metrics import voltage_error_stats
 from ..models import load_params, make_model, paper_params
+from ..socaxis import soc_axis
 
 
 def add_arguments(parser) -> None:
@@ -55,7 +59,11 @@ def run(args) -> int:
     check_voltage_level(profile, params, f"the '{args.params}' parameter set")
     temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set")
     model = make_model(name, params)
-    sim = model.simulate(profile, soc0=args.soc0, segments=False if args.no_segments else None)
+    axis = soc_axis(params, profile)
+    soc0 = args.soc0 if args.soc0 is not None else (float(profile.soc_ref[0]) if profile.soc_ref is not None
+                                                     else None)
+    sim = model.simulate(profile, soc0=None if soc0 is None else float(axis.to_model(soc0)),
+                         segments=False if args.no_segments else None)
     stats = voltage_error_stats(profile.voltage_v, sim.voltage_v)
     stats.update({"model": name, "data": str(args.data), "guard_fractions": sim.domain_fractions,
                   "segments": sim.segments.to_dict(), "domain": sim.domain})
@@ -70,7 +78,7 @@ def run(args) -> int:
     warn_outside(sim.domain, f"{name} on {profile.name}")
     if args.out:
         frame = pd.DataFrame({"time_s": profile.time_s, "current_a": profile.current_a,
-                              "voltage_v": profile.voltage_v, "v_model": sim.voltage_v, "soc": sim.soc})
+                              "voltage_v": profile.voltage_v, "v_model": sim.voltage_v, "soc": axis.to_data(sim.soc)})
         atomic_write_frame(args.out, frame)
     if args.json:
         atomic_write_text(args.json, json.dumps(stats, indent=2))

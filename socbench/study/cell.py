@@ -82,10 +82,58 @@ class Toolkit:
 
         return load_scenario(name)
 
+    def scenario_group(self, group: str) -> list[str]:
+        """Catalog scenarios of a group (``measured``); empty for an unknown group."""
+        from ..scenarios.catalog import group_names
+
+        return group_names(group)
+
+    def scenario_missing(self, name: str) -> str | None:
+        """Why scenario ``name`` cannot run here (its data is missing), or None."""
+        missing = getattr(self.load_scenario(name), "missing", None)
+        return missing() if missing is not None else None
+
     def fit_model(self, model: str, profile, mode: str):
+        """Fit ``model`` on a characterisation: a test record, or a measured scenario's
+        :class:`~socbench.scenarios.measured.Characterisation` (which knows how it is fitted)."""
+        if hasattr(profile, "fit"):
+            return profile.fit(model, mode)
         from ..identify import fit_model
 
         return fit_model(model, profile, mode=mode)
+
+    def filter_noise(self, estimator: str, model, scenario, profile, noise: str, cache_key=None):
+        """``(model, noise, model-error dict or None)`` the estimator runs with: the noise recipe
+        (:mod:`socbench.estimators.model_error`) measured on the scenario's noise records with this fitted model,
+        unless ``noise == "sensor"``, the estimator is the coulomb counter (it never reads the voltage) or the
+        scenario has no records to measure it on (then its sensor noise alone)."""
+        sensor = scenario.sensor_noise()
+        records = getattr(scenario, "noise_records", None)
+        if noise == "sensor" or estimator == "coulomb" or records is None:
+            return model, sensor, None
+        from ..estimators import model_error
+
+        key = (cache_key, getattr(scenario, "name", None))
+        stats = _MODEL_ERROR.get(key) if cache_key is not None else None
+        if stats is None:
+            stats = model_error.estimate(model, records())
+            if cache_key is not None:
+                if len(_MODEL_ERROR) >= 64:
+                    _MODEL_ERROR.pop(next(iter(_MODEL_ERROR)))
+                _MODEL_ERROR[key] = stats
+        run_model, tuned = model_error.apply(model, sensor, stats, profile,
+                                             extra_voltage_sd=getattr(scenario, "added_voltage_sd", 0.0))
+        return run_model, tuned, stats.to_dict()
+
+    def run_estimator(self, estimator, profile, soc0, params, seed):
+        """Run on the data's SOC axis when the record counts its reference with its own capacity
+        (:func:`socbench.socaxis.run_on_data_axis`), else exactly ``estimator.run(profile, soc0, seed=seed)``."""
+        from ..socaxis import run_on_data_axis, soc_axis
+
+        axis = soc_axis(params, profile)
+        if axis.identity:
+            return estimator.run(profile, soc0, seed=seed)
+        return run_on_data_axis(estimator, profile, axis, soc0=soc0, seed=seed)
 
     def make_model(self, model: str, params):
         from ..models import make_model
@@ -109,6 +157,8 @@ class Toolkit:
 _SCENARIOS: dict = {}
 _REALIZED: dict = {}
 _MAX_REALIZED = 4
+# the model error a fitted model makes on a scenario's noise records: once per (fit, scenario) per process
+_MODEL_ERROR: dict = {}
 
 
 def _scenario(toolkit: Toolkit, name: str):
@@ -164,7 +214,7 @@ def compute_cell(toolkit: Toolkit, job: dict) -> dict:
     n_runs = len(seeds)
     row = _empty_row(job, n_runs)
     rec = {"row": row, "error": None, "trace": None, "run_soc_rmse": None, "run_failed": [True] * n_runs,
-           "failures": [], "domain": None}
+           "failures": [], "domain": None, "model_error": None, "nis_band": None}
     try:
         fit = job["fit"]
         if fit.get("params") is None:
@@ -172,9 +222,11 @@ def compute_cell(toolkit: Toolkit, job: dict) -> dict:
         scen, profile, soc0 = _realized(toolkit, job["scenario"], seeds)
         _, params = params_from_dict(fit["params"])
         model = toolkit.make_model(job["model"], params)
-        est = toolkit.make_estimator(job["estimator"], model, scen.sensor_noise(), **job.get("options", {}))
+        run_model, noise, stats = toolkit.filter_noise(job["estimator"], model, scen, profile,
+                                                       job.get("noise", "model"), job.get("fit_key"))
+        est = toolkit.make_estimator(job["estimator"], run_model, noise, **job.get("options", {}))
         t1 = time.perf_counter()
-        estimate = est.run(profile, soc0, seed=int(job["seed"]))
+        estimate = toolkit.run_estimator(est, profile, soc0, params, int(job["seed"]))
         # the filter's time: without the post-hoc domain report computed in run()
         elapsed = time.perf_counter() - t1 - float((getattr(estimate, "domain", None) or {}).get("seconds", 0.0))
         rec.update(reduce_cell(estimate, profile, elapsed, toolkit.score))
@@ -182,12 +234,22 @@ def compute_cell(toolkit: Toolkit, job: dict) -> dict:
         for f in rec["failures"]:
             f["seed"] = seeds[f["run"]]
             f["model_nonfinite_soc"] = nonfinite_soc(model, f)
+        rec["model_error"] = stats
+        rec["nis_band"] = _nis_band(rec["row"], profile)
     except (KeyboardInterrupt, MemoryError):
         raise
     except Exception as exc:  # the estimator (or model) threw: every run of the batch failed
         rec["error"] = _error_text(exc)
     rec["seconds"] = time.perf_counter() - t0
     return rec
+
+
+def _nis_band(row: dict, profile):
+    """The two-sided 95 % χ² band of the cell's NIS mean (every sample of the runs that did not fail)."""
+    from ..metrics import chi2_band
+
+    ok = row["n_runs"] - row["failed_runs"]
+    return list(chi2_band(1, ok * profile.n)) if ok > 0 and row.get("nis_mean") is not None else None
 
 
 def _empty_row(job: dict, n_runs: int) -> dict:

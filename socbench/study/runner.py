@@ -116,9 +116,10 @@ def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", 
             char_profiles.setdefault(fkey, char)
             for est in config.estimators:
                 opts = dict(config.estimator_options.get(est, {}))
-                ckey = stable_hash(cell_config(model, est, scen_name, scen_fp, config.seeds, fkey, opts, __version__))
+                ckey = stable_hash(cell_config(model, est, scen_name, scen_fp, config.seeds, fkey, opts, __version__,
+                                               config.noise))
                 job = {"model": model, "estimator": est, "scenario": scen_name, "seeds": list(config.seeds),
-                       "options": opts, "seed": seed_from_key(ckey), "fit_key": fkey}
+                       "options": opts, "seed": seed_from_key(ckey), "fit_key": fkey, "noise": config.noise}
                 cells.append((ckey, job))
 
     fit_code, cell_code = code_fingerprint(FIT_CODE), code_fingerprint(CELL_CODE)
