@@ -156,16 +156,24 @@ def run_job(args) -> dict:
 
 
 def residual_job(args) -> dict:
-    """Open-loop voltage error of a fit on the US06 of ``tag`` (for the figure and the voltage table)."""
-    params_path, tag, path = args
+    """Open-loop voltage error of a fit on the US06 (or ``test``) of ``tag`` (for the figure and the voltage table),
+    and how its slow part follows the load: the least-squares line of the 10 s mean error on the 5-minute mean
+    current (``load_slope_v_per_a``), the record's mean |current|."""
+    params_path, tag, path, *test = args
     name, params = load_params(params_path)
-    prof = _record(tag, "US06")
+    prof = _record(tag, test[0] if test else "US06")
     e = recipe.residual(make_model(name, params), prof)
     st = voltage_error_stats(prof.voltage_v, prof.voltage_v - e)
-    idx = np.unique(np.round(np.linspace(0, prof.n - 1, 4000)).astype(int))
     smooth = recipe.moving_average(prof.time_s, e, 10.0)
-    np.savez_compressed(path, t=prof.time_s[idx], e=smooth[idx])
-    return {k: st[k] for k in ("rmse_v", "mean_v", "sd_v", "max_v")}
+    if path:
+        idx = np.unique(np.round(np.linspace(0, prof.n - 1, 4000)).astype(int))
+        np.savez_compressed(path, t=prof.time_s[idx], e=smooth[idx])
+    load = recipe.moving_average(prof.time_s, prof.current_a, 300.0)
+    slope = float(np.polyfit(load, smooth, 1)[0])
+    out = {k: st[k] for k in ("rmse_v", "mean_v", "sd_v", "max_v")}
+    out.update({"slow_rms_v": float(np.sqrt(np.mean(smooth ** 2))), "load_slope_v_per_a": slope,
+                "mean_abs_current_a": float(np.mean(np.abs(prof.current_a)))})
+    return out
 
 
 def _pool(jobs: int):
@@ -327,6 +335,8 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-studies", action="store_true", help="no leaderboard studies (sections 6-7 left out)")
     ap.add_argument("--lb-models", type=int, default=2,
                     help="models in the measured-group leaderboard: the best N on validation (default 2)")
+    ap.add_argument("--lb-scenarios", default="*",
+                    help="measured-group scenarios of the leaderboard, comma-separated shell patterns (default: all)")
     ap.add_argument("--flight-seeds", type=int, default=10, help="seeds of the default flight scenarios (default 10)")
     ap.add_argument("--resolution", type=float, default=1.0,
                     help="the filters run on the records bin-averaged to this many seconds, the noise recipe's "
@@ -359,12 +369,11 @@ def main(argv=None) -> int:
     ranked = sorted(candidates, key=lambda m: np.mean(list(fits[m]["validation_rmse_v"].values())))
     # models that fit to the same numbers are one model here (PNGV = Thevenin and GNL = DP without the C0 integrator,
     # Liu = Tremblay2: ECM_SPEC §5.3, §0): the table compares three different ones
-    top, seen = [], set()
+    top = []
     for m in ranked:
-        key = tuple(round(x, 9) for x in fits[m]["validation_rmse_v"].values())
-        if key not in seen:
-            seen.add(key)
-            top.append(m)
+        val = np.array(list(fits[m]["validation_rmse_v"].values()))
+        if not any(np.all(np.abs(val - np.array(list(fits[k]["validation_rmse_v"].values()))) < 1e-4) for k in top):
+            top.append(m)  # equal to 0.1 mV at every temperature: one model
 
     # ---- 3: the noise recipe on the validation records
     def stats_for(model, fit):
@@ -443,6 +452,11 @@ def main(argv=None) -> int:
                 rjobs.append((str(cache.path("fits", f"{best}_{fit}.json")), tag,
                               str(cache.path("residuals", f"{key}.npz"))))
                 rkeys.append(key)
+    for tag in TAGS:
+        key = f"{best}_5T_{tag}_Cycle"  # the validation record, for the comparison with the scored one
+        if not cache.path("residuals", f"{key}.json").exists():
+            rjobs.append((str(cache.path("fits", f"{best}_5T.json")), tag, "", "Cycle"))
+            rkeys.append(key)
     for k, out in _each(pool, residual_job, rjobs):
         cache.path("residuals", f"{rkeys[k]}.json").write_text(json.dumps(out))
     resid = {p.stem: json.loads(p.read_text()) for p in cache.path("residuals").glob("*.json")}
@@ -456,8 +470,11 @@ def main(argv=None) -> int:
         from socbench.study import DEFAULT_ESTIMATORS, DEFAULT_SCENARIOS
 
         t0 = time.perf_counter()
-        lb = study(cache, "measured", top[: args.lb_models], ("coulomb", "ekf", "ukf"), group_names("measured"),
-                   args.seeds, args.jobs)
+        from fnmatch import fnmatch
+
+        pats = args.lb_scenarios.split(",")
+        lb_scen = [s for s in group_names("measured") if any(fnmatch(s, p) for p in pats)]
+        lb = study(cache, "measured", top[: args.lb_models], ("coulomb", "ekf", "ukf"), lb_scen, args.seeds, args.jobs)
         lb_wall = time.perf_counter() - t0
         t0 = time.perf_counter()
         flights = study(cache, "flights", list(model_names()), DEFAULT_ESTIMATORS, DEFAULT_SCENARIOS, args.flight_seeds,
@@ -508,20 +525,35 @@ def verdict(v: dict) -> str:
                      f"{', '.join(met) if met else 'no temperature'}; missed at {', '.join(missed) if missed else '—'}"
                      " (EKF/UKF).")
     val = fits[best]["validation_rmse_v"]
+    resid = v["resid"]
     lines.append(f"- **Why, first: the model.** The best model's open-loop error on the validation drive cycles is "
                  f"{mv(val['25degC'], 0)} mV at 25 °C but {mv(val['0degC'], 0)}, {mv(val['n10degC'], 0)} and "
                  f"{mv(val['n20degC'], 0)} mV at 0, −10 and −20 °C (section 2), an order of magnitude above its HPPC "
                  "fit at those temperatures (section 1). Fitted on HPPC pulses only (and the Panasonic HPPC files "
                  "leave out the discharges between the pulse sets, so a fit never sees polarisation build up under "
-                 "a sustained load), no ECM here predicts the long polarisation of a cold cell on a drive cycle. An "
-                 "honest filter cannot tell a 20-point SOC error (≈ 0.1–0.2 V of OCV) from a model error of the same "
-                 "size, and the EKF and UKF, linearising differently, settle in different places.")
-    lines.append("- **Why, second: the recipe's assumptions.** On synthetic records with a planted stationary error "
-                 "the recipe's band holds the truth 95–99 % of the time (`tests/test_model_error.py`); the real "
-                 "error is not stationary: it depends on the current history, on SOC and on temperature in ways the "
-                 "three Gauss–Markov states only approximate, and wherever the model's parameters vary with SOC a "
-                 "filter can read structure into it. The consistency columns (within 3σ, NIS) say where this "
-                 "happens instead of hiding it; with the sensor-only covariance they are far worse (section 7).")
+                 "a sustained load), no ECM here predicts the long polarisation of a cold cell on a drive cycle: the "
+                 "slow error follows the recent load (section 4c: a negative load slope that grows as the cell gets "
+                 "colder). An honest filter cannot tell a SOC error from a model error of the same voltage (about "
+                 "10 mV per SOC point in the middle of the curve).")
+    vr = [v["vruns"].get(f"{best}_5T_ekf_{t}") for t in TAGS]
+    if all(r and "error" not in r for r in vr):
+        lines.append("- **Not only the scored cycle:** on the validation Cycle_1 runs themselves, whose error the "
+                     "recipe measured, the best model's EKF reaches " + ", ".join(
+                         f"{pc(r['soc_rmse'], 1)} % ({r['frac_within_3sigma']:.2f} within 3σ) at {LABEL[t]}"
+                         for r, t in zip(vr, TAGS)) + " (section 2): where the model misses the voltage by a tenth "
+                     "of a volt and more for long stretches, an ECM filter does not hold the SOC to a point.")
+    hard = [t for t in TAGS if resid.get(f"{best}_5T_{t}") and resid.get(f"{best}_5T_{t}_Cycle")
+            and resid[f"{best}_5T_{t}"]["slow_rms_v"] > 1.3 * resid[f"{best}_5T_{t}_Cycle"]["slow_rms_v"]]
+    if hard:
+        lines.append("- **Why, second: the scored cycle is harder than the validation cycle.** The noise recipe can "
+                     "only know the error it measured on the validation records; at "
+                     + ", ".join(LABEL[t] for t in hard) + " the US06 draws a higher mean current than Cycle_1 and "
+                     "the model's slow error on it is more than 1.3 times the validation one (section 4c), so the "
+                     "±3σ band, honest on the validation cycle's error, is too narrow on the US06.")
+    lines.append("- **What the recipe now gets right (measured):** on synthetic records with a planted error, "
+                 "including one more persistent than the record, its band holds the truth 90–100 % of the time "
+                 "(`tests/test_model_error.py`); parameter scheduling removes the SOC information a filter read off "
+                 "the fitted tables' slopes (section 4 against 4b).")
     lines.append("- **What carries:** the five-temperature set runs every record at its measured cell temperature "
                  "(one mechanism for every model); the SOC-axis conversion makes counting on the model's axis "
                  "reproduce each temperature's own reference; the measured group runs in the leaderboard and is "
@@ -661,6 +693,18 @@ def write_doc(path: Path, v: dict):
             cells += (["failed", "", ""] if r is None or "error" in r else
                       [pc(r["soc_rmse"]), f"{r['frac_within_3sigma']:.3f}", nis_txt(r)])
         w(f"| {LABEL[tag]} | " + " | ".join(cells) + " |")
+    w(f"\n**4c. The model's error on the validation cycle and on the scored one** ({best}, five-temperature fit, open "
+      "loop from the true initial state at the records' own 10 Hz; slow = the 10 s mean; load slope = the "
+      "least-squares line of the slow error on the 5-minute mean current):\n")
+    w("| temperature | Cycle_1 mean \\|I\\| A | Cycle_1 slow RMS mV | Cycle_1 load slope mV/A | US06 mean \\|I\\| A | "
+      "US06 slow RMS mV | US06 load slope mV/A |")
+    w("|---|---|---|---|---|---|---|")
+    for tag in TAGS:
+        c, u = v["resid"].get(f"{best}_5T_{tag}_Cycle"), v["resid"].get(f"{best}_5T_{tag}")
+        if c and u:
+            w(f"| {LABEL[tag]} | {c['mean_abs_current_a']:.2f} | {mv(c['slow_rms_v'], 0)} | "
+              f"{mv(c['load_slope_v_per_a'], 0)} | {u['mean_abs_current_a']:.2f} | {mv(u['slow_rms_v'], 0)} | "
+              f"{mv(u['load_slope_v_per_a'], 0)} |")
     w("\n![SOC error with ±3σ](figures/real_data_soc_error.png)\n")
     w("*SOC error (data axis) of the EKF and UKF with their ±3σ bands, per temperature; left the five-temperature "
       "fit, right the 25 °C fit.*\n")
@@ -690,13 +734,23 @@ def write_doc(path: Path, v: dict):
         from socbench.report import ranked as ranked_cells
 
         w("## 6. Leaderboard of the measured group\n")
-        w(f"`socbench leaderboard --scenarios measured --models {','.join(lb.config.models)} --estimators "
-          f"coulomb,ekf,ukf --seeds "
+        from socbench.scenarios.catalog import group_names
+
+        every = group_names("measured")
+        subset = list(lb.config.scenarios) != list(every)
+        w(f"`socbench leaderboard --scenarios {'measured' if not subset else ','.join(lb.config.scenarios)} --models "
+          f"{','.join(lb.config.models)} --estimators coulomb,ekf,ukf --seeds "
           f"{v['args'].seeds}` ({len(lb.cells)} cells, {v['lb_wall']:.0f} s wall). Every scenario replays a measured "
           "record with its own voltage; seeds perturb the initial SOC guess (20 points low ± 2); the models are fitted "
           "on characterisation tests only (Panasonic: the five HPPCs; CALCE: the C/22 OCV test + one other dynamic "
           "record; DJI: 8 other flights) and the noise recipe uses each scenario's validation records (catalog TOML "
           "files say which).\n")
+        if subset:
+            w(f"**Shrunk to meet the deadline of this run** (`--lb-scenarios {v['args'].lb_scenarios}`, "
+              f"`--lb-models {v['args'].lb_models}`): {len(lb.config.scenarios)} of the {len(every)} scenarios of "
+              f"the group; left out: {', '.join(s for s in every if s not in lb.config.scenarios)} (the Panasonic "
+              "records at 10 Hz take 60–190 s per filter run on the numpy engine here). The full group runs with the "
+              "defaults.\n")
         w("| scenario | rank | model | estimator | SOC RMSE % | within 3σ | NIS [95 % band] | V RMSE mV | failed |")
         w("|---|---|---|---|---|---|---|---|---|")
         for scen in lb.config.scenarios:

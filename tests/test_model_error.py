@@ -197,3 +197,20 @@ def test_scheduling_drops_the_soc_slope_of_the_dynamics_in_ekf_and_ukf_alike():
     np.testing.assert_allclose(Xf[..., 0], plain[..., 0], rtol=1e-12, atol=1e-15)
     assert recipe.apply(model, SensorNoise(0.002, 0.02), recipe.ModelErrorStats(
         (25.0,), (0.0, 1.0), [[0.02, 0.01]], [[0.0, 0.0]], [[0.0, 0.0]], (0.004,), 400.0, 2.0, 600.0))[0].schedule_soc
+
+
+def test_correlation_time_beyond_the_record_and_robust_cell_scales():
+    # a Gauss–Markov correlation measured to 1200 s gives its τ even when τ is longer than the lags (persistence)
+    lags = np.arange(1201.0)
+    for tau in (300.0, 5000.0, 12000.0):
+        assert recipe._pooled_time([(np.exp(-lags / tau), 1.0, 0.0)], 1.0, 1200.0) == pytest.approx(tau, rel=0.02)
+    assert recipe._pooled_time([(np.ones(1201), 1.0, 0.0)], 1.0, 1200.0) == recipe.MAX_LAG_S  # a bias: capped
+    # an error that changes sign within the lags: the integral time, not the persistence formula
+    osc = np.cos(lags / 200.0) * np.exp(-lags / 400.0)
+    assert recipe._pooled_time([(osc, 1.0, 0.0)], 1.0, 1200.0) < 400.0
+    # cells holding few independent looks move toward the row's median cell; well-observed cells keep their own
+    num = np.array([1.0, 4.0, 9.0, 100.0]) * np.array([1e5, 1e5, 1e5, 10.0])
+    den = np.array([1e5, 1e5, 1e5, 10.0])
+    v = recipe._shrunk(num, den, (25.0,), (0.0, 0.3, 0.6, 1.0), 100.0)[0]
+    np.testing.assert_allclose(v[:3], [1.0, 4.0, 9.0], rtol=0.01)
+    assert v[3] == pytest.approx((0.1 * 100.0 + 6.5) / 1.1)  # the row median of 1, 4, 9, 100 is 6.5

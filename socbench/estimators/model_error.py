@@ -28,13 +28,17 @@ knee and in the hysteresis a charge leaves), with bilinear hat weights ``h_jm(T_
 temperature and SOC and its duration ``dt_k``, ``⟨x⟩_jm = Σ h_jm x_k dt_k / Σ h_jm dt_k`` (an empty cell takes its
 nearest filled SOC cell, then its nearest filled temperature)::
 
-    σ_s²(T_j, z_m) = ⟨s²⟩_jm           (mean square: a bias is a slow error too)
+    σ_s²(T_j, z_m) = (n_jm ⟨s²⟩_jm + med_m ⟨s²⟩_jm)/(n_jm + 1)   (mean square: a bias is a slow error too; shrunk
+                     toward the row's median cell by the independent looks n_jm = Σ h_jm dt_k / 2τ_s the cell holds:
+                     a persistent error seen a few times per cell is a handful of numbers, the smallest too small)
     σ_f²(T_j, z_m) = max(⟨f²⟩_jm − ⟨d⟩_jm, 0)
     σ_r²(T_j, z_m) = ⟨v r²⟩_jm / ⟨v⟩_jm     (v_k = var_{W_r}(I): r is only known where the current moves)
     σ_0²(T_j)      = ⟨d⟩_j              (white; for a Gauss–Markov part with τ ≫ dt, E d ≈ σ_0²)
     τ_s, τ_r, τ_f  = integral time scales ∫ρ(L)dL of ρ(L) = ⟨x_k x_{k+L}⟩/⟨x²⟩ of s and r (1 s grid, lags to half the
                      median record length, at most 4 h), resp. of f without its white part (grid of the median sample
-                     step, lags to 60 s), up to the first lag where ρ ≤ 0; pooled over the records by duration
+                     step, lags to 60 s), up to the first lag where ρ ≤ 0; pooled over the records by duration; at
+                     least −L/ln ρ(L) at the longest lag L (persistence: an error that has not decorrelated within the
+                     records is a Gauss–Markov error with ρ(L) = e^{−L/τ}, not one that renews after a record)
 
 The mean is not removed from ρ: a persistent bias keeps ρ up and τ long, as it must. Why the integral time and not
 the 1/e lag: the SOC is a low-frequency quantity, and a Gauss–Markov state with τ = ∫ρ has the error's variance
@@ -60,7 +64,11 @@ Filter noise, inside the form every filter (and the compiled kernels) take, ``R_
   (a 10 Hz record: ten samples, each ten times as noisy, make one second's worth). The residual already holds the
   sensor noise of the residual records; ``σ_extra`` is noise added on top of the filtered record afterwards (a
   measured scenario's optional sensor noise);
-* ``σ_I`` stays the current sensor's (model error is not current noise), and the SOC gets no random walk.
+* ``σ_I`` stays the current sensor's (model error is not current noise), and the SOC gets no random walk;
+* the augmented model is *scheduled* (``schedule_soc``): a filter looks the dynamics' parameters up at the estimated
+  SOC without differentiating them (:func:`~socbench.estimators.base.scheduled_jacobian`, ``scheduled_step``). The
+  fitted tables' slopes over SOC are model error too; differentiated, they let a filter read the SOC off the
+  polarisation's shape far more precisely than the model allows.
 
 With ``noise="sensor"`` the model and the sensor covariance are used as they are (the covariance without model error).
 """
