@@ -388,3 +388,39 @@ def _per_record(residual, folds: Folds) -> dict:
         out[p.name] = float(np.sqrt(np.mean(e * e)))
         k += p.n
     return out
+
+
+#: the filter voltage noise × this makes the filters ignore the voltage (their SOC is then the current counted)
+IGNORE_VOLTAGE = 100.0
+
+
+def soc_attribution(diag: Diagnosis, eval_profiles, dt: float = 1.0) -> dict | None:
+    """Where a change of the held-out SOC error between the base and the final model comes from (None without a
+    reference SOC or without an added step). The same filters and folds as :func:`diagnose`, each model run
+
+    * with its own filter voltage noise (what the diagnosis reports),
+    * with the other model's (the share due to the filter trusting the voltage more or less),
+    * with the voltage ignored (noise × :data:`IGNORE_VOLTAGE`: the current counted through the filter): when a
+      filter does worse than that, the voltage model's remaining error misleads it whatever the model.
+
+    Returns ``{"before"|"after": {"own"|"other"|"voltage_ignored": {estimator: SOC RMSE}}}``."""
+    vsd = diag.soc.get("voltage_sd")
+    if not vsd or not diag.steps or diag.search is None:
+        return None
+    search, last = diag.search, diag.steps[-1]
+    base = search.base
+    records = [_coarse(p, dt, SOC_MAX_SAMPLES) for p in eval_profiles]
+    folds = make_folds(records, diag.split.k)
+    soc0s = [initial_soc(base, p) for p in records]
+    isd = fold_spread_sd(last, base)
+    models = {"before": lambda layout: (base, None),
+              "after": lambda layout: search.fold_models(last, layout, isd)}
+    noise = {"before": np.asarray(vsd["before"]), "after": np.asarray(vsd["after"])}
+    out = {}
+    for key, other in (("before", "after"), ("after", "before")):
+        runs = {"own": noise[key], "other": noise[other], "voltage_ignored": IGNORE_VOLTAGE * noise[key]}
+        out[key] = {}
+        for label, v in runs.items():
+            r = soc_errors(models[key], folds, soc0s, v)
+            out[key][label] = {name: x["soc_rmse"] for name, x in r.items()}
+    return out

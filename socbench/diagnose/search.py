@@ -27,8 +27,8 @@ identify) and is never named an effect; an effect within ``PARSIMONY`` of a winn
 For the same reason an extra RC branch whose time constant lies within ×``TWIN_TAU`` of one of the base model's
 branches is not named: it cannot be told from a misfit of that branch.
 
-The current sensor gets evidence of its own: where the records hold rests (at least ``REST_MIN_S`` below C/20 whose
-spread is the sensor's noise), the true current is zero, so the measured rest current *is* the offset. ``b`` is
+The current sensor gets evidence of its own: where the records hold rests (at least ``FIELD_REST_MIN_S`` below C/20
+whose spread is the sensor's noise), the true current is zero, so the measured rest current *is* the offset. ``b`` is
 bounded to that mean ± 3 standard errors (± C/500 for the sensor's resolution); with at least ``REST_EVIDENCE_S`` of
 rests a clear offset puts the current bias first, a null one rules it out.
 """
@@ -47,6 +47,10 @@ from .signatures import Trajectory, signatures
 
 #: a rest: at least this long, current below C/20 and steady (within C/200 of its mean)
 REST_MIN_S = 30.0
+#: a rest of the field records that measures the current sensor: at least this long. A vehicle waiting at a light or a
+#: stop draws a small steady auxiliary current (below C/20, as steady as a rest) for a minute or two; a parked cell
+#: rests for many minutes. Shorter quiet spells would read the auxiliary load as a sensor offset.
+FIELD_REST_MIN_S = 300.0
 MIN_N_EFF = 100.0
 #: a candidate whose signature explains less of the residual variance is not fitted
 MIN_SIGNATURE_R2 = 0.01
@@ -62,6 +66,10 @@ REST_OFFSET_C = 5e-4
 #: synthetic cases without a hidden effect (seeds neither the tests nor the benchmark use); the randomised benchmark's
 #: null cases (socbench.diagnose.randomized) measure what it lets through.
 NOISE_FLOOR = 2.5
+#: the floor once the base refit is part of the model: the base model's own error has then been refitted on the
+#: evaluation data (every later candidate is fitted jointly with it), so what stands above the noise is structure a
+#: refit of the base cannot take. Half the noise's own level of headroom is left for the refit's bounded scaling.
+NOISE_FLOOR_REFIT = 1.5
 #: the effects that drift the SOC (one family of signatures)
 SOC_DRIFT = ("capacity", "current_bias", "coulombic_efficiency", "self_discharge")
 #: the pseudo-candidate "the base model's own parameters (scaled) and each record's voltage offset, refitted on the
@@ -144,11 +152,11 @@ def residual_noise(model, profiles, soc0s=None) -> float:
     return robust_sd(d2) / np.sqrt(6.0) if d2.size >= 50 else 0.0
 
 
-def rest_current(profiles, capacity_ah: float, quiet_a: float | None = None):
-    """``(mean, standard error, seconds)`` of the measured current over the rests of ``profiles`` (one or a list),
+def rest_current(profiles, capacity_ah: float, quiet_a: float | None = None, min_s: float = REST_MIN_S):
+    """``(median, standard error, seconds)`` of the measured current over the rests of ``profiles`` (one or a list),
     or None without rests.
 
-    A rest: at least ``REST_MIN_S`` below ``quiet_a`` (default C/20) whose spread (robust sd) is within C/200 plus
+    A rest: at least ``min_s`` below ``quiet_a`` (default C/20) whose spread (robust sd) is within C/200 plus
     three times the current sensor's own noise (the robust sd of successive differences over the quiet samples,
     ``/√2``): a noisy sensor's rest is still a rest, a slow taper is not."""
     vals, weights = [], []
@@ -164,14 +172,16 @@ def rest_current(profiles, capacity_ah: float, quiet_a: float | None = None):
                 continue
             seg = i[a:b]
             dur = profile.time_s[b - 1] - profile.time_s[a]
-            if dur >= REST_MIN_S and robust_sd(seg) <= capacity_ah / 200.0 + 3.0 * sensor:
+            if dur >= min_s and robust_sd(seg) <= capacity_ah / 200.0 + 3.0 * sensor:
                 vals.append(seg)
                 weights.append(dur)
     if not vals:
         return None
     allv = np.concatenate(vals)
-    se = float(np.std(allv) / np.sqrt(allv.size)) if allv.size > 1 else 0.0
-    return float(allv.mean()), se, float(sum(weights))
+    # the median: a rest that begins or ends with a few seconds of load (a stop's auxiliary current before the
+    # vehicle is switched off) would pull a mean; the standard error is that of the median of normal noise
+    se = float(1.2533 * robust_sd(allv) / np.sqrt(allv.size)) if allv.size > 1 else 0.0
+    return float(np.median(allv)), se, float(sum(weights))
 
 
 class Search:
@@ -195,7 +205,8 @@ class Search:
         self.soc0s = [initial_soc(base, p) for p in folds.records]
         self.groups = tuple(range(folds.k)) + (None,)  # the folds, then the all-data fit
         self.bounds = {name: EFFECTS[name]().bounds(base) for name in EFFECTS}
-        self.bias_rest = rest_current(folds.records if raw is None else raw, base.capacity_ah)
+        self.bias_rest = rest_current(folds.records if raw is None else raw, base.capacity_ah,
+                                      min_s=FIELD_REST_MIN_S)
         self.noise_sd = noise_sd
         n_all = np.concatenate([np.ones(p.n, dtype=bool) for p in folds.records])
         self.rows = {j: np.concatenate([folds.train_mask(r, j) for r in range(len(folds.records))])
@@ -319,6 +330,8 @@ class Search:
                 group = drift if name in drift else [name]
                 chosen += group
                 families += 1
+        if self.bias_measured and "current_bias" in ready and "current_bias" not in chosen:
+            chosen.append("current_bias")  # the rests measure an offset: direct evidence, whatever the signature says
         return chosen
 
     # ------------------------------------------------------------------ the search
@@ -368,7 +381,8 @@ class Search:
             rounds.append({"candidates": cands, "signatures": sigs_all, "trajectory": trajs[None], "model": model})
             best = self._choose(cands)
             if best is None or not np.isfinite(best.score) or best.score <= 0 \
-                    or best.rmse_after > (1.0 - self.min_gain) * rmse_now or rmse_now <= self.floor():
+                    or best.rmse_after > (1.0 - self.min_gain) * rmse_now \
+                    or rmse_now <= self.floor(BASE_REFIT in names):
                 break
             steps.append(best)
             names = [n for n, _ in best.layout]
@@ -378,9 +392,10 @@ class Search:
             rmse_now, r_now = best.rmse_after, best.held_residual
         return model, steps, rounds, before
 
-    def floor(self) -> float:
-        """No effect is added once the held-out RMSE is at or below this (see :data:`NOISE_FLOOR`)."""
-        return NOISE_FLOOR * self.noise_sd
+    def floor(self, refitted: bool = False) -> float:
+        """No effect is added once the held-out RMSE is at or below this (see :data:`NOISE_FLOOR`;
+        :data:`NOISE_FLOOR_REFIT` once the base refit is in the model)."""
+        return (NOISE_FLOOR_REFIT if refitted else NOISE_FLOOR) * self.noise_sd
 
     def _choose(self, cands):
         """The best-scoring candidate, except that an effect within :data:`PARSIMONY` of a winning base refit is
@@ -436,7 +451,7 @@ class Search:
                         f"{1000 * rmse_after:.1f} mV ({100 * (1 - rmse_after / rmse_now):.0f} % lower)")
         if name == "current_bias" and self.bias_rest is not None:
             evidence += f"; rests read {1000 * self.bias_rest[0]:.1f} mA (bounds b to it)"
-        if name == "extra_rc":
+        if name == "extra_rc" and BASE_REFIT not in names:  # with the base refit, its branches are refitted too
             twin = self.twin_branch(10.0 ** params["log10_tau"])
             if twin is not None:  # not an effect the structure lacks: a branch it has, misfitted
                 score = -np.inf
