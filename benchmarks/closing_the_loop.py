@@ -286,8 +286,9 @@ WHY_WEAK = {
                 "with grown resistances here; on a flat LFP curve the drift shows only in the end-of-discharge knee.",
     "current_bias": "without rests in the record nothing measures the offset directly, and its drift is then "
                     "nearly a capacity error or a leak.",
-    "extra_rc": "a slow branch the structure lacks looks like a misfitted slow branch of the base (a DP's second "
-                "RC) or, over a long record, like an SOC drift; the base refit takes up part of it.",
+    "extra_rc": "the fit test shows the missing branch too, so on a DP base the DP's own second branch, fitted on "
+                "the HPPC, takes up much of it, and the base refit (the branches rescaled) most of the rest; it is "
+                "named when, fitted jointly with the refit, it still cuts the error by 10 % above the noise floor.",
     "butler_volmer": "with I₀ of 0.3–2 C the asinh is nearly linear over the loads' currents, so the base fit's R0 "
                      "absorbs most of it, and averaging a record to at most 4000 bins blurs the current peaks where "
                      "the curvature shows.",

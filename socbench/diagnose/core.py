@@ -179,6 +179,9 @@ LOOKUP_KNOTS = np.array([0.0, 0.1, 0.2, 0.4, 0.7, 1.0])
 MAX_RHO = 0.999
 #: samples per record for the SOC filters (their cost is per sample)
 SOC_MAX_SAMPLES = 1500
+#: the residual a fold's filter voltage noise is measured on: "training" (its own model on its training blocks) or
+#: "held_out" (the blocks outside its own, each scored by the fold model that did not see it)
+FILTER_NOISE = "held_out"
 #: filters run for the SOC before/after comparison
 SOC_ESTIMATORS = ("ekf", "ukf")
 #: the current-sensor noise the filters assume [fraction of the capacity, A per A·h]
@@ -324,6 +327,9 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
         def train_rmse(model_or_build, thetas=None):
             """Each fold's filter voltage noise (:func:`filter_voltage_sd`) on the filters' records."""
             out = np.zeros(soc_folds.k)
+            if FILTER_NOISE == "held_out" and thetas is not None:
+                r = cv_residual(model_or_build, soc_folds, soc0s, thetas)[0]
+                return np.array([filter_voltage_sd(r, soc_folds, j) for j in range(soc_folds.k)])
             for j in range(soc_folds.k):
                 r = cv_residual(model_or_build, soc_folds, soc0s, None if thetas is None
                                 else np.repeat(thetas[j:j + 1], soc_folds.k, axis=0))[0]

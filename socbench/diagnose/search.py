@@ -83,6 +83,8 @@ BASE_OFFSET_V = 0.05
 PARSIMONY = 0.10
 #: an extra RC branch whose time constant lies within this factor of one of the base model's is that branch misfitted
 TWIN_TAU = 3.0
+#: effects fitted again beside the base refit in the round after it was adopted (the best-scoring ones)
+CARRY = 2
 #: compression of the training record for the fits (the held-out part is scored on every sample)
 FIT_COMPRESS = {"max_step_s": 60.0}
 
@@ -316,7 +318,7 @@ class Search:
                 out[g].append(Trajectory(p, y[b], sim.soc[b], u[b], du[b]))
         return out
 
-    def _to_fit(self, ready, r2s):
+    def _to_fit(self, ready, r2s, carried=()):
         """The candidates whose bounded fit is run: the ``max_fits`` best-supported families by signature R²
         (at least ``MIN_SIGNATURE_R2``), where the SOC-drift effects (:data:`SOC_DRIFT`, one regressor shape up to
         U(z)/U(1) and charge weighting, which their signatures cannot rank) are one family fitted together; and the
@@ -332,6 +334,7 @@ class Search:
                 families += 1
         if self.bias_measured and "current_bias" in ready and "current_bias" not in chosen:
             chosen.append("current_bias")  # the rests measure an offset: direct evidence, whatever the signature says
+        chosen += [n for n in carried if n in ready and n not in chosen]
         return chosen
 
     # ------------------------------------------------------------------ the search
@@ -345,7 +348,7 @@ class Search:
         rmse_now = float(np.sqrt(np.mean(r_now * r_now)))
         before = rmse_now
         self.offsets = None
-        steps, rounds = [], []
+        steps, rounds, carried = [], [], []
         for _ in range(self.max_steps + 1):  # max_steps effects, and the base refit once
             if sum(st.effect != BASE_REFIT for st in steps) >= self.max_steps:
                 break
@@ -363,7 +366,7 @@ class Search:
                     ready.append(name)
             ready.sort(key=lambda n: sigs_all[n].r2 if n in sigs_all else 0.0, reverse=True)
             r2s = [sigs_all[n].r2 if n in sigs_all else 0.0 for n in ready]
-            fit_now = self._to_fit(ready, r2s)
+            fit_now = self._to_fit(ready, r2s, carried)
             fold_sigs = None
             for name, r2 in zip(ready, r2s):
                 sig = sigs_all.get(name)
@@ -384,7 +387,14 @@ class Search:
                     or best.rmse_after > (1.0 - self.min_gain) * rmse_now \
                     or rmse_now <= self.floor(BASE_REFIT in names):
                 break
+            best = self._beyond_refit(best, cands, names, fold_sigs, sigs_all, n_eff)
             steps.append(best)
+            # after the base refit, the effects that scored best beside it are fitted again, jointly with it, whatever
+            # their signature on the refitted residual: the refit takes up part of an effect (a scaled resistance is
+            # an Arrhenius factor at one temperature, a slow branch rescaled is part of a missing one), so what is
+            # left shows little of its shape, while the joint fit says whether the effect explains more than the refit
+            carried = [c.effect for c in cands if c.effect != BASE_REFIT and np.isfinite(c.score) and c.score > 0
+                       ][:CARRY] if best.effect == BASE_REFIT else []
             names = [n for n, _ in best.layout]
             thetas = best.fit.thetas
             build = self.builder(names)[0]
@@ -417,6 +427,32 @@ class Search:
             if rivals:
                 return max(rivals, key=lambda c: c.score)
         return best
+
+    def _beyond_refit(self, best, cands, names, fold_sigs, sigs_all, n_eff):
+        """``best``, or the base refit when ``best`` is an effect that explains no more than the refit does.
+
+        Where the base refit also cut the error this round, a base-fit error is part of the residual, and a flexible
+        effect may have taken it up instead. The effect is fitted jointly with the refit (nested): unless it cuts the
+        refit's held-out RMSE by :attr:`min_gain`, what it explained is what a better base fit explains, and the
+        refit is taken (never named; the effect is fitted again beside it in the next round). Effects whose evidence
+        is a measured input are exempt: the temperature (the measured temperature differs from the fit's) and a
+        current offset the rests measure."""
+        if best.effect in (BASE_REFIT, "temperature") or BASE_REFIT in names \
+                or (best.effect == "current_bias" and self.bias_measured):
+            return best
+        refit = next((c for c in cands if c.effect == BASE_REFIT and np.isfinite(c.score) and c.score > 0
+                      and c.rmse_after <= (1.0 - self.min_gain) * c.rmse_before), None)
+        if refit is None or fold_sigs is None:
+            return best
+        joint = self._try(best.effect, names + [BASE_REFIT], refit.fit.thetas, fold_sigs, sigs_all.get(best.effect),
+                          refit.rmse_after, n_eff)
+        best.evidence += (f"; fitted jointly with the base refit: held-out RMSE {1000 * refit.rmse_after:.1f} → "
+                          f"{1000 * joint.rmse_after:.1f} mV")
+        if np.isfinite(joint.score) and joint.rmse_after <= (1.0 - self.min_gain) * refit.rmse_after:
+            return best
+        refit.evidence += (f"; {best.effect} explained no more than this refit (jointly with it "
+                           f"{1000 * joint.rmse_after:.1f} mV)")
+        return refit
 
     def _try(self, name, names, thetas, fold_sigs, sig, rmse_now, n_eff) -> Candidate:
         t0 = _time.perf_counter()
