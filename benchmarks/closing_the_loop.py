@@ -174,8 +174,9 @@ HOW = (
     "candidate being fitted jointly with it).")
 SOC_HOW = (
     "SOC: the EKF and the UKF run on every record once per fold (records averaged to at most 1500 bins), block j "
-    "scored with fold j's model; each fold's filter voltage noise is its model's residual on its training blocks as "
-    "a white-noise equivalent σ·√((1+ρ)/(1−ρ)) (ρ its lag-1 autocorrelation), the current noise 1 % of C; an "
+    "scored with fold j's model; each fold's filter voltage noise is the held-out residual outside block j (each "
+    "block scored by the fold model that did not see it) as a white-noise equivalent σ·√((1+ρ)/(1−ρ)) (ρ its lag-1 "
+    "autocorrelation), the current noise 1 % of C; an "
     "added state's initial SD is the spread of its fitted initial value over the folds "
     "(`socbench.models.effects.Effect.initial_sd`), its random walk the effect's declaration (0 for capacity and a "
     "sensor offset: constants within a record).")

@@ -14,7 +14,9 @@
    steps while the held-out RMSE falls by ≥ 10 %.
 4. **SOC** (where the data carry a reference SOC): the EKF and the UKF on the base model and on the augmented model of
    every fold, block ``j`` scored with fold ``j``'s run (:func:`soc_errors`); the filters' voltage noise is the
-   white-noise equivalent of each fold model's correlated training residual (:func:`filter_voltage_sd`), an added
+   white-noise equivalent (:func:`filter_voltage_sd`) of the correlated held-out residual outside block ``j`` (each
+   of those blocks scored by the fold model that did not see it: the error the model makes on data it was not
+   fitted on; the training residual hid fold models that generalise badly, which the filter then trusted), an added
    state's initial SD the spread of its fitted initial value over the folds (:func:`fold_spread_sd`).
 
 ``before`` is the base model's error on every averaged sample (no parameter of it was fitted there); ``after`` the
@@ -352,8 +354,8 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
                                                                             "after": vsd_a.tolist()},
                         "effect_state_sd": {k: list(v) for k, v in isd.items()},
                         "note": "EKF and UKF on every record once per fold, block j scored with fold j's model; "
-                                "filter voltage noise = each fold model's training residual as white-noise equivalent "
-                                "σ·√((1+ρ)/(1−ρ)); current "
+                                "filter voltage noise = the held-out residual outside each fold's block as "
+                                "white-noise equivalent σ·√((1+ρ)/(1−ρ)); current "
                                 f"noise {100 * SOC_CURRENT_SD:g} % of C; an added state's initial SD = the spread of "
                                 "its fitted initial value over the folds"}
         else:

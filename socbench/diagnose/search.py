@@ -16,7 +16,7 @@ One round, on the current model ``m`` (the base model, then the base model with 
    least 100 — neighbouring residuals of a voltage fit are far from independent);
 4. add the chosen candidate (:meth:`Search._choose`) if it lowers the held-out RMSE by at least ``min_gain`` (10 %)
    and the model is not already at the noise floor (held-out RMSE ≤ ``NOISE_FLOOR`` × the voltage noise of the
-   averaged records, :func:`residual_noise`); else stop.
+   averaged records, :func:`residual_noise`; ``NOISE_FLOOR_REFIT`` × once the base refit is in the model); else stop.
 
 Candidates. The bounded fit (the expensive part) runs for the ``max_fits`` best-supported families by signature R²
 (at least ``MIN_SIGNATURE_R2``); the four SOC drifts (capacity, current bias, leak, efficiency: one regressor shape up
@@ -25,11 +25,15 @@ to U(z)/U(1) and charge weighting) are one family, fitted together. Beside the e
 for what a better base fit would absorb (an OCV read from unrelaxed rests, a slow branch a short pulse cannot
 identify) and is never named an effect; an effect within ``PARSIMONY`` of a winning base refit is preferred to it.
 For the same reason an extra RC branch whose time constant lies within ×``TWIN_TAU`` of one of the base model's
-branches is not named: it cannot be told from a misfit of that branch.
+branches is not named while the base is not refitted: it cannot be told from a misfit of that branch. Nested tests
+against the refit (:meth:`Search._beyond_refit`): an effect that wins a round in which the refit also cut the error is
+named only if, fitted jointly with the refit, it cuts the refit's error by ``min_gain`` (else the refit is taken);
+after a refit is adopted, the ``CARRY`` best-scoring effects of its round are fitted again jointly with it, whatever
+their signature on the refitted residual (the refit took up part of their shape).
 
 The current sensor gets evidence of its own: where the records hold rests (at least ``FIELD_REST_MIN_S`` below C/20
 whose spread is the sensor's noise), the true current is zero, so the measured rest current *is* the offset. ``b`` is
-bounded to that mean ± 3 standard errors (± C/500 for the sensor's resolution); with at least ``REST_EVIDENCE_S`` of
+bounded to that median ± 3 standard errors (± C/500 for the sensor's resolution); with at least ``REST_EVIDENCE_S`` of
 rests a clear offset puts the current bias first, a null one rules it out.
 """
 
@@ -41,7 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..models.effects import EFFECTS, augment, make_effect, n_cells
-from .cv import FoldFit, cv_residual, fit_folds
+from .cv import FoldFit, cv_residual, fit_folds, simulate_records
 from .data import Folds
 from .signatures import Trajectory, signatures
 
@@ -83,6 +87,8 @@ BASE_OFFSET_V = 0.05
 PARSIMONY = 0.10
 #: an extra RC branch whose time constant lies within this factor of one of the base model's is that branch misfitted
 TWIN_TAU = 3.0
+#: a measured temperature this far from the fit's [K] is evidence of a temperature effect (Search._choose)
+T_EVIDENCE_K = 5.0
 #: effects fitted again beside the base refit in the round after it was adopted (the best-scoring ones)
 CARRY = 2
 #: compression of the training record for the fits (the held-out part is scored on every sample)
@@ -214,6 +220,11 @@ class Search:
         self.rows = {j: np.concatenate([folds.train_mask(r, j) for r in range(len(folds.records))])
                      for j in range(folds.k)}
         self.rows[None] = n_all
+        #: the evaluation records' measured temperature lies ``T_EVIDENCE_K`` or more from the fit's for a tenth of
+        #: their samples or more: direct evidence of a temperature effect (at one ambient a base refit scaling every
+        #: resistance mimics the Arrhenius factor, and would be taken for base-fit error)
+        self.temperature_measured = bool(all(p.temperature_c is not None for p in folds.records) and np.mean(
+            np.concatenate([np.abs(p.temperature_c - self.t_ref) >= T_EVIDENCE_K for p in folds.records])) >= 0.1)
         #: what the rests say about the current sensor: True (it reads an offset), False (it reads none), None (too
         #: few rests to tell)
         self.bias_measured = None
@@ -348,7 +359,7 @@ class Search:
         rmse_now = float(np.sqrt(np.mean(r_now * r_now)))
         before = rmse_now
         self.offsets = None
-        steps, rounds, carried = [], [], []
+        steps, rounds, carried = [], [], {}
         for _ in range(self.max_steps + 1):  # max_steps effects, and the base refit once
             if sum(st.effect != BASE_REFIT for st in steps) >= self.max_steps:
                 break
@@ -375,7 +386,11 @@ class Search:
                         fold_sigs = {g: signatures(self.base, trajs[g], self.bounds, self.t_ref, self.rows[g])
                                      for g in self.groups if g is not None}
                         fold_sigs[None] = sigs_all
-                    cands.append(self._try(name, names, thetas, fold_sigs, sig, rmse_now, n_eff))
+                    cand = self._try(name, names, thetas, fold_sigs, sig, rmse_now, n_eff)
+                    if name in carried:  # a second start: the effect where it was alone, the refit at identity
+                        cand = self._better(cand, self._try(name, names, thetas, fold_sigs, sig, rmse_now, n_eff,
+                                                            start=self._carried_start(carried[name], names)))
+                    cands.append(cand)
                 else:
                     cands.append(Candidate(name, -np.inf, rmse_now, rmse_now, {}, r2,
                                            f"residual signature {'' if sig is None else sig.regressor} explains "
@@ -393,8 +408,9 @@ class Search:
             # their signature on the refitted residual: the refit takes up part of an effect (a scaled resistance is
             # an Arrhenius factor at one temperature, a slow branch rescaled is part of a missing one), so what is
             # left shows little of its shape, while the joint fit says whether the effect explains more than the refit
-            carried = [c.effect for c in cands if c.effect != BASE_REFIT and np.isfinite(c.score) and c.score > 0
-                       ][:CARRY] if best.effect == BASE_REFIT else []
+            carried = {c.effect: c for c in [c for c in cands if c.effect != BASE_REFIT and np.isfinite(c.score)
+                                             and c.score > 0 and c.fit is not None][:CARRY]} \
+                if best.effect == BASE_REFIT else {}
             names = [n for n, _ in best.layout]
             thetas = best.fit.thetas
             build = self.builder(names)[0]
@@ -411,7 +427,8 @@ class Search:
         """The best-scoring candidate, except that an effect within :data:`PARSIMONY` of a winning base refit is
         preferred (a named effect with fewer parameters explains the same), and that a current-sensor offset the
         rests measure comes first when it explains a share of the residual of its own (:attr:`min_gain`): the rest
-        current *is* the offset (direct evidence, no model needed), while a leak or a fade reads none."""
+        current *is* the offset (direct evidence, no model needed), while a leak or a fade reads none. The same for
+        the temperature when the records' measured temperature differs from the fit's (:data:`T_EVIDENCE_K`)."""
         ok = [c for c in cands if np.isfinite(c.score)]
         if not ok:
             return cands[0] if cands else None
@@ -421,6 +438,11 @@ class Search:
                     and c.rmse_after <= (1.0 - self.min_gain) * c.rmse_before]
             if bias:
                 return bias[0]
+        if self.temperature_measured:  # likewise the measured temperature: a base refit would only mimic it
+            temp = [c for c in ok if c.effect == "temperature" and c.score > 0
+                    and c.rmse_after <= (1.0 - self.min_gain) * c.rmse_before]
+            if temp:
+                return temp[0]
         if best.effect == BASE_REFIT:
             rivals = [c for c in ok if c.effect != BASE_REFIT and c.score > 0
                       and c.rmse_after <= (1.0 + PARSIMONY) * best.rmse_after]
@@ -454,12 +476,41 @@ class Search:
                            f"{1000 * joint.rmse_after:.1f} mV)")
         return refit
 
-    def _try(self, name, names, thetas, fold_sigs, sig, rmse_now, n_eff) -> Candidate:
+    def _carried_start(self, alone: Candidate, names) -> np.ndarray:
+        """Rows ``(groups, P)`` for the joint fit of ``alone``'s effect beside the refit adopted after it: what was
+        added before and the effect as fitted without the refit, the refit at identity (zero log-scales and
+        offsets)."""
+        n_refit = len(self.params_of(BASE_REFIT)[0])
+        p_effect = len(alone.layout[-1][1])
+        rows = alone.fit.thetas
+        return np.hstack([rows[:, :rows.shape[1] - p_effect], np.zeros((rows.shape[0], n_refit)),
+                          rows[:, rows.shape[1] - p_effect:]])
+
+    def _better(self, a: Candidate, b: Candidate) -> Candidate:
+        """Of two fits of the same candidate from different starts, the one whose all-data fit has the lower training
+        error (never chosen by the held-out score)."""
+        if b.fit is None:
+            return a
+        if a.fit is None:
+            return b
+
+        def sse(c):
+            build = self.builder([n for n, _ in c.layout])[0]
+            ys = simulate_records(build, c.fit.row(None)[None], self.folds.records, self.soc0s)
+            e = np.concatenate([(y[0] - p.voltage_v) for y, p in zip(ys, self.folds.records)])
+            return float(np.sum(np.where(np.isfinite(e), e, 1.0) ** 2))
+
+        return b if sse(b) < sse(a) else a
+
+    def _try(self, name, names, thetas, fold_sigs, sig, rmse_now, n_eff, start=None) -> Candidate:
         t0 = _time.perf_counter()
         pnames, _, _, defaults = self.params_of(name)
-        start = np.array([[fold_sigs[g][name].guess.get(p, defaults[p]) if name in fold_sigs[g] else defaults[p]
-                           for p in pnames] for g in self.groups])
-        theta0 = start if thetas is None else np.hstack([thetas, start])
+        if start is not None:
+            theta0 = start
+        else:
+            start = np.array([[fold_sigs[g][name].guess.get(p, defaults[p]) if name in fold_sigs[g]
+                               else defaults[p] for p in pnames] for g in self.groups])
+            theta0 = start if thetas is None else np.hstack([thetas, start])
         r2 = 0.0 if sig is None else sig.r2
         try:
             fit, build, layout = self.fit(names + [name], theta0)
