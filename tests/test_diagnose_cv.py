@@ -97,3 +97,12 @@ def test_soc_of_the_augmented_model_is_not_worse(effect, load, seed):
         # the base model's, 15 % off
         for name in ("ekf", "ukf"):
             assert att["after"]["voltage_ignored"][name] < 0.5 * att["before"]["voltage_ignored"][name], att
+
+
+@pytest.mark.parametrize("effect,measured", [("temperature", True), (None, False), ("capacity", False)])
+def test_a_measured_temperature_away_from_the_fit_is_evidence(effect, measured):
+    # the synthetic temperature case warms from −5 to 20 °C against a 25 °C fit; the others stay at the fit's 25 °C
+    fit, ev = hidden_case(effect, "thevenin", "pulses", "small", v_sd=1e-3, seed=5)
+    base, info = fit_base("thevenin", [fit], "constant")
+    search = Search(base, make_folds([_coarse(ev, 1.0, 4000)], 4), info["t_ref_c"], base_refit=False)
+    assert search.temperature_measured is measured
