@@ -12,7 +12,8 @@ For each sample k (prior ``x⁻, P⁻``; the first prior is ``x0, P0``)::
              Q_k = σ_I² B Bᵀ (+ walk)   P⁻ = F P⁺ Fᵀ + Q_k
 
 This is filterpy's ``ExtendedKalmanFilter`` with a nonlinear ``predict_x``; ``reference.ReferenceEKF`` runs exactly
-that class one trajectory at a time and the two agree to 1e-9.
+that class one trajectory at a time and the two agree to 1e-9. ``socbench.kernels.filters.ekf`` is the same loop
+compiled (``engine`` option, :mod:`~socbench.estimators.base`).
 """
 
 from __future__ import annotations
@@ -65,3 +66,10 @@ class EKF(Estimator):
                 np.copyto(x_good, x, where=~failed[:, None])
                 np.copyto(P_good, P, where=~failed[:, None, None])
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold})
+
+    def _run_compiled(self, job, seed=None):
+        from ..kernels.engine import parallel_runs
+        from ..kernels.filters import ekf
+
+        parallel_runs(ekf, job.R, *job.model_args, *job.noise_args, job.opt, *job.out_args)
+        return job.finish({"gate_threshold": job.threshold})

@@ -15,7 +15,8 @@ For each sample k::
     predict  X = σ(x⁺, P⁺),  X_i⁻ = f(X_i, I_k, dt_k)   x⁻ = Σ Wm_i X_i⁻
              P⁻ = Σ Wc_i (X_i⁻ − x⁻)(X_i⁻ − x⁻)ᵀ + Q_k,  symmetrise, PSD repair
 
-``R_k`` and ``Q_k`` come from ``D`` and ``B`` at the mean (sigma point 0), as in the EKF. The update draws fresh sigma
+``R_k`` and ``Q_k`` come from ``D`` and ``B`` at the mean (sigma point 0), as in the EKF;
+``socbench.kernels.filters.ukf`` is the same loop compiled (``engine`` option). The update draws fresh sigma
 points from the prior, exactly as filterpy's ``UnscentedKalmanFilter.predict`` leaves them. Defaults α = 1, β = 2,
 κ = 0 keep every weight but Wm_0 positive (small α makes Wc_0 ≈ −1/α², which breaks PSD on 2–5 state models).
 """
@@ -116,3 +117,11 @@ class UKF(Estimator):
                 np.copyto(x_good, x, where=~failed[:, None])
                 np.copyto(P_good, P, where=~failed[:, None, None])
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold, "lambda": lam})
+
+    def _run_compiled(self, job, seed=None):
+        from ..kernels.engine import parallel_runs
+        from ..kernels.filters import ukf
+
+        parallel_runs(ukf, job.R, *job.model_args, *job.noise_args, job.opt, self.Wm, self.Wc, float(self.lam),
+                      bool(self.noise.needs_D), bool(self.noise.needs_B), *job.out_args)
+        return job.finish({"gate_threshold": job.threshold, "lambda": self.lam})

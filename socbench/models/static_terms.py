@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Model
+from .base import KernelSpec, Model
 from .blocks import R_FLOOR, clipped_exp, floor_value, guarded_inv, guarded_log, guarded_log1m, soc_rate, soc_step
 
 
@@ -53,6 +53,14 @@ class StaticTermModel(Model):
     def term(self, z, temp=None, guards=None):
         """``(g, dg/dz)`` at SOC ``z`` and cell temperature ``temp``."""
         raise NotImplementedError
+
+    def kernel_spec(self):
+        from ..kernels.lowering import STATIC_TERMS  # the compiled term of each model (kernels/evaluate.py)
+
+        if self.name not in STATIC_TERMS:
+            return None
+        return KernelSpec("static_terms", ("R0",) + tuple(p for p in self.param_names if p != "R0"),
+                          STATIC_TERMS[self.name])
 
     def step(self, x, i, dt, temp=None, jac=False, guards=None):
         x, (i, dt) = self._broadcast(x, i, dt)

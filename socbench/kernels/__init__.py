@@ -1,0 +1,1 @@
+"""Compiled kernels (numba): placeholder docstring, rewritten below."""

@@ -1,0 +1,426 @@
+"""Compiled time loops of the Kalman-type filters: EKF, UKF and the coulomb counter, parallel over runs.
+
+Each kernel runs the runs ``r0 … r1 − 1`` of a batch one after the other (the time loop inside a run), with
+the equations of its numpy engine (:mod:`socbench.estimators.ekf`, ``ukf``, ``coulomb``: the docstrings there) and the
+same safety rules (:mod:`socbench.kernels.linalg`: Joseph form, symmetrise, PSD repair, SOC clamp flag, χ² gate with
+release, divergence). A run that fails stops computing: its outputs from the failing sample on repeat the last
+recorded values (:func:`freeze`, the semantics of ``estimators.base.Recorder``). Runs are independent, so the
+caller splits a batch into slices and runs them on threads (the kernels release the GIL;
+:func:`socbench.kernels.engine.parallel_runs`) — cheaper to compile than numba's ``prange``.
+
+Shared arguments (built by :mod:`socbench.kernels.engine`):
+
+* ``im, fm``     the lowered model (:mod:`socbench.kernels.lowering`);
+* ``x0 (R, n)``, ``P0 (R, n, n)``; ``cur, volt, temp (R, T)``, ``has_temp``; ``dts (T − 1,)``;
+* ``nz``         noise numbers (:data:`NOISE_FIELDS`), ``walk (n,)`` random-walk variances per ``nz[DT0]``,
+                 ``Qo (n, n)`` a constant Q override (used when ``nz[Q_OVR] = 1``);
+* ``opt``        safety options (:data:`OPTION_FIELDS`);
+* outputs        ``outf (5, R, T)``: soc, soc_std, v_pred, innovation, innovation_var; ``outb (2, R, T)``: clamped,
+                 gated; ``xs, pd (R, T, n)`` when ``store``; ``failed (R,)``, ``failed_at (R,)``, ``status (R,)``
+                 (1: the model met a condition where numpy raises — the caller reruns the batch with numpy).
+
+Noise (:mod:`socbench.estimators.noise`): ``R_k = σ_V² + σ_in²·D_k²`` (or the override), ``Q_k = σ_in²·B_k B_kᵀ +
+diag(walk)·dt_k/dt0`` (or the override matrix).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .evaluate import model_output, model_step
+from .jit import kernel
+from .linalg import cholesky_lower, diverged_cov, diverged_var, eigh_jacobi, gate, repair_psd, symmetrise
+
+#: nz slots
+NOISE_FIELDS = ("voltage_var", "input_var", "r_override", "dt0", "has_walk", "q_override", "current_var", "bias_var")
+V_VAR, IN_VAR, R_OVR, DT0, HAS_WALK, Q_OVR, CUR_VAR, BIAS_VAR = range(8)
+#: opt slots
+OPTION_FIELDS = ("gate_threshold", "gate_release", "var_max", "nis_max", "psd_floor", "psd_rel_floor")
+G_THR, G_REL, VAR_MAX, NIS_MAX, PSD_ABS, PSD_REL = range(6)
+
+
+# ================================================================================================ shared pieces
+@kernel
+def measurement_var(nz, D):
+    """``R_k`` (noise.NoiseModel.R)."""
+    if nz[R_OVR] == nz[R_OVR]:  # an override (NaN: none)
+        return nz[R_OVR]
+    return nz[V_VAR] + nz[IN_VAR] * D * D
+
+
+@kernel
+def process_cov(nz, walk, Qo, B, n, dt, var, Q):
+    """``Q_k`` into ``Q`` (noise.SensorNoise.process_cov with input variance ``var``, or the override)."""
+    if nz[Q_OVR] != 0.0:
+        for a in range(n):
+            for b in range(n):
+                Q[a, b] = Qo[a, b]
+        return
+    for a in range(n):
+        for b in range(n):
+            Q[a, b] = var * B[a] * B[b]
+    if nz[HAS_WALK] != 0.0:
+        for a in range(n):
+            Q[a, a] += walk[a] * (dt / nz[DT0])
+
+
+@kernel
+def propagate(F, P, Q, n, FP):
+    """``P ← F P Fᵀ + Q`` (``FP``: scratch)."""
+    for a in range(n):
+        for b in range(n):
+            s = 0.0
+            for c in range(n):
+                s += F[a, c] * P[c, b]
+            FP[a, b] = s
+    for a in range(n):
+        for b in range(n):
+            s = 0.0
+            for c in range(n):
+                s += FP[a, c] * F[b, c]
+            P[a, b] = s + Q[a, b]
+
+
+@kernel
+def record(outf, outb, xs, pd, store, r, k, soc, std, v_pred, e, S, clamped, gated, x, diag, n):
+    outf[0, r, k] = soc
+    outf[1, r, k] = std
+    outf[2, r, k] = v_pred
+    outf[3, r, k] = e
+    outf[4, r, k] = S
+    outb[0, r, k] = clamped
+    outb[1, r, k] = gated
+    if store:
+        for a in range(n):
+            xs[r, k, a] = x[a]
+            pd[r, k, a] = diag[a]
+
+
+@kernel
+def freeze(outf, outb, xs, pd, store, r, kf, T, n, soc0, std0, v0):
+    """Outputs of a run failed at sample ``kf``: from ``kf`` on, the values of ``kf − 1`` (or the initial guess)."""
+    for k in range(kf, T):
+        if k == 0:
+            outf[0, r, 0] = soc0
+            outf[1, r, 0] = std0
+            outf[2, r, 0] = v0
+            outf[3, r, 0] = 0.0
+            outf[4, r, 0] = 1.0
+            if store:
+                for a in range(n):
+                    xs[r, 0, a] = 0.0
+                    pd[r, 0, a] = 0.0
+                xs[r, 0, 0] = soc0
+                pd[r, 0, 0] = std0 * std0
+        else:
+            for f in range(5):
+                outf[f, r, k] = outf[f, r, k - 1]
+            if store:
+                for a in range(n):
+                    xs[r, k, a] = xs[r, k - 1, a]
+                    pd[r, k, a] = pd[r, k - 1, a]
+        outb[0, r, k] = False
+        outb[1, r, k] = False
+
+
+@kernel
+def clamp_soc(x):
+    if x[0] < 0.0:
+        x[0] = 0.0
+        return True
+    if x[0] > 1.0:
+        x[0] = 1.0
+        return True
+    return False
+
+
+@kernel
+def settle(x, P, n, nis, opt, w, V, work):
+    """The update's safety tail (``estimators.base.settle_update``) up to recording: ``(clamped, failed)``."""
+    symmetrise(P, n)
+    repair_psd(P, n, opt[PSD_ABS], opt[PSD_REL], w, V, work)
+    clamped = clamp_soc(x)
+    return clamped, diverged_cov(x, n, P, nis, opt[VAR_MAX], opt[NIS_MAX])
+
+
+# ================================================================================================ EKF
+@kernel
+def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, opt, outf, outb, xs, pd, store,
+        failed, failed_at, status):
+    """Extended Kalman filter (estimators/ekf.py) over runs ``r0 … r1 − 1``."""
+    T = cur.shape[1]
+    n = x0.shape[1]
+    jac = n > 0  # True, as a run-time value: a literal would make numba compile a copy of every callee
+    for r in range(r0, r1):
+        x = x0[r].copy()
+        P = P0[r].copy()
+        xn = np.empty(n)
+        H = np.empty(n)
+        K = np.empty(n)
+        PHt = np.empty(n)
+        B = np.empty(n)
+        F = np.empty((n, n))
+        A = np.empty((n, n))
+        Q = np.empty((n, n))
+        M = np.empty((n, n))
+        V = np.empty((n, n))
+        work = np.empty((n, n))
+        w = np.empty(n)
+        scratch = np.empty(16)
+        consecutive = np.int64(0)
+        for k in range(T):
+            ik = cur[r, k]
+            tk = temp[r, k]
+            # ---------------------------------------------------------------- update
+            y, D, st = model_output(im, fm, x, ik, tk, has_temp, jac, H)
+            if st != 0:
+                status[r] = st
+                break
+            Rk = measurement_var(nz, D)
+            S = 0.0
+            for a in range(n):
+                s = 0.0
+                for b in range(n):
+                    s += P[a, b] * H[b]
+                PHt[a] = s
+                S += H[a] * s
+            S = S + Rk
+            e = volt[r, k] - y
+            nis = e * e / S
+            gated, consecutive = gate(nis, opt[G_THR], consecutive, opt[G_REL])
+            for a in range(n):
+                K[a] = 0.0 if gated else PHt[a] / S
+                x[a] = x[a] + K[a] * e
+            for a in range(n):  # Joseph form: (I − K H) P (I − K H)ᵀ + R K Kᵀ
+                for b in range(n):
+                    A[a, b] = (1.0 if a == b else 0.0) - K[a] * H[b]
+            for a in range(n):
+                for b in range(n):
+                    s = 0.0
+                    for c in range(n):
+                        s += A[a, c] * P[c, b]
+                    M[a, b] = s
+            for a in range(n):
+                for b in range(n):
+                    s = 0.0
+                    for c in range(n):
+                        s += M[a, c] * A[b, c]
+                    P[a, b] = s + Rk * (K[a] * K[b])
+            clamped, bad = settle(x, P, n, nis, opt, w, V, work)
+            if bad:
+                failed[r] = True
+                failed_at[r] = k
+                freeze(outf, outb, xs, pd, store, r, k, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
+                break
+            for a in range(n):
+                w[a] = P[a, a]
+            record(outf, outb, xs, pd, store, r, k, x[0], math.sqrt(P[0, 0]), y, e, S, clamped, gated, x, w, n)
+            if k + 1 == T:
+                break
+            # ---------------------------------------------------------------- predict
+            st = model_step(im, fm, x, ik, dts[k], tk, has_temp, jac, xn, F, B, scratch)
+            if st != 0:
+                status[r] = st
+                break
+            for a in range(n):
+                x[a] = xn[a]
+            process_cov(nz, walk, Qo, B, n, dts[k], nz[IN_VAR], Q)
+            propagate(F, P, Q, n, M)
+            symmetrise(P, n)
+            if diverged_cov(x, n, P, 0.0, np.inf, np.inf):
+                failed[r] = True
+                failed_at[r] = k + 1
+                freeze(outf, outb, xs, pd, store, r, k + 1, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
+                break
+
+
+# ================================================================================================ UKF
+@kernel
+def sigma_points(x, P, n, lam, X, L, M, w, V, work):
+    """Merwe sigma points of ``(x, P)`` into ``X (2n + 1, n)`` (ukf.sigma_points: Cholesky of (n + λ)P, or the
+    symmetric square root when it fails)."""
+    for a in range(n):
+        for b in range(n):
+            M[a, b] = (n + lam) * P[a, b]
+    if not cholesky_lower(M, n, L):
+        eigh_jacobi(M, n, w, V, work)
+        for a in range(n):
+            for b in range(n):
+                L[a, b] = V[a, b] * math.sqrt(max(w[b], 0.0))
+    for a in range(n):
+        X[0, a] = x[a]
+        for j in range(n):
+            X[1 + j, a] = x[a] + L[a, j]
+            X[n + 1 + j, a] = x[a] - L[a, j]
+
+
+@kernel
+def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, opt, Wm, Wc, lam, needs_D, needs_B,
+        outf, outb, xs, pd, store, failed, failed_at, status):
+    """Unscented Kalman filter (estimators/ukf.py) over runs ``r0 … r1 − 1``."""
+    T = cur.shape[1]
+    n = x0.shape[1]
+    ns = 2 * n + 1
+    for r in range(r0, r1):
+        x = x0[r].copy()
+        P = P0[r].copy()
+        X = np.empty((ns, n))
+        Xf = np.empty((ns, n))
+        Y = np.empty(ns)
+        H = np.empty(n)
+        K = np.empty(n)
+        Pxy = np.empty(n)
+        B = np.empty(n)
+        F = np.empty((n, n))
+        L = np.empty((n, n))
+        M = np.empty((n, n))
+        Q = np.empty((n, n))
+        V = np.empty((n, n))
+        work = np.empty((n, n))
+        w = np.empty(n)
+        scratch = np.empty(16)
+        consecutive = np.int64(0)
+        for k in range(T):
+            ik = cur[r, k]
+            tk = temp[r, k]
+            # ---------------------------------------------------------------- update
+            sigma_points(x, P, n, lam, X, L, M, w, V, work)
+            D0 = 0.0
+            st = 0
+            for s in range(ns):
+                y, D, st = model_output(im, fm, X[s], ik, tk, has_temp, needs_D and s == 0, H)
+                if st != 0:
+                    break
+                Y[s] = y
+                if s == 0:
+                    D0 = D
+            if st != 0:
+                status[r] = st
+                break
+            Rk = measurement_var(nz, D0)
+            yhat = 0.0
+            for s in range(ns):
+                yhat += Y[s] * Wm[s]
+            S = 0.0
+            for a in range(n):
+                Pxy[a] = 0.0
+            for s in range(ns):
+                dy = Y[s] - yhat
+                S += dy * dy * Wc[s]
+                for a in range(n):
+                    Pxy[a] += (X[s, a] - x[a]) * (dy * Wc[s])
+            S = S + Rk
+            e = volt[r, k] - yhat
+            nis = e * e / S
+            gated, consecutive = gate(nis, opt[G_THR], consecutive, opt[G_REL])
+            for a in range(n):
+                K[a] = 0.0 if gated else Pxy[a] / S
+                x[a] = x[a] + K[a] * e
+            for a in range(n):
+                for b in range(n):
+                    P[a, b] = P[a, b] - S * (K[a] * K[b])
+            clamped, bad = settle(x, P, n, nis, opt, w, V, work)
+            if bad:
+                failed[r] = True
+                failed_at[r] = k
+                freeze(outf, outb, xs, pd, store, r, k, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
+                break
+            for a in range(n):
+                w[a] = P[a, a]
+            record(outf, outb, xs, pd, store, r, k, x[0], math.sqrt(P[0, 0]), yhat, e, S, clamped, gated, x, w, n)
+            if k + 1 == T:
+                break
+            # ---------------------------------------------------------------- predict
+            sigma_points(x, P, n, lam, X, L, M, w, V, work)
+            for s in range(ns):
+                st = model_step(im, fm, X[s], ik, dts[k], tk, has_temp, needs_B and s == 0, Xf[s], F, B, scratch)
+                if st != 0:
+                    break
+            if st != 0:
+                status[r] = st
+                break
+            process_cov(nz, walk, Qo, B, n, dts[k], nz[IN_VAR], Q)
+            for a in range(n):
+                s_ = 0.0
+                for s in range(ns):
+                    s_ += Wm[s] * Xf[s, a]
+                x[a] = s_
+            for a in range(n):
+                for b in range(n):
+                    s_ = 0.0
+                    for s in range(ns):
+                        s_ += (Xf[s, a] - x[a]) * Wc[s] * (Xf[s, b] - x[b])
+                    P[a, b] = s_ + Q[a, b]
+            symmetrise(P, n)
+            repair_psd(P, n, opt[PSD_ABS], opt[PSD_REL], w, V, work)
+            if diverged_cov(x, n, P, 0.0, np.inf, np.inf):
+                failed[r] = True
+                failed_at[r] = k + 1
+                freeze(outf, outb, xs, pd, store, r, k + 1, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
+                break
+
+
+# ================================================================================================ coulomb counting
+@kernel
+def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, ratio, outf, outb, xs, pd, store,
+            failed, failed_at, status):
+    """Coulomb counting with the declared capacity (estimators/coulomb.py) over runs ``r0 … r1 − 1``."""
+    T = cur.shape[1]
+    n = x0.shape[1]
+    jac = n > 0  # run-time True and False (literals would make numba compile copies of every callee)
+    never = n < 0
+    for r in range(r0, r1):
+        x = x0[r].copy()
+        P = P0[r].copy()
+        xn = np.empty(n)
+        H = np.empty(n)
+        B = np.empty(n)
+        F = np.empty((n, n))
+        Q = np.empty((n, n))
+        M = np.empty((n, n))
+        w = np.empty(n)
+        scratch = np.empty(16)
+        drift = 0.0
+        for k in range(T):
+            ik = cur[r, k]
+            tk = temp[r, k]
+            y, D, st = model_output(im, fm, x, ik, tk, has_temp, jac, H)
+            if st != 0:
+                status[r] = st
+                break
+            Rk = measurement_var(nz, D)
+            S = 0.0
+            for a in range(n):
+                s = 0.0
+                for b in range(n):
+                    s += P[a, b] * H[b]
+                S += H[a] * s
+            S = S + Rk
+            e = volt[r, k] - y
+            clamped = clamp_soc(x)
+            var_z = P[0, 0] + nz[BIAS_VAR] * (drift * drift)
+            if diverged_var(x, n, var_z, 0.0, np.inf, np.inf):
+                failed[r] = True
+                failed_at[r] = k
+                freeze(outf, outb, xs, pd, store, r, k, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
+                break
+            for a in range(n):
+                w[a] = P[a, a]
+            record(outf, outb, xs, pd, store, r, k, x[0], math.sqrt(var_z), y, e, S, clamped, never, x, w, n)
+            if k + 1 == T:
+                break
+            z = x[0]
+            st = model_step(im, fm, x, ik, dts[k], tk, has_temp, jac, xn, F, B, scratch)
+            if st != 0:
+                status[r] = st
+                break
+            B[0] *= ratio
+            for a in range(n):
+                x[a] = xn[a]
+            x[0] = z + (xn[0] - z) * ratio
+            drift -= B[0]
+            process_cov(nz, walk, Qo, B, n, dts[k], nz[CUR_VAR], Q)
+            propagate(F, P, Q, n, M)
+            symmetrise(P, n)

@@ -1,0 +1,197 @@
+"""Compiled small dense linear algebra and the numerical safety rules of :mod:`socbench.estimators.safety`.
+
+One covariance at a time (``n × n``, n ≤ ~12), no allocation: every function writes into arrays it is given.
+
+* ``symmetrise``      ``P ← (P + Pᵀ)/2``;
+* ``psd_certified``   the LDLᵀ certificate of ``safety.psd_certified`` (same margin, same operations);
+* ``eigh_jacobi``     cyclic Jacobi eigen-decomposition of a symmetric matrix (Golub & Van Loan §8.5): accurate to
+                      rounding for the small covariances here, and free of LAPACK calls inside parallel loops;
+* ``repair_psd``      ``safety.repair_psd``: where not certified and ``λ_min < floor = max(abs, rel·λ_max)``, rebuild
+                      ``V max(Λ, floor) Vᵀ`` (symmetrised); non-finite matrices are left alone (the divergence check
+                      catches them);
+* ``cholesky_lower``  ``L Lᵀ = A``; returns False where a pivot is not positive (numpy's LinAlgError);
+* ``gate``            the χ² innovation gate with its release (``safety.Gate``), on one run's counter;
+* ``diverged_cov``, ``diverged_var``   ``safety.diverged`` for one run (full covariance, or the SOC variance only).
+
+No literal constants are passed between compiled functions (here and in every kernel module): numba compiles a
+specialised copy of a function, and of everything it calls, for each literal argument it meets.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .jit import kernel
+
+EPS = float(np.finfo(float).eps)
+JACOBI_SWEEPS = 60
+
+
+@kernel
+def symmetrise(P, n):
+    for a in range(n):
+        for b in range(a + 1, n):
+            v = 0.5 * (P[a, b] + P[b, a])
+            P[a, b] = v
+            P[b, a] = v
+        P[a, a] = 0.5 * (P[a, a] + P[a, a])
+
+
+@kernel
+def all_finite(P, n):
+    for a in range(n):
+        for b in range(n):
+            if not math.isfinite(P[a, b]):
+                return False
+    return True
+
+
+@kernel
+def psd_certified(P, n, abs_floor, rel_floor, work):
+    """``safety.psd_certified`` for one matrix (``work``: n × n scratch)."""
+    t = 0.0
+    for a in range(n):
+        t += P[a, a]
+    t = abs(t)
+    c = 2.0 * max(max(abs_floor, rel_floor * t), 64.0 * EPS * t)
+    for a in range(n):
+        for b in range(n):
+            work[a, b] = P[a, b]
+        work[a, a] = P[a, a] - c
+    for m in range(n):
+        d = work[m, m]
+        if not d > 0.0:
+            return False
+        for a in range(m + 1, n):
+            f = work[a, m]
+            for b in range(m + 1, n):
+                work[a, b] = work[a, b] - f * (work[m, b] / d)
+    return True
+
+
+@kernel
+def eigh_jacobi(A, n, w, V, work):
+    """Eigenvalues ``w (n,)`` and eigenvectors (columns of ``V``) of the symmetric ``A`` (``work``: n × n scratch)."""
+    for a in range(n):
+        for b in range(n):
+            work[a, b] = A[a, b]
+            V[a, b] = 1.0 if a == b else 0.0
+    for _ in range(JACOBI_SWEEPS):
+        off = 0.0
+        scale = 0.0
+        for a in range(n):
+            scale += work[a, a] * work[a, a]
+            for b in range(a + 1, n):
+                off += work[a, b] * work[a, b]
+        if off <= 1e-36 * scale or off == 0.0:
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = work[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (work[q, q] - work[p, p]) / (2.0 * apq)
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(n):  # A ← Jᵀ A J on columns p, q then rows p, q
+                    akp = work[k, p]
+                    akq = work[k, q]
+                    work[k, p] = c * akp - s * akq
+                    work[k, q] = s * akp + c * akq
+                for k in range(n):
+                    apk = work[p, k]
+                    aqk = work[q, k]
+                    work[p, k] = c * apk - s * aqk
+                    work[q, k] = s * apk + c * aqk
+                work[p, q] = 0.0
+                work[q, p] = 0.0
+                for k in range(n):
+                    vkp = V[k, p]
+                    vkq = V[k, q]
+                    V[k, p] = c * vkp - s * vkq
+                    V[k, q] = s * vkp + c * vkq
+    for a in range(n):
+        w[a] = work[a, a]
+
+
+@kernel
+def repair_psd(P, n, abs_floor, rel_floor, w, V, work):
+    """``safety.repair_psd`` of one matrix, in place; returns whether it acted."""
+    if psd_certified(P, n, abs_floor, rel_floor, work):
+        return False
+    if not all_finite(P, n):
+        return False
+    eigh_jacobi(P, n, w, V, work)
+    lo = w[0]
+    hi = w[0]
+    for a in range(1, n):
+        lo = min(lo, w[a])
+        hi = max(hi, w[a])
+    floor = max(abs_floor, rel_floor * abs(hi))
+    if not lo < floor:
+        return False
+    for a in range(n):
+        if w[a] < floor:
+            w[a] = floor
+    for a in range(n):
+        for b in range(n):
+            s = 0.0
+            for k in range(n):
+                s += V[a, k] * w[k] * V[b, k]
+            P[a, b] = s
+    symmetrise(P, n)
+    return True
+
+
+@kernel
+def cholesky_lower(A, n, L):
+    """Lower Cholesky factor of ``A`` into ``L``; False if ``A`` is not positive definite (or not finite)."""
+    for a in range(n):
+        for b in range(n):
+            L[a, b] = 0.0
+    for j in range(n):
+        d = A[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        if not d > 0.0:
+            return False
+        ljj = math.sqrt(d)
+        L[j, j] = ljj
+        for a in range(j + 1, n):
+            s = A[a, j]
+            for k in range(j):
+                s -= L[a, k] * L[j, k]
+            L[a, j] = s / ljj
+    return True
+
+
+@kernel
+def gate(nis, threshold, consecutive, release):
+    """``(gated, consecutive')``: skip the update when NIS > threshold, unless ``release`` skips in a row."""
+    gated = nis > threshold and consecutive < release
+    return gated, (consecutive + 1 if gated else 0)
+
+
+@kernel
+def diverged_cov(x, n, P, nis, var_max, nis_max):
+    """``safety.diverged`` for one run with its covariance ``P`` (NaN-safe comparisons)."""
+    for a in range(n):
+        if not math.isfinite(x[a]):
+            return True
+    if not all_finite(P, n):
+        return True
+    return not (P[0, 0] <= var_max and nis <= nis_max)
+
+
+@kernel
+def diverged_var(x, n, var, nis, var_max, nis_max):
+    """``safety.diverged`` for one run with an SOC variance ``var`` only."""
+    for a in range(n):
+        if not math.isfinite(x[a]):
+            return True
+    return not (math.isfinite(var) and var <= var_max and nis <= nis_max)
