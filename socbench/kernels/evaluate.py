@@ -17,7 +17,8 @@ for operation, so the two agree to rounding (the tests hold them to 1e-9 on ever
 Conventions: ``x`` the full state vector of the point (base states first), ``temp`` the cell temperature and
 ``has_temp`` whether the record has one (``False``: the numpy code's ``temp=None``: parameter tables and OCV curves at
 ``T_REF_C``, the temperature effect at its ``t_ref``); ``jac`` asks for ``F, B`` / ``H, D``. ``step`` writes ``xn``
-(and ``F (n, n)``, ``B (n,)``), ``output`` writes ``H (n,)`` and returns ``(y, D, status)``. ``status`` is 0, or 1 where
+(and ``F (n, n)``, ``B (n,)``), ``output`` writes ``H (n,)`` and returns ``(y, D, status)``; both use ``work``
+(:data:`WORK_SIZE` floats of scratch: the parameters of the point, B5's matrices). ``status`` is 0, or 1 where
 the numpy model would raise (e.g. improved_rc with ``R1 + R2 ≤ 0``): the caller then hands the work back to numpy.
 """
 
@@ -26,6 +27,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba.core import types
+from numba.extending import intrinsic
 
 from ..models.blocks import C_FLOOR, EPS_SINGULAR, EXP_CLIP, R_FLOOR, TAU_ALGEBRAIC
 from ..models.effects import FARADAY, KELVIN, R_GAS
@@ -46,21 +49,55 @@ from .lowering import (
     H_NB,
     H_NEFF,
     H_OCV,
+    H_OUT0,
+    H_OUT1,
     H_PARAMS,
+    H_STEP0,
+    H_STEP1,
     H_SUB,
+    MAX_PARAMS,
     OCV_PCHIP,
     RC_C0_PRINTED,
     RC_INTEGRATOR,
 )
 
+#: scratch of model_step/model_output: B5's 12 numbers, then the parameter values and z-derivatives
+W_VAL = 16
+W_DER = W_VAL + MAX_PARAMS
+WORK_SIZE = W_DER + MAX_PARAMS
 #: 1/n!, n = 0 … 12 (the series of the φ functions of B5; the same numbers as blocks._INV_FACT)
 INV_FACT = 1.0 / np.cumprod(np.r_[1.0, np.arange(1.0, 13.0)])
 PHI_SERIES_BELOW = 0.1
 PHI_TERMS = 10
 
 
+# ================================================================================================ memory
+@intrinsic
+def ptr(typingctx, arr):
+    """The data pointer of a C-contiguous array (the array must outlive every use of the pointer).
+
+    Every compiled function below takes pointers, not arrays: numba passes an array as a struct of 7–9 words and
+    reference-counts it on each call LLVM does not inline (~30 ns per call with two arrays), a pointer is one word
+    (~4 ns per call). 2-D operands (``F``, covariances) are row-major ``n × n`` behind their pointer.
+    """
+    def codegen(context, builder, sig, args):
+        return context.make_array(sig.args[0])(context, builder, args[0]).data
+
+    return types.CPointer(arr.dtype)(arr), codegen
+
+
+@intrinsic
+def ptr_at(typingctx, arr, k):
+    """Pointer to element ``k`` (flat, C order) of a C-contiguous array."""
+    def codegen(context, builder, sig, args):
+        data = context.make_array(sig.args[0])(context, builder, args[0]).data
+        return builder.gep(data, [args[1]])
+
+    return types.CPointer(arr.dtype)(arr, k), codegen
+
+
 # ================================================================================================ SOC functions
-@kernel
+@kernel(inline=True)
 def _count_le(fm, off, n, z):
     """``#{q < n : fm[off + q] ≤ z}`` for ascending ``fm[off:off+n]`` (``searchsorted(..., side="right")``)."""
     lo, hi = 0, n
@@ -73,7 +110,7 @@ def _count_le(fm, off, n, z):
     return lo
 
 
-@kernel
+@kernel(inline=True)
 def _interp(fm, off, K, z):
     """``np.interp(z, xp, fp)`` with ``xp = fm[off:off+K]``, ``fp`` next, slopes after (numpy's rule, exactly)."""
     if z != z:
@@ -97,7 +134,7 @@ def _interp(fm, off, K, z):
     return v
 
 
-@kernel
+@kernel(inline=True)
 def plain_fn(im, fm, rec, z):
     """``(p, dp/dz)`` of a Constant, Polynomial or Lookup record."""
     kind = im[rec]
@@ -140,7 +177,7 @@ def plain_fn(im, fm, rec, z):
     return v, (0.0 if outside else s)
 
 
-@kernel
+@kernel(inline=True)
 def temperature_weight(fm, off, K, t):
     """``(k, w)`` of params.temperature_weights for the K temperatures at ``fm[off:]`` (``t`` the cell temperature,
     T_REF_C for a record without one)."""
@@ -158,7 +195,7 @@ def temperature_weight(fm, off, K, t):
     return k, w
 
 
-@kernel
+@kernel(inline=True)
 def soc_fn(im, fm, rec, z, t):
     """``(p, dp/dz)`` of any function record at SOC ``z`` and cell temperature ``t``."""
     if im[rec] != FN_TABLE:
@@ -180,7 +217,7 @@ def soc_fn(im, fm, rec, z, t):
 
 
 # ================================================================================================ OCV
-@kernel
+@kernel(inline=True)
 def _pchip(im, fm, rec, z):
     off = im[rec + 1]
     m = im[rec + 2]
@@ -224,14 +261,14 @@ def ocv_eval(im, fm, z, t):
 
 
 # ================================================================================================ blocks B1–B6
-@kernel
+@kernel(inline=True)
 def soc_step(z, i, dt, cap, eta_c):
     """B1 ``(z⁺, ∂z⁺/∂I)``."""
     k = (1.0 if i >= 0.0 else eta_c) * dt / (3600.0 * cap)
     return z - k * i, -k
 
 
-@kernel
+@kernel(inline=True)
 def floor0(p, dp, lower):
     """Robust floor ``max(p, lower)``, derivative 0 where floored."""
     if p < lower:
@@ -239,7 +276,7 @@ def floor0(p, dp, lower):
     return p, dp
 
 
-@kernel
+@kernel(inline=True)
 def rc_coef(R, dR, C, dC, dt):
     """B2 ``(a, b, a_z, b_z)`` of one branch, robust mode (R floored at 0, C at C_FLOOR where τ ≤ 0)."""
     if R < 0.0 or C <= 0.0:
@@ -258,14 +295,14 @@ def rc_coef(R, dR, C, dC, dt):
     return a, -R * em, a_z, dR * (1.0 - a) - R * a_z
 
 
-@kernel
+@kernel(inline=True)
 def lowpass_coef(tc, dtc, dt):
     """B4 ``(a_f, ∂a_f/∂z)``."""
     a = math.exp(-dt / tc)
     return a, a * dt * dtc / (tc * tc)
 
 
-@kernel
+@kernel(inline=True)
 def _clip_singular(z):
     zs = z
     if z < EPS_SINGULAR:
@@ -275,26 +312,26 @@ def _clip_singular(z):
     return zs, (z > EPS_SINGULAR and z < 1.0 - EPS_SINGULAR)
 
 
-@kernel
+@kernel(inline=True)
 def guarded_inv(z):
     """B6 ``(1/z_s, d/dz)``."""
     zs, inside = _clip_singular(z)
     return 1.0 / zs, (-1.0 / (zs * zs) if inside else 0.0)
 
 
-@kernel
+@kernel(inline=True)
 def guarded_log(z):
     zs, inside = _clip_singular(z)
     return math.log(zs), (1.0 / zs if inside else 0.0)
 
 
-@kernel
+@kernel(inline=True)
 def guarded_log1m(z):
     zs, inside = _clip_singular(z)
     return math.log1p(-zs), (-1.0 / (1.0 - zs) if inside else 0.0)
 
 
-@kernel
+@kernel(inline=True)
 def clipped_exp(arg):
     c = arg
     if arg < -EXP_CLIP:
@@ -305,7 +342,7 @@ def clipped_exp(arg):
     return e, (e if c == arg else 0.0)
 
 
-@kernel
+@kernel(inline=True)
 def sign(v):
     if v > 0.0:
         return 1.0
@@ -314,7 +351,7 @@ def sign(v):
     return v  # 0 (keeps its sign bit, as np.sign) or NaN
 
 
-@kernel
+@kernel(inline=True)
 def phi_functions(x):
     """B5's ``e1, e2, e1', e2'`` (series below |x| = 0.1, closed forms above; blocks._phi_functions)."""
     if abs(x) < PHI_SERIES_BELOW:
@@ -387,10 +424,24 @@ def coupled_rc(Re, dRe, Rc, dRc, Ce, dCe, Cc, dCc, dt, out):
 
 
 # ================================================================================================ families
-# ---------------------------------------------------------------------------------------- rc_network (rc_network.py)
+# Each family's step and output read their parameters from ``work``: model_step and model_output evaluate the range
+# the family declared (KernelSpec.step / .output) once, in one loop (one call site of soc_fn), before calling it.
 @kernel
-def _rc_step(im, fm, x, i, dt, t, jac, xn, F, B):
+def load_params(im, fm, z, t, j0, j1, work):
+    """Parameters ``j0 … j1 − 1`` of the family's list at ``(z, t)``: values into ``work[W_VAL + j]``, z-derivatives
+    into ``work[W_DER + j]``."""
     pl = im[H_PARAMS]
+    for j in range(j0, j1):
+        v, d = soc_fn(im, fm, im[pl + j], z, t)
+        work[W_VAL + j] = v
+        work[W_DER + j] = d
+
+
+# ---------------------------------------------------------------------------------------- rc_network (rc_network.py)
+# parameters [R0, R1 … Rn, C1 … Cn, (C0)]: output reads 0, step the rest
+@kernel
+def _rc_step(im, fm, x, i, dt, t, jac, xn, F, B, work):
+    nn = im[H_N]  # row length of F
     n = im[H_SUB]
     flags = im[H_FLAGS]
     first = 1
@@ -399,39 +450,33 @@ def _rc_step(im, fm, x, i, dt, t, jac, xn, F, B):
         g = 0.0
         g_z = 0.0
         if flags & RC_C0_PRINTED:
-            c0, dc0 = soc_fn(im, fm, im[pl + 1 + 2 * n], x[0], t)
+            c0 = work[W_VAL + 1 + 2 * n]
             g = dt / c0
-            g_z = -dt * dc0 / (c0 * c0)
+            g_z = -dt * work[W_DER + 1 + 2 * n] / (c0 * c0)
             if math.isinf(c0):
                 g_z = 0.0
         xn[1] = x[1] + g * i
         if jac:
-            F[1, 0] = g_z * i
-            F[1, 1] = 1.0
+            F[1 * nn + 0] = g_z * i
+            F[1 * nn + 1] = 1.0
             B[1] = g
-    z = x[0]
     for j in range(n):
-        R, dR = soc_fn(im, fm, im[pl + 1 + j], z, t)
-        C, dC = soc_fn(im, fm, im[pl + 1 + n + j], z, t)
-        a, b, a_z, b_z = rc_coef(R, dR, C, dC, dt)
+        a, b, a_z, b_z = rc_coef(work[W_VAL + 1 + j], work[W_DER + 1 + j], work[W_VAL + 1 + n + j],
+                                 work[W_DER + 1 + n + j], dt)
         c = first + j
         u = x[c]
         xn[c] = a * u + b * i
         if jac:
-            F[c, 0] = a_z * u + b_z * i
-            F[c, c] = a
+            F[c * nn + 0] = a_z * u + b_z * i
+            F[c * nn + c] = a
             B[c] = b
     return 0
 
 
 @kernel
-def _rc_output(im, fm, x, i, t, jac, H):
-    pl = im[H_PARAMS]
-    z = x[0]
+def _rc_output(im, fm, x, i, u, du, t, jac, H, work):
     nb = im[H_NB]
-    u, du = ocv_eval(im, fm, z, t)
-    r0, dr0 = soc_fn(im, fm, im[pl + 0], z, t)
-    r0, dr0 = floor0(r0, dr0, R_FLOOR)
+    r0, dr0 = floor0(work[W_VAL], work[W_DER], R_FLOOR)
     pol = 0.0
     if nb > 1:
         pol = x[1]
@@ -445,54 +490,42 @@ def _rc_output(im, fm, x, i, t, jac, H):
 
 
 # ---------------------------------------------------------------------------------------- improved_rc
-@kernel
-def _irc_network(im, fm, z, t, dt, out):
-    """Guarded parameters (ImprovedRC._network) then B5 into ``out``; status 1 where numpy raises (R1 + R2 ≤ 0)."""
-    pl = im[H_PARAMS]
-    rc, drc = soc_fn(im, fm, im[pl + 1], z, t)
-    re, dre = soc_fn(im, fm, im[pl + 2], z, t)
-    cc, dcc = soc_fn(im, fm, im[pl + 3], z, t)
-    ce, dce = soc_fn(im, fm, im[pl + 4], z, t)
-    if re + rc <= 0.0:
-        return 1
-    cc, dcc = floor0(cc, dcc, C_FLOOR)
-    ce, dce = floor0(ce, dce, C_FLOOR)
-    coupled_rc(re, dre, rc, drc, ce, dce, cc, dcc, dt, out)
-    return 0
-
-
+# parameters [R0, R1 (R_c), R2 (R_e), C1 (C_c), C2 (C_e)]: output reads 0 … 2, step 1 … 4
 @kernel
 def _irc_step(im, fm, x, i, dt, t, jac, xn, F, B, work):
-    st = _irc_network(im, fm, x[0], t, dt, work)
-    if st != 0:
-        return st
+    nn = im[H_N]  # row length of F
+    rc = work[W_VAL + 1]
+    re = work[W_VAL + 2]
+    if re + rc <= 0.0:
+        return 1  # ImprovedRC._network raises
+    cc, dcc = floor0(work[W_VAL + 3], work[W_DER + 3], C_FLOOR)
+    ce, dce = floor0(work[W_VAL + 4], work[W_DER + 4], C_FLOOR)
+    coupled_rc(re, work[W_DER + 2], rc, work[W_DER + 1], ce, dce, cc, dcc, dt, work)
     w0 = x[1]
     w1 = x[2]
     xn[1] = (work[0] * w0 + work[1] * w1) + work[4] * i
     xn[2] = (work[2] * w0 + work[3] * w1) + work[5] * i
     if jac:
-        F[1, 0] = (work[6] * w0 + work[7] * w1) + work[10] * i
-        F[2, 0] = (work[8] * w0 + work[9] * w1) + work[11] * i
-        F[1, 1] = work[0]
-        F[1, 2] = work[1]
-        F[2, 1] = work[2]
-        F[2, 2] = work[3]
+        F[1 * nn + 0] = (work[6] * w0 + work[7] * w1) + work[10] * i
+        F[2 * nn + 0] = (work[8] * w0 + work[9] * w1) + work[11] * i
+        F[1 * nn + 1] = work[0]
+        F[1 * nn + 2] = work[1]
+        F[2 * nn + 1] = work[2]
+        F[2 * nn + 2] = work[3]
         B[1] = work[4]
         B[2] = work[5]
     return 0
 
 
 @kernel
-def _irc_output(im, fm, x, i, t, jac, H):
-    pl = im[H_PARAMS]
-    z = x[0]
+def _irc_output(im, fm, x, i, u, du, t, jac, H, work):
     ue = x[1]
     uc = x[2]
-    u, du = ocv_eval(im, fm, z, t)
-    r0, dr0 = soc_fn(im, fm, im[pl + 0], z, t)
-    r0, dr0 = floor0(r0, dr0, R_FLOOR)
-    rc, drc = soc_fn(im, fm, im[pl + 1], z, t)
-    re, dre = soc_fn(im, fm, im[pl + 2], z, t)
+    r0, dr0 = floor0(work[W_VAL], work[W_DER], R_FLOOR)
+    rc = work[W_VAL + 1]
+    drc = work[W_DER + 1]
+    re = work[W_VAL + 2]
+    dre = work[W_DER + 2]
     rs = re + rc
     drs = dre + drc
     num = rc * ue + re * uc
@@ -507,101 +540,95 @@ def _irc_output(im, fm, x, i, t, jac, H):
 
 
 # ---------------------------------------------------------------------------------------- static_terms
-@kernel
-def _exponential_zone(im, fm, ra, rb, z, t, q):
-    """Tremblay's ``A e^{−B Q (1 − z)}`` (``A``, ``B`` the function records ``ra``, ``rb``) and its total
-    z-derivative (static_terms.exponential_zone)."""
-    a, da = soc_fn(im, fm, ra, z, t)
-    b, db = soc_fn(im, fm, rb, z, t)
+@kernel(inline=True)
+def _exponential_zone(a, da, b, db, z, q):
+    """Tremblay's ``A e^{−B Q (1 − z)}`` and its total z-derivative (static_terms.exponential_zone)."""
     e, de = clipped_exp(-b * q * (1.0 - z))
     return a * e, da * e + a * de * (b * q - db * q * (1.0 - z))
 
 
 @kernel
-def _static_term(im, fm, z, t):
-    """``(g, dg/dz)`` of the static-term model ``sub`` (parameters after R0 in the model's param_names order)."""
-    pl = im[H_PARAMS]
+def _static_term(im, fm, z, work):
+    """``(g, dg/dz)`` of the static-term model ``sub``; parameters [R0, then the model's own in param_names
+    order] already in ``work``."""
     sub = im[H_SUB]
+    v = W_VAL
+    d = W_DER
     if sub == 1:  # shepherd: −K/z_s
-        k, dk = soc_fn(im, fm, im[pl + 1], z, t)
+        k = work[v + 1]
         inv, dinv = guarded_inv(z)
-        return -k * inv, -dk * inv - k * dinv
+        return -k * inv, -work[d + 1] * inv - k * dinv
     if sub == 2:  # unnewehr: −K z
-        k, dk = soc_fn(im, fm, im[pl + 1], z, t)
-        return -k * z, -k - dk * z
+        k = work[v + 1]
+        return -k * z, -k - work[d + 1] * z
     if sub == 3:  # nernst: −K0 ln z_s + K1 ln(1 − z_s)
-        k0, dk0 = soc_fn(im, fm, im[pl + 1], z, t)
-        k1, dk1 = soc_fn(im, fm, im[pl + 2], z, t)
+        k0 = work[v + 1]
+        k1 = work[v + 2]
         lz, dlz = guarded_log(z)
         l1z, dl1z = guarded_log1m(z)
-        return -k0 * lz + k1 * l1z, -dk0 * lz - k0 * dlz + dk1 * l1z + k1 * dl1z
+        return -k0 * lz + k1 * l1z, -work[d + 1] * lz - k0 * dlz + work[d + 2] * l1z + k1 * dl1z
     if sub == 4:  # fang: −K0 ln(τ1 + z) + K1 ln(τ2 + 1 − z)
-        k0, dk0 = soc_fn(im, fm, im[pl + 1], z, t)
-        k1, dk1 = soc_fn(im, fm, im[pl + 2], z, t)
-        t1, dt1 = soc_fn(im, fm, im[pl + 3], z, t)
-        t2, dt2 = soc_fn(im, fm, im[pl + 4], z, t)
-        a = t1 + z
-        b = t2 + 1.0 - z
+        k0 = work[v + 1]
+        k1 = work[v + 2]
+        a = work[v + 3] + z
+        b = work[v + 4] + 1.0 - z
         la = math.log(a)
         lb = math.log(b)
-        return -k0 * la + k1 * lb, -dk0 * la - k0 * (dt1 + 1.0) / a + dk1 * lb + k1 * (dt2 - 1.0) / b
+        return (-k0 * la + k1 * lb,
+                -work[d + 1] * la - k0 * (work[d + 3] + 1.0) / a + work[d + 2] * lb + k1 * (work[d + 4] - 1.0) / b)
     if sub == 5:  # tremblay1: −K/z_s + A e^{−B Q (1 − z)}
-        k, dk = soc_fn(im, fm, im[pl + 1], z, t)
+        k = work[v + 1]
         inv, dinv = guarded_inv(z)
-        ex, dex = _exponential_zone(im, fm, im[pl + 2], im[pl + 3], z, t, fm[F_CAP])
-        return -k * inv + ex, -dk * inv - k * dinv + dex
+        ex, dex = _exponential_zone(work[v + 2], work[d + 2], work[v + 3], work[d + 3], z, fm[F_CAP])
+        return -k * inv + ex, -work[d + 1] * inv - k * dinv + dex
     # plett: K0 − K1/z_s − K2 z + K3 ln z_s + K4 ln(1 − z_s)
-    k0, d0 = soc_fn(im, fm, im[pl + 1], z, t)
-    k1, d1 = soc_fn(im, fm, im[pl + 2], z, t)
-    k2, d2 = soc_fn(im, fm, im[pl + 3], z, t)
-    k3, d3 = soc_fn(im, fm, im[pl + 4], z, t)
-    k4, d4 = soc_fn(im, fm, im[pl + 5], z, t)
+    k0 = work[v + 1]
+    k1 = work[v + 2]
+    k2 = work[v + 3]
+    k3 = work[v + 4]
+    k4 = work[v + 5]
     inv, dinv = guarded_inv(z)
     lz, dlz = guarded_log(z)
     l1z, dl1z = guarded_log1m(z)
     g = k0 - k1 * inv - k2 * z + k3 * lz + k4 * l1z
-    dg = d0 - d1 * inv - k1 * dinv - d2 * z - k2 + d3 * lz + k3 * dlz + d4 * l1z + k4 * dl1z
+    dg = (work[d + 1] - work[d + 2] * inv - k1 * dinv - work[d + 3] * z - k2 + work[d + 4] * lz + k3 * dlz
+          + work[d + 5] * l1z + k4 * dl1z)
     return g, dg
 
 
 @kernel
-def _static_output(im, fm, x, i, t, jac, H):
-    pl = im[H_PARAMS]
+def _static_output(im, fm, x, i, u, du, t, jac, H, work):
     z = x[0]
-    u, du = ocv_eval(im, fm, z, t)
-    r0, dr0 = soc_fn(im, fm, im[pl + 0], z, t)
-    r0, dr0 = floor0(r0, dr0, R_FLOOR)
-    g, dg = _static_term(im, fm, z, t)
+    r0, dr0 = floor0(work[W_VAL], work[W_DER], R_FLOOR)
+    g, dg = _static_term(im, fm, z, work)
     if jac:
         H[0] = du + dg - dr0 * i
     return u + g - r0 * i, -r0, 0
 
 
 # ---------------------------------------------------------------------------------------- tremblay (liu, tremblay2)
+# parameters [tc, K, A, B, R0]: step reads 0, output 1 … 4
 @kernel
-def _tremblay_step(im, fm, x, i, dt, t, jac, xn, F, B):
-    pl = im[H_PARAMS]
-    tc, dtc = soc_fn(im, fm, im[pl + 0], x[0], t)
-    a, a_z = lowpass_coef(tc, dtc, dt)
+def _tremblay_step(im, fm, x, i, dt, t, jac, xn, F, B, work):
+    nn = im[H_N]  # row length of F
+    a, a_z = lowpass_coef(work[W_VAL], work[W_DER], dt)
     istar = x[1]
     xn[1] = a * istar + (1.0 - a) * i
     if jac:
-        F[1, 0] = a_z * (istar - i)
-        F[1, 1] = a
+        F[1 * nn + 0] = a_z * (istar - i)
+        F[1 * nn + 1] = a
         B[1] = 1.0 - a
     return 0
 
 
 @kernel
-def _tremblay_output(im, fm, x, i, t, jac, H):
-    pl = im[H_PARAMS]
+def _tremblay_output(im, fm, x, i, u, du, t, jac, H, work):
     z = x[0]
     istar = x[1]
     q = fm[F_CAP]
-    u, du = ocv_eval(im, fm, z, t)
-    r0, dr0 = soc_fn(im, fm, im[pl + 4], z, t)
-    r0, dr0 = floor0(r0, dr0, R_FLOOR)
-    k, dk = soc_fn(im, fm, im[pl + 1], z, t)
+    r0, dr0 = floor0(work[W_VAL + 4], work[W_DER + 4], R_FLOOR)
+    k = work[W_VAL + 1]
+    dk = work[W_DER + 1]
     inv, dinv = guarded_inv(z)
     it_term = -k * q * (1.0 - z) * inv
     d_it = -dk * q * (1.0 - z) * inv + k * q * inv - k * q * (1.0 - z) * dinv
@@ -613,7 +640,7 @@ def _tremblay_output(im, fm, x, i, t, jac, H):
     else:
         g_star = inv
         dg_star = dinv
-    ex, dex = _exponential_zone(im, fm, im[pl + 2], im[pl + 3], z, t, q)
+    ex, dex = _exponential_zone(work[W_VAL + 2], work[W_DER + 2], work[W_VAL + 3], work[W_DER + 3], z, q)
     y = u + it_term - k * g_star * istar + ex - r0 * i
     if jac:
         H[0] = du + d_it - (dk * g_star + k * dg_star) * istar + dex - dr0 * i
@@ -622,21 +649,21 @@ def _tremblay_output(im, fm, x, i, t, jac, H):
 
 
 # ---------------------------------------------------------------------------------------- esc
+# parameters [R0, R1 … Rn, M, M0, tau1 … taun, gamma]: output reads 0 … n + 2, step n + 3 … 2n + 3
 @kernel
-def _esc_step(im, fm, x, i, dt, t, jac, xn, F, B):
-    pl = im[H_PARAMS]
+def _esc_step(im, fm, x, i, dt, t, jac, xn, F, B, work):
+    nn = im[H_N]  # row length of F
     n = im[H_SUB]
-    z = x[0]
     cap = fm[F_CAP]
     for j in range(1, n + 1):
-        tau, dtau = soc_fn(im, fm, im[pl + n + j], z, t)
-        a, a_z = lowpass_coef(tau, dtau, dt)
+        a, a_z = lowpass_coef(work[W_VAL + n + 2 + j], work[W_DER + n + 2 + j], dt)
         xn[j] = a * x[j] + (1.0 - a) * i
         if jac:
-            F[j, 0] = a_z * (x[j] - i)
-            F[j, j] = a
+            F[j * nn + 0] = a_z * (x[j] - i)
+            F[j * nn + j] = a
             B[j] = 1.0 - a
-    g, dg = soc_fn(im, fm, im[pl + 2 * n + 3], z, t)
+    g = work[W_VAL + 2 * n + 3]
+    dg = work[W_DER + 2 * n + 3]
     c = (1.0 if i >= 0.0 else fm[F_ETA]) / (3600.0 * cap)
     rate = c * i * g
     u = rate * dt
@@ -650,32 +677,28 @@ def _esc_step(im, fm, x, i, dt, t, jac, xn, F, B):
     xn[js] = sg if moving else x[js]
     if jac:
         dah_du = -ah * sign(u)
-        F[jh, 0] = dah_du * (c * i * dg) * dt * (h + sg)
-        F[jh, jh] = ah
-        F[js, js] = 0.0 if moving else 1.0
+        F[jh * nn + 0] = dah_du * (c * i * dg) * dt * (h + sg)
+        F[jh * nn + jh] = ah
+        F[js * nn + js] = 0.0 if moving else 1.0
         B[jh] = dah_du * (c * g) * dt * (h + sg)
     return 0
 
 
 @kernel
-def _esc_output(im, fm, x, i, t, jac, H):
-    pl = im[H_PARAMS]
+def _esc_output(im, fm, x, i, u, du, t, jac, H, work):
     n = im[H_SUB]
-    z = x[0]
     h = x[n + 1]
     moving = abs(i) > fm[F_CAP] / 100.0
     s = sign(i) if moving else x[n + 2]
-    u, du = ocv_eval(im, fm, z, t)
-    r0, dr0 = soc_fn(im, fm, im[pl + 0], z, t)
-    r0, dr0 = floor0(r0, dr0, R_FLOOR)
-    m, dm = soc_fn(im, fm, im[pl + 2 * n + 1], z, t)
-    m0, dm0 = soc_fn(im, fm, im[pl + 2 * n + 2], z, t)
+    r0, dr0 = floor0(work[W_VAL], work[W_DER], R_FLOOR)
+    m = work[W_VAL + n + 1]
+    m0 = work[W_VAL + n + 2]
     y = u + m0 * s + m * h - r0 * i
-    dy_z = du + dm0 * s + dm * h - dr0 * i
+    dy_z = du + work[W_DER + n + 2] * s + work[W_DER + n + 1] * h - dr0 * i
     for j in range(1, n + 1):
-        r, dr = soc_fn(im, fm, im[pl + j], z, t)
+        r = work[W_VAL + j]
         y = y - r * x[j]
-        dy_z = dy_z - dr * x[j]
+        dy_z = dy_z - work[W_DER + j] * x[j]
         if jac:
             H[j] = -r
     if jac:
@@ -689,39 +712,41 @@ def _esc_output(im, fm, x, i, t, jac, H):
 @kernel
 def base_step(im, fm, x, i, dt, t, jac, xn, F, B, work):
     """The base model's step on ``x[:nb]``: B1 for the SOC, then the family's other states (``F, B`` pre-zeroed)."""
+    nn = im[H_N]  # row length of F
     zn, dz_di = soc_step(x[0], i, dt, fm[F_CAP], fm[F_ETA])
     xn[0] = zn
     if jac:
-        F[0, 0] = 1.0
+        F[0 * nn + 0] = 1.0
         B[0] = dz_di
     fam = im[H_FAMILY]
     if fam == 1:
-        return _rc_step(im, fm, x, i, dt, t, jac, xn, F, B)
+        return _rc_step(im, fm, x, i, dt, t, jac, xn, F, B, work)
     if fam == 2:
         return _irc_step(im, fm, x, i, dt, t, jac, xn, F, B, work)
     if fam == 4:
-        return _tremblay_step(im, fm, x, i, dt, t, jac, xn, F, B)
+        return _tremblay_step(im, fm, x, i, dt, t, jac, xn, F, B, work)
     if fam == 5:
-        return _esc_step(im, fm, x, i, dt, t, jac, xn, F, B)
+        return _esc_step(im, fm, x, i, dt, t, jac, xn, F, B, work)
     return 0  # static_terms: SOC only
 
 
 @kernel
-def base_output(im, fm, x, i, t, jac, H):
+def base_output(im, fm, x, i, u, du, t, jac, H, work):
+    """The base model's output with ``(u, du)`` its OCV and slope at ``x[0]``."""
     fam = im[H_FAMILY]
     if fam == 1:
-        return _rc_output(im, fm, x, i, t, jac, H)
+        return _rc_output(im, fm, x, i, u, du, t, jac, H, work)
     if fam == 2:
-        return _irc_output(im, fm, x, i, t, jac, H)
+        return _irc_output(im, fm, x, i, u, du, t, jac, H, work)
     if fam == 3:
-        return _static_output(im, fm, x, i, t, jac, H)
+        return _static_output(im, fm, x, i, u, du, t, jac, H, work)
     if fam == 4:
-        return _tremblay_output(im, fm, x, i, t, jac, H)
-    return _esc_output(im, fm, x, i, t, jac, H)
+        return _tremblay_output(im, fm, x, i, u, du, t, jac, H, work)
+    return _esc_output(im, fm, x, i, u, du, t, jac, H, work)
 
 
 # ================================================================================================ effects
-@kernel
+@kernel(inline=True)
 def _effective_current(im, x, i):
     b = im[H_BIAS]
     return i - x[b] if b >= 0 else i
@@ -734,13 +759,15 @@ def model_step(im, fm, x, i, dt, temp, has_temp, jac, xn, F, B, work):
     With effects, the composition of :class:`~socbench.models.effects.AugmentedModel.step`: base step on the
     effective current, SOC gain and leak, the effects' own states, then ``∂/∂b = −∂/∂I`` for a current bias.
     """
+    nn = im[H_N]  # row length of F
     t = temp if has_temp else T_REF_C
+    load_params(im, fm, x[0], t, im[H_STEP0], im[H_STEP1], work)
     n = im[H_N]
     if jac:
         for r in range(n):
             B[r] = 0.0
             for c in range(n):
-                F[r, c] = 0.0
+                F[r * nn + c] = 0.0
     neff = im[H_NEFF]
     if neff == 0:
         return base_step(im, fm, x, i, dt, t, jac, xn, F, B, work)
@@ -770,15 +797,15 @@ def model_step(im, fm, x, i, dt, temp, has_temp, jac, xn, F, B, work):
             leak_dz = leak_dz + c * du
     if jac:
         for c in range(nb):
-            F[0, c] = gain * F[0, c]
-        F[0, 0] += 1.0 - gain - leak_dz
+            F[0 * nn + c] = gain * F[0 * nn + c]
+        F[0 * nn + 0] += 1.0 - gain - leak_dz
         B[0] = gain * B[0]
         for e in range(neff):
             if im[tab + EFFECT_WIDTH * e] == 3:  # ∂z⁺/∂cap = (gain of the others)·Δz
                 col = im[tab + EFFECT_WIDTH * e + 1]
                 g = x[col]
                 others = gain / g if g != 0.0 else 0.0
-                F[0, col] += others * dz * 1.0
+                F[0 * nn + col] += others * dz * 1.0
     for e in range(neff):  # the effects' own states
         code = im[tab + EFFECT_WIDTH * e]
         s0 = im[tab + EFFECT_WIDTH * e + 1]
@@ -792,43 +819,44 @@ def model_step(im, fm, x, i, dt, temp, has_temp, jac, xn, F, B, work):
             xn[s0] = a * h - (1.0 - a) * sg
             xn[s0 + 1] = sg if moving else x[s0 + 1]
             if jac:
-                F[s0, s0] = a
-                F[s0 + 1, s0 + 1] = 0.0 if moving else 1.0
+                F[s0 * nn + s0] = a
+                F[(s0 + 1) * nn + (s0 + 1)] = 0.0 if moving else 1.0
                 B[s0] = -a * c * dt * sg * (h + sg)
         elif code == 3 or code == 4:  # capacity, current bias: random walks
             xn[s0] = x[s0]
             if jac:
-                F[s0, s0] = 1.0
+                F[s0 * nn + s0] = 1.0
         elif code == 5:  # extra RC [R, C]
             a, b, _, _ = rc_coef(fm[v], 0.0, fm[v + 1], 0.0, dt)
             xn[s0] = a * x[s0] + b * ie
             if jac:
-                F[s0, s0] = a
+                F[s0 * nn + s0] = a
                 B[s0] = b
     b = im[H_BIAS]
     if jac and b >= 0:
         for r in range(n):
-            F[r, b] -= B[r]
+            F[r * nn + b] -= B[r]
     return 0
 
 
 @kernel
-def model_output(im, fm, x, i, temp, has_temp, jac, H):
+def model_output(im, fm, x, i, temp, has_temp, jac, H, work):
     """``(y, D, status)`` of any lowered model, ``H`` filled when ``jac`` (AugmentedModel.output with effects)."""
     t = temp if has_temp else T_REF_C
+    u, du = ocv_eval(im, fm, x[0], t)
+    load_params(im, fm, x[0], t, im[H_OUT0], im[H_OUT1], work)
     neff = im[H_NEFF]
     if neff == 0:
-        return base_output(im, fm, x, i, t, jac, H)
+        return base_output(im, fm, x, i, u, du, t, jac, H, work)
     n = im[H_N]
     if jac:
         for c in range(n):
             H[c] = 0.0
     ie = _effective_current(im, x, i)
-    y, D, st = base_output(im, fm, x, ie, t, jac, H)
+    y, D, st = base_output(im, fm, x, ie, u, du, t, jac, H, work)
     if st != 0:
         return y, D, st
     nb = im[H_NB]
-    z = x[0]
     cap = fm[F_CAP]
     tab = im[H_EFFECTS]
     for e in range(neff):  # output scaling: temperature [Ea, dUdT, t_ref]
@@ -837,7 +865,6 @@ def model_output(im, fm, x, i, temp, has_temp, jac, H):
             t_ref = fm[v + 2]
             tk = (temp if has_temp else t_ref) + KELVIN
             k = math.exp(fm[v] / R_GAS * (1.0 / tk - 1.0 / (t_ref + KELVIN)))
-            u, du = ocv_eval(im, fm, z, t)
             y = (1.0 - k) * u + k * y + fm[v + 1] * (tk - KELVIN - t_ref)
             if jac:
                 for c in range(nb):
@@ -875,13 +902,17 @@ def model_output(im, fm, x, i, temp, has_temp, jac, H):
 @kernel
 def eval_points(im, fm2, X, I, DT, TEMP, has_temp, jac, XN, F, B, Y, H, D, status):
     """Step and output at every point ``p`` (variant ``p`` of ``fm2`` when it has one row per point, else row 0):
-    the entry point the equality tests use."""
-    work = np.empty(16)
-    V = fm2.shape[0]
+    the entry point the equality tests use (arrays in, the evaluator's pointers inside)."""
+    work = np.empty(WORK_SIZE)
+    V, L = fm2.shape
+    n = X.shape[1]
+    imp = ptr(im)
+    wp = ptr(work)
     for p in range(X.shape[0]):
-        fm = fm2[p if V > 1 else 0]
-        s1 = model_step(im, fm, X[p], I[p], DT[p], TEMP[p], has_temp, jac, XN[p], F[p], B[p], work)
-        y, d, s2 = model_output(im, fm, X[p], I[p], TEMP[p], has_temp, jac, H[p])
+        fm = ptr_at(fm2, (p if V > 1 else 0) * L)
+        s1 = model_step(imp, fm, ptr_at(X, p * n), I[p], DT[p], TEMP[p], has_temp, jac, ptr_at(XN, p * n),
+                        ptr_at(F, p * n * n), ptr_at(B, p * n), wp)
+        y, d, s2 = model_output(imp, fm, ptr_at(X, p * n), I[p], TEMP[p], has_temp, jac, ptr_at(H, p * n), wp)
         Y[p] = y
         D[p] = d
         status[p] = max(s1, s2)

@@ -6,7 +6,8 @@ same safety rules (:mod:`socbench.kernels.linalg`: Joseph form, symmetrise, PSD 
 release, divergence). A run that fails stops computing: its outputs from the failing sample on repeat the last
 recorded values (:func:`freeze`, the semantics of ``estimators.base.Recorder``). Runs are independent, so the
 caller splits a batch into slices and runs them on threads (the kernels release the GIL;
-:func:`socbench.kernels.engine.parallel_runs`) — cheaper to compile than numba's ``prange``.
+:func:`socbench.kernels.engine.parallel_runs`) — cheaper to compile than numba's ``prange``. Each kernel allocates its
+work arrays once and hands the evaluator and the linear algebra pointers to them (:func:`~.evaluate.ptr`).
 
 Shared arguments (built by :mod:`socbench.kernels.engine`):
 
@@ -29,7 +30,7 @@ import math
 
 import numpy as np
 
-from .evaluate import model_output, model_step
+from .evaluate import WORK_SIZE, model_output, model_step, ptr, ptr_at
 from .jit import kernel
 from .linalg import cholesky_lower, diverged_cov, diverged_var, eigh_jacobi, gate, repair_psd, symmetrise
 
@@ -42,7 +43,7 @@ G_THR, G_REL, VAR_MAX, NIS_MAX, PSD_ABS, PSD_REL = range(6)
 
 
 # ================================================================================================ shared pieces
-@kernel
+@kernel(inline=True)
 def measurement_var(nz, D):
     """``R_k`` (noise.NoiseModel.R)."""
     if nz[R_OVR] == nz[R_OVR]:  # an override (NaN: none)
@@ -50,7 +51,7 @@ def measurement_var(nz, D):
     return nz[V_VAR] + nz[IN_VAR] * D * D
 
 
-@kernel
+@kernel(inline=True)
 def process_cov(nz, walk, Qo, B, n, dt, var, Q):
     """``Q_k`` into ``Q`` (noise.SensorNoise.process_cov with input variance ``var``, or the override)."""
     if nz[Q_OVR] != 0.0:
@@ -66,7 +67,7 @@ def process_cov(nz, walk, Qo, B, n, dt, var, Q):
             Q[a, a] += walk[a] * (dt / nz[DT0])
 
 
-@kernel
+@kernel(inline=True)
 def propagate(F, P, Q, n, FP):
     """``P ← F P Fᵀ + Q`` (``FP``: scratch)."""
     for a in range(n):
@@ -83,7 +84,7 @@ def propagate(F, P, Q, n, FP):
             P[a, b] = s + Q[a, b]
 
 
-@kernel
+@kernel(inline=True)
 def record(outf, outb, xs, pd, store, r, k, soc, std, v_pred, e, S, clamped, gated, x, diag, n):
     outf[0, r, k] = soc
     outf[1, r, k] = std
@@ -125,7 +126,7 @@ def freeze(outf, outb, xs, pd, store, r, kf, T, n, soc0, std0, v0):
         outb[1, r, k] = False
 
 
-@kernel
+@kernel(inline=True)
 def clamp_soc(x):
     if x[0] < 0.0:
         x[0] = 0.0
@@ -136,13 +137,22 @@ def clamp_soc(x):
     return False
 
 
-@kernel
+@kernel(inline=True)
 def settle(x, P, n, nis, opt, w, V, work):
     """The update's safety tail (``estimators.base.settle_update``) up to recording: ``(clamped, failed)``."""
-    symmetrise(P, n)
-    repair_psd(P, n, opt[PSD_ABS], opt[PSD_REL], w, V, work)
+    Pp = ptr(P)
+    symmetrise(Pp, n)
+    repair_psd(Pp, n, opt[PSD_ABS], opt[PSD_REL], ptr(w), ptr(V), ptr(work))
     clamped = clamp_soc(x)
-    return clamped, diverged_cov(x, n, P, nis, opt[VAR_MAX], opt[NIS_MAX])
+    return clamped, diverged_cov(x, n, Pp, nis, opt[VAR_MAX], opt[NIS_MAX])
+
+
+@kernel(inline=True)
+def load_run(x0, P0, r, n, x, P):
+    for a in range(n):
+        x[a] = x0[r, a]
+        for b in range(n):
+            P[a, b] = P0[r, a, b]
 
 
 # ================================================================================================ EKF
@@ -153,28 +163,30 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
     T = cur.shape[1]
     n = x0.shape[1]
     jac = n > 0  # True, as a run-time value: a literal would make numba compile a copy of every callee
+    x = np.empty(n)
+    xn = np.empty(n)
+    H = np.empty(n)
+    K = np.empty(n)
+    PHt = np.empty(n)
+    B = np.empty(n)
+    w = np.empty(n)
+    P = np.empty((n, n))
+    F = np.empty((n, n))
+    A = np.empty((n, n))
+    Q = np.empty((n, n))
+    M = np.empty((n, n))
+    V = np.empty((n, n))
+    work = np.empty((n, n))
+    scratch = np.empty(WORK_SIZE)
+    imp, fmp, xp, xnp, Hp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(x), ptr(xn), ptr(H), ptr(B), ptr(F), ptr(scratch)
     for r in range(r0, r1):
-        x = x0[r].copy()
-        P = P0[r].copy()
-        xn = np.empty(n)
-        H = np.empty(n)
-        K = np.empty(n)
-        PHt = np.empty(n)
-        B = np.empty(n)
-        F = np.empty((n, n))
-        A = np.empty((n, n))
-        Q = np.empty((n, n))
-        M = np.empty((n, n))
-        V = np.empty((n, n))
-        work = np.empty((n, n))
-        w = np.empty(n)
-        scratch = np.empty(16)
+        load_run(x0, P0, r, n, x, P)
         consecutive = np.int64(0)
         for k in range(T):
             ik = cur[r, k]
             tk = temp[r, k]
             # ---------------------------------------------------------------- update
-            y, D, st = model_output(im, fm, x, ik, tk, has_temp, jac, H)
+            y, D, st = model_output(imp, fmp, xp, ik, tk, has_temp, jac, Hp, sp)
             if st != 0:
                 status[r] = st
                 break
@@ -220,7 +232,7 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             if k + 1 == T:
                 break
             # ---------------------------------------------------------------- predict
-            st = model_step(im, fm, x, ik, dts[k], tk, has_temp, jac, xn, F, B, scratch)
+            st = model_step(imp, fmp, xp, ik, dts[k], tk, has_temp, jac, xnp, Fp, Bp, sp)
             if st != 0:
                 status[r] = st
                 break
@@ -228,8 +240,8 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                 x[a] = xn[a]
             process_cov(nz, walk, Qo, B, n, dts[k], nz[IN_VAR], Q)
             propagate(F, P, Q, n, M)
-            symmetrise(P, n)
-            if diverged_cov(x, n, P, 0.0, np.inf, np.inf):
+            symmetrise(ptr(P), n)
+            if diverged_cov(x, n, ptr(P), 0.0, np.inf, np.inf):
                 failed[r] = True
                 failed_at[r] = k + 1
                 freeze(outf, outb, xs, pd, store, r, k + 1, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
@@ -237,15 +249,15 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
 
 
 # ================================================================================================ UKF
-@kernel
+@kernel(inline=True)
 def sigma_points(x, P, n, lam, X, L, M, w, V, work):
     """Merwe sigma points of ``(x, P)`` into ``X (2n + 1, n)`` (ukf.sigma_points: Cholesky of (n + λ)P, or the
     symmetric square root when it fails)."""
     for a in range(n):
         for b in range(n):
             M[a, b] = (n + lam) * P[a, b]
-    if not cholesky_lower(M, n, L):
-        eigh_jacobi(M, n, w, V, work)
+    if not cholesky_lower(ptr(M), n, ptr(L)):
+        eigh_jacobi(ptr(M), n, ptr(w), ptr(V), ptr(work))
         for a in range(n):
             for b in range(n):
                 L[a, b] = V[a, b] * math.sqrt(max(w[b], 0.0))
@@ -263,24 +275,26 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
     T = cur.shape[1]
     n = x0.shape[1]
     ns = 2 * n + 1
+    x = np.empty(n)
+    H = np.empty(n)
+    K = np.empty(n)
+    Pxy = np.empty(n)
+    B = np.empty(n)
+    w = np.empty(n)
+    Y = np.empty(ns)
+    X = np.empty((ns, n))
+    Xf = np.empty((ns, n))
+    P = np.empty((n, n))
+    F = np.empty((n, n))
+    L = np.empty((n, n))
+    M = np.empty((n, n))
+    Q = np.empty((n, n))
+    V = np.empty((n, n))
+    work = np.empty((n, n))
+    scratch = np.empty(WORK_SIZE)
+    imp, fmp, Hp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(H), ptr(B), ptr(F), ptr(scratch)
     for r in range(r0, r1):
-        x = x0[r].copy()
-        P = P0[r].copy()
-        X = np.empty((ns, n))
-        Xf = np.empty((ns, n))
-        Y = np.empty(ns)
-        H = np.empty(n)
-        K = np.empty(n)
-        Pxy = np.empty(n)
-        B = np.empty(n)
-        F = np.empty((n, n))
-        L = np.empty((n, n))
-        M = np.empty((n, n))
-        Q = np.empty((n, n))
-        V = np.empty((n, n))
-        work = np.empty((n, n))
-        w = np.empty(n)
-        scratch = np.empty(16)
+        load_run(x0, P0, r, n, x, P)
         consecutive = np.int64(0)
         for k in range(T):
             ik = cur[r, k]
@@ -290,7 +304,7 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             D0 = 0.0
             st = 0
             for s in range(ns):
-                y, D, st = model_output(im, fm, X[s], ik, tk, has_temp, needs_D and s == 0, H)
+                y, D, st = model_output(imp, fmp, ptr_at(X, s * n), ik, tk, has_temp, needs_D and s == 0, Hp, sp)
                 if st != 0:
                     break
                 Y[s] = y
@@ -335,7 +349,8 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             # ---------------------------------------------------------------- predict
             sigma_points(x, P, n, lam, X, L, M, w, V, work)
             for s in range(ns):
-                st = model_step(im, fm, X[s], ik, dts[k], tk, has_temp, needs_B and s == 0, Xf[s], F, B, scratch)
+                st = model_step(imp, fmp, ptr_at(X, s * n), ik, dts[k], tk, has_temp, needs_B and s == 0,
+                                ptr_at(Xf, s * n), Fp, Bp, sp)
                 if st != 0:
                     break
             if st != 0:
@@ -353,9 +368,10 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                     for s in range(ns):
                         s_ += (Xf[s, a] - x[a]) * Wc[s] * (Xf[s, b] - x[b])
                     P[a, b] = s_ + Q[a, b]
-            symmetrise(P, n)
-            repair_psd(P, n, opt[PSD_ABS], opt[PSD_REL], w, V, work)
-            if diverged_cov(x, n, P, 0.0, np.inf, np.inf):
+            Pp = ptr(P)
+            symmetrise(Pp, n)
+            repair_psd(Pp, n, opt[PSD_ABS], opt[PSD_REL], ptr(w), ptr(V), ptr(work))
+            if diverged_cov(x, n, Pp, 0.0, np.inf, np.inf):
                 failed[r] = True
                 failed_at[r] = k + 1
                 freeze(outf, outb, xs, pd, store, r, k + 1, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
@@ -371,22 +387,24 @@ def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo
     n = x0.shape[1]
     jac = n > 0  # run-time True and False (literals would make numba compile copies of every callee)
     never = n < 0
+    x = np.empty(n)
+    xn = np.empty(n)
+    H = np.empty(n)
+    B = np.empty(n)
+    w = np.empty(n)
+    P = np.empty((n, n))
+    F = np.empty((n, n))
+    Q = np.empty((n, n))
+    M = np.empty((n, n))
+    scratch = np.empty(WORK_SIZE)
+    imp, fmp, xp, xnp, Hp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(x), ptr(xn), ptr(H), ptr(B), ptr(F), ptr(scratch)
     for r in range(r0, r1):
-        x = x0[r].copy()
-        P = P0[r].copy()
-        xn = np.empty(n)
-        H = np.empty(n)
-        B = np.empty(n)
-        F = np.empty((n, n))
-        Q = np.empty((n, n))
-        M = np.empty((n, n))
-        w = np.empty(n)
-        scratch = np.empty(16)
+        load_run(x0, P0, r, n, x, P)
         drift = 0.0
         for k in range(T):
             ik = cur[r, k]
             tk = temp[r, k]
-            y, D, st = model_output(im, fm, x, ik, tk, has_temp, jac, H)
+            y, D, st = model_output(imp, fmp, xp, ik, tk, has_temp, jac, Hp, sp)
             if st != 0:
                 status[r] = st
                 break
@@ -412,7 +430,7 @@ def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo
             if k + 1 == T:
                 break
             z = x[0]
-            st = model_step(im, fm, x, ik, dts[k], tk, has_temp, jac, xn, F, B, scratch)
+            st = model_step(imp, fmp, xp, ik, dts[k], tk, has_temp, jac, xnp, Fp, Bp, sp)
             if st != 0:
                 status[r] = st
                 break
@@ -423,4 +441,4 @@ def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo
             drift -= B[0]
             process_cov(nz, walk, Qo, B, n, dts[k], nz[CUR_VAR], Q)
             propagate(F, P, Q, n, M)
-            symmetrise(P, n)
+            symmetrise(ptr(P), n)

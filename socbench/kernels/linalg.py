@@ -1,6 +1,7 @@
 """Compiled small dense linear algebra and the numerical safety rules of :mod:`socbench.estimators.safety`.
 
-One covariance at a time (``n × n``, n ≤ ~12), no allocation: every function writes into arrays it is given.
+One covariance at a time (``n × n``, n ≤ ~12), no allocation: every function takes pointers (row-major ``n × n``
+matrices, :func:`socbench.kernels.evaluate.ptr`) and writes into the memory it is given.
 
 * ``symmetrise``      ``P ← (P + Pᵀ)/2``;
 * ``psd_certified``   the LDLᵀ certificate of ``safety.psd_certified`` (same margin, same operations);
@@ -29,45 +30,45 @@ EPS = float(np.finfo(float).eps)
 JACOBI_SWEEPS = 60
 
 
-@kernel
+@kernel(inline=True)
 def symmetrise(P, n):
     for a in range(n):
         for b in range(a + 1, n):
-            v = 0.5 * (P[a, b] + P[b, a])
-            P[a, b] = v
-            P[b, a] = v
-        P[a, a] = 0.5 * (P[a, a] + P[a, a])
+            v = 0.5 * (P[a * n + b] + P[b * n + a])
+            P[a * n + b] = v
+            P[b * n + a] = v
+        P[a * n + a] = 0.5 * (P[a * n + a] + P[a * n + a])
 
 
-@kernel
+@kernel(inline=True)
 def all_finite(P, n):
     for a in range(n):
         for b in range(n):
-            if not math.isfinite(P[a, b]):
+            if not math.isfinite(P[a * n + b]):
                 return False
     return True
 
 
-@kernel
+@kernel(inline=True)
 def psd_certified(P, n, abs_floor, rel_floor, work):
     """``safety.psd_certified`` for one matrix (``work``: n × n scratch)."""
     t = 0.0
     for a in range(n):
-        t += P[a, a]
+        t += P[a * n + a]
     t = abs(t)
     c = 2.0 * max(max(abs_floor, rel_floor * t), 64.0 * EPS * t)
     for a in range(n):
         for b in range(n):
-            work[a, b] = P[a, b]
-        work[a, a] = P[a, a] - c
+            work[a * n + b] = P[a * n + b]
+        work[a * n + a] = P[a * n + a] - c
     for m in range(n):
-        d = work[m, m]
+        d = work[m * n + m]
         if not d > 0.0:
             return False
         for a in range(m + 1, n):
-            f = work[a, m]
+            f = work[a * n + m]
             for b in range(m + 1, n):
-                work[a, b] = work[a, b] - f * (work[m, b] / d)
+                work[a * n + b] = work[a * n + b] - f * (work[m * n + b] / d)
     return True
 
 
@@ -76,47 +77,47 @@ def eigh_jacobi(A, n, w, V, work):
     """Eigenvalues ``w (n,)`` and eigenvectors (columns of ``V``) of the symmetric ``A`` (``work``: n × n scratch)."""
     for a in range(n):
         for b in range(n):
-            work[a, b] = A[a, b]
-            V[a, b] = 1.0 if a == b else 0.0
+            work[a * n + b] = A[a * n + b]
+            V[a * n + b] = 1.0 if a == b else 0.0
     for _ in range(JACOBI_SWEEPS):
         off = 0.0
         scale = 0.0
         for a in range(n):
-            scale += work[a, a] * work[a, a]
+            scale += work[a * n + a] * work[a * n + a]
             for b in range(a + 1, n):
-                off += work[a, b] * work[a, b]
+                off += work[a * n + b] * work[a * n + b]
         if off <= 1e-36 * scale or off == 0.0:
             break
         for p in range(n - 1):
             for q in range(p + 1, n):
-                apq = work[p, q]
+                apq = work[p * n + q]
                 if apq == 0.0:
                     continue
-                theta = (work[q, q] - work[p, p]) / (2.0 * apq)
+                theta = (work[q * n + q] - work[p * n + p]) / (2.0 * apq)
                 t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
                 if theta < 0.0:
                     t = -t
                 c = 1.0 / math.sqrt(t * t + 1.0)
                 s = t * c
                 for k in range(n):  # A ← Jᵀ A J on columns p, q then rows p, q
-                    akp = work[k, p]
-                    akq = work[k, q]
-                    work[k, p] = c * akp - s * akq
-                    work[k, q] = s * akp + c * akq
+                    akp = work[k * n + p]
+                    akq = work[k * n + q]
+                    work[k * n + p] = c * akp - s * akq
+                    work[k * n + q] = s * akp + c * akq
                 for k in range(n):
-                    apk = work[p, k]
-                    aqk = work[q, k]
-                    work[p, k] = c * apk - s * aqk
-                    work[q, k] = s * apk + c * aqk
-                work[p, q] = 0.0
-                work[q, p] = 0.0
+                    apk = work[p * n + k]
+                    aqk = work[q * n + k]
+                    work[p * n + k] = c * apk - s * aqk
+                    work[q * n + k] = s * apk + c * aqk
+                work[p * n + q] = 0.0
+                work[q * n + p] = 0.0
                 for k in range(n):
-                    vkp = V[k, p]
-                    vkq = V[k, q]
-                    V[k, p] = c * vkp - s * vkq
-                    V[k, q] = s * vkp + c * vkq
+                    vkp = V[k * n + p]
+                    vkq = V[k * n + q]
+                    V[k * n + p] = c * vkp - s * vkq
+                    V[k * n + q] = s * vkp + c * vkq
     for a in range(n):
-        w[a] = work[a, a]
+        w[a] = work[a * n + a]
 
 
 @kernel
@@ -142,8 +143,8 @@ def repair_psd(P, n, abs_floor, rel_floor, w, V, work):
         for b in range(n):
             s = 0.0
             for k in range(n):
-                s += V[a, k] * w[k] * V[b, k]
-            P[a, b] = s
+                s += V[a * n + k] * w[k] * V[b * n + k]
+            P[a * n + b] = s
     symmetrise(P, n)
     return True
 
@@ -153,31 +154,31 @@ def cholesky_lower(A, n, L):
     """Lower Cholesky factor of ``A`` into ``L``; False if ``A`` is not positive definite (or not finite)."""
     for a in range(n):
         for b in range(n):
-            L[a, b] = 0.0
+            L[a * n + b] = 0.0
     for j in range(n):
-        d = A[j, j]
+        d = A[j * n + j]
         for k in range(j):
-            d -= L[j, k] * L[j, k]
+            d -= L[j * n + k] * L[j * n + k]
         if not d > 0.0:
             return False
         ljj = math.sqrt(d)
-        L[j, j] = ljj
+        L[j * n + j] = ljj
         for a in range(j + 1, n):
-            s = A[a, j]
+            s = A[a * n + j]
             for k in range(j):
-                s -= L[a, k] * L[j, k]
-            L[a, j] = s / ljj
+                s -= L[a * n + k] * L[j * n + k]
+            L[a * n + j] = s / ljj
     return True
 
 
-@kernel
+@kernel(inline=True)
 def gate(nis, threshold, consecutive, release):
     """``(gated, consecutive')``: skip the update when NIS > threshold, unless ``release`` skips in a row."""
     gated = nis > threshold and consecutive < release
     return gated, (consecutive + 1 if gated else 0)
 
 
-@kernel
+@kernel(inline=True)
 def diverged_cov(x, n, P, nis, var_max, nis_max):
     """``safety.diverged`` for one run with its covariance ``P`` (NaN-safe comparisons)."""
     for a in range(n):
@@ -185,10 +186,10 @@ def diverged_cov(x, n, P, nis, var_max, nis_max):
             return True
     if not all_finite(P, n):
         return True
-    return not (P[0, 0] <= var_max and nis <= nis_max)
+    return not (P[0 * n + 0] <= var_max and nis <= nis_max)
 
 
-@kernel
+@kernel(inline=True)
 def diverged_var(x, n, var, nis, var_max, nis_max):
     """``safety.diverged`` for one run with an SOC variance ``var`` only."""
     for a in range(n):

@@ -8,7 +8,7 @@ model, so sixteen models, their options and any combination of the eight effects
 Layout of ``im`` (``H_*`` header slots, then records)::
 
     header   [family, n_states, n_base_states, sub, flags, ocv record, n_params, params list, n_effects,
-              effects table, bias state (−1: none), 0]
+              effects table, bias state (−1: none), step's parameter range (2), output's (2), 0]
     params   one function-record offset per parameter, in the order the family's kernel_spec() lists them
     function [kind, fm offset, size, extra, (node records of a temperature table)]
                CONST   fm: value
@@ -51,12 +51,15 @@ FN_CONST, FN_POLY, FN_LOOKUP, FN_TABLE = 0, 1, 2, 3
 OCV_PCHIP, OCV_TABLE = 10, 11
 
 H_FAMILY, H_N, H_NB, H_SUB, H_FLAGS, H_OCV, H_NPAR, H_PARAMS, H_NEFF, H_EFFECTS, H_BIAS = range(11)
-HEADER = 12
+H_STEP0, H_STEP1, H_OUT0, H_OUT1 = range(11, 15)
+HEADER = 16
 F_CAP, F_ETA = 0, 1
 #: rc_network flags
 RC_INTEGRATOR, RC_C0_PRINTED = 1, 2
 #: ints per effect in the effects table
 EFFECT_WIDTH = 4
+#: most parameters a lowered model may have (the compiled scratch holds them)
+MAX_PARAMS = 48
 
 
 class NotLowerable(Exception):
@@ -192,6 +195,8 @@ def lower(model) -> Lowered:
     b.slot(float(base.capacity_ah))
     b.slot(float(base.eta_charge))
     ocv = _ocv(b, base.ocv)
+    if len(spec.params) > MAX_PARAMS:
+        raise NotLowerable(f"{len(spec.params)} parameters (the compiled evaluator holds at most {MAX_PARAMS})")
     params = [_function(b, base.params[p]) for p in spec.params]
     plist = b.record(*params) if params else len(b.ints)
     table, bias = [], -1
@@ -210,7 +215,8 @@ def lower(model) -> Lowered:
     etab = b.record(*(v for row in table for v in row)) if table else len(b.ints)
     header = {H_FAMILY: FAMILIES[spec.family], H_N: start, H_NB: base.n_states, H_SUB: spec.sub,
               H_FLAGS: spec.flags, H_OCV: ocv, H_NPAR: len(params), H_PARAMS: plist, H_NEFF: len(table),
-              H_EFFECTS: etab, H_BIAS: bias}
+              H_EFFECTS: etab, H_BIAS: bias, H_STEP0: spec.step[0], H_STEP1: spec.step[1],
+              H_OUT0: spec.output[0], H_OUT1: spec.output[1]}
     for k, v in header.items():
         b.ints[k] = int(v)
     if start != model.n_states:  # pragma: no cover - a layout bug, not a user error

@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from ..estimators import draws as D
-from .evaluate import model_output, model_step
+from .evaluate import WORK_SIZE, model_output, model_step, ptr, ptr_at
 from .filters import DT0, freeze, measurement_var, record
 from .jit import kernel
 from .linalg import diverged_var, eigh_jacobi, gate
@@ -54,7 +54,7 @@ def normal(pre, c):
 
 
 # ================================================================================================ PF pieces
-@kernel
+@kernel(inline=True)
 def normalise_log(lw, N):
     mx = lw[0]
     for p in range(1, N):
@@ -81,23 +81,24 @@ def ess_of(lw, ll, phi, N, tmp):
     return 1.0 / s
 
 
-@kernel
+@kernel(inline=True)
 def temper_exponent(lw, ll, phi_max, accept, target, N, tmp):
     """pf.temper_exponent for one run."""
-    if not ess_of(lw, ll, phi_max, N, tmp) < accept:
+    lwp, llp, tp = ptr(lw), ptr(ll), ptr(tmp)
+    if not ess_of(lwp, llp, phi_max, N, tp) < accept:
         return phi_max
     lo = 0.0
     hi = phi_max
     for _ in range(TEMPER_ITERS):
         mid = 0.5 * (lo + hi)
-        if ess_of(lw, ll, mid, N, tmp) >= target:
+        if ess_of(lwp, llp, mid, N, tp) >= target:
             lo = mid
         else:
             hi = mid
     return max(lo, phi_max * 0.5**TEMPER_ITERS)
 
 
-@kernel
+@kernel(inline=True)
 def systematic(w, u, N, cum, idx):
     """pf.systematic_indices for one run: ``idx[i] = #{j : cumsum(w)_j ≤ (u + i)/N}``, at most N − 1."""
     c = 0.0
@@ -112,7 +113,7 @@ def systematic(w, u, N, cum, idx):
         idx[i] = j if j < N else N - 1
 
 
-@kernel
+@kernel(inline=True)
 def weighted_mean_root(X, w, N, n, mean, root, Vm, ev, U, work):
     """pf.weighted_mean_root: weighted mean and the symmetric square root of the weighted covariance."""
     for a in range(n):
@@ -131,7 +132,7 @@ def weighted_mean_root(X, w, N, n, mean, root, Vm, ev, U, work):
             v = 0.5 * (Vm[a, b] + Vm[b, a])
             Vm[a, b] = v
             Vm[b, a] = v
-    eigh_jacobi(Vm, n, ev, U, work)
+    eigh_jacobi(ptr(Vm), n, ptr(ev), ptr(U), ptr(work))
     for a in range(n):
         for b in range(n):
             s = 0.0
@@ -140,18 +141,17 @@ def weighted_mean_root(X, w, N, n, mean, root, Vm, ev, U, work):
             root[a, b] = s
 
 
-@kernel
+@kernel(inline=True)
 def resample_into(X, idx, N, n, Xr):
     for i in range(N):
         for a in range(n):
             Xr[i, a] = X[idx[i], a]
 
 
-@kernel
-def shrink_with(Xr, mean, root, h, pre, N, n, X):
-    """``X = a·Xr + (1 − a)·mean + h·root·ε`` (pf.shrink), ε from the stream prefix ``pre``."""
+@kernel(inline=True)
+def shrink_with(Xr, mean, root, h, pre, N, n, X, eps):
+    """``X = a·Xr + (1 − a)·mean + h·root·ε`` (pf.shrink), ε from the stream prefix ``pre`` (``eps``: scratch)."""
     a_ = math.sqrt(1.0 - h * h)
-    eps = np.empty(n)
     for p in range(N):
         for d in range(n):
             eps[d] = normal(pre, p * n + d)
@@ -162,7 +162,7 @@ def shrink_with(Xr, mean, root, h, pre, N, n, X):
             X[p, a] = a_ * Xr[p, a] + (1.0 - a_) * mean[a] + h * s
 
 
-@kernel
+@kernel(inline=True)
 def clamp_particles(X, N):
     out = False
     for p in range(N):
@@ -175,11 +175,11 @@ def clamp_particles(X, N):
     return out
 
 
-@kernel
-def likelihoods(im, fm, X, v, i, temp, has_temp, needs_D, nz, N, Y, Rk, ll, H):
+@kernel(inline=True)
+def likelihoods(imp, fmp, X, v, i, temp, has_temp, needs_D, nz, N, n, Y, Rk, ll, Hp, sp):
     """``Y, R`` and ``log N(v; Y, R)`` (up to the constant) of every particle; returns the model status."""
     for p in range(N):
-        y, d, st = model_output(im, fm, X[p], i, temp, has_temp, needs_D, H)
+        y, d, st = model_output(imp, fmp, ptr_at(X, p * n), i, temp, has_temp, needs_D, Hp, sp)
         if st != 0:
             return st
         Y[p] = y
@@ -212,31 +212,32 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
     stream_current = np.int64(D.CURRENT)
     stream_additive = np.int64(D.ADDITIVE)
     stream_roughen = np.int64(D.ROUGHEN)
+    X = np.empty((N, n))
+    Xr = np.empty((N, n))
+    w = np.empty(N)
+    lw = np.empty(N)
+    ll = np.empty(N)
+    tmp = np.empty(N)
+    Y = np.empty(N)
+    Rk = np.empty(N)
+    cum = np.empty(N)
+    idx = np.empty(N, dtype=np.int64)
+    H = np.empty(n)
+    xn = np.empty(n)
+    Bv = np.empty(n)
+    mean = np.empty(n)
+    var = np.empty(n)
+    mean_r = np.empty(n)
+    ev = np.empty(n)
+    eps = np.empty(n)
+    F = np.empty((n, n))
+    root = np.empty((n, n))
+    Vm = np.empty((n, n))
+    U = np.empty((n, n))
+    work = np.empty((n, n))
+    scratch = np.empty(WORK_SIZE)
+    imp, fmp, Hp, xnp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(H), ptr(xn), ptr(Bv), ptr(F), ptr(scratch)
     for r in range(r0, r1):
-        X = np.empty((N, n))
-        Xr = np.empty((N, n))
-        w = np.empty(N)
-        lw = np.empty(N)
-        ll = np.empty(N)
-        tmp = np.empty(N)
-        Y = np.empty(N)
-        Rk = np.empty(N)
-        cum = np.empty(N)
-        idx = np.empty(N, dtype=np.int64)
-        H = np.empty(n)
-        xn = np.empty(n)
-        Bv = np.empty(n)
-        F = np.empty((n, n))
-        mean = np.empty(n)
-        var = np.empty(n)
-        mean_r = np.empty(n)
-        root = np.empty((n, n))
-        Vm = np.empty((n, n))
-        U = np.empty((n, n))
-        work = np.empty((n, n))
-        ev = np.empty(n)
-        eps = np.empty(n)
-        scratch = np.empty(16)
         pre = prefix(seed, stream_initial, stream_initial, r)  # stream 0, sample 0
         for p in range(N):
             for d in range(n):
@@ -255,7 +256,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
             tk = temp[r, k]
             vk = volt[r, k]
             # ---------------------------------------------------------------- update
-            st = likelihoods(im, fm, X, vk, ik, tk, has_temp, needs_D, nz, N, Y, Rk, ll, H)
+            st = likelihoods(imp, fmp, X, vk, ik, tk, has_temp, needs_D, nz, N, n, Y, Rk, ll, Hp, sp)
             if st != 0:
                 status[r] = st
                 break
@@ -294,11 +295,12 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                     weighted_mean_root(X, w, N, n, mean_r, root, Vm, ev, U, work)
                     systematic(w, uniform0(prefix(seed, D.STAGE + 2 * s_, k, r)), N, cum, idx)
                     resample_into(X, idx, N, n, Xr)
-                    shrink_with(Xr, mean_r, root, pfopt[TEMPER_H], prefix(seed, D.STAGE + 2 * s_ + 1, k, r), N, n, X)
+                    shrink_with(Xr, mean_r, root, pfopt[TEMPER_H], prefix(seed, D.STAGE + 2 * s_ + 1, k, r), N, n, X,
+                                eps)
                     clamp_particles(X, N)
                     for p in range(N):
                         lw[p] = -math.log(N)
-                    st = likelihoods(im, fm, X, vk, ik, tk, has_temp, needs_D, nz, N, Y, Rk, ll, H)
+                    st = likelihoods(imp, fmp, X, vk, ik, tk, has_temp, needs_D, nz, N, n, Y, Rk, ll, Hp, sp)
                     if st != 0:
                         break
             if st != 0:
@@ -342,7 +344,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                 counts[r, 0] += 1
                 pre = prefix(seed, stream_roughen, k, r)
                 if h > 0.0:
-                    shrink_with(Xr, mean_r, root, h, pre, N, n, X)
+                    shrink_with(Xr, mean_r, root, h, pre, N, n, X, eps)
                 else:
                     if K_rough > 0.0:
                         for a in range(n):  # roughening_sd: K (max − min) N^(−1/d), on the resampled cloud
@@ -364,7 +366,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
             pre_q = prefix(seed, stream_additive, k, r)
             for p in range(N):
                 i_p = ik + sd_i * normal(pre_i, p) if sd_i > 0.0 else ik
-                st = model_step(im, fm, X[p], i_p, dt, tk, has_temp, jac, xn, F, Bv, scratch)
+                st = model_step(imp, fmp, ptr_at(X, p * n), i_p, dt, tk, has_temp, jac, xnp, Fp, Bp, sp)
                 if st != 0:
                     break
                 for a in range(n):

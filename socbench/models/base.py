@@ -59,11 +59,15 @@ class Simulation:
 @dataclass(frozen=True)
 class KernelSpec:
     """How a model lowers to the compiled interpreter (:mod:`socbench.kernels`): its ``family`` (a key of
-    ``socbench.kernels.lowering.FAMILIES``), its parameters in the order the family's compiled code reads them, and
-    two small integers the family interprets (``sub``: e.g. the number of RC branches; ``flags``: options)."""
+    ``socbench.kernels.lowering.FAMILIES``), its parameters in the order the family's compiled code reads them, the
+    index ranges ``[j0, j1)`` of them that ``step`` and ``output`` read (evaluated once per call, before the family's
+    code runs), and two small integers the family interprets (``sub``: e.g. the number of RC branches; ``flags``:
+    options)."""
 
     family: str
     params: tuple
+    step: tuple
+    output: tuple
     sub: int = 0
     flags: int = 0
 

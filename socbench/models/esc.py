@@ -62,8 +62,9 @@ class ESC(Model):
 
     def kernel_spec(self):
         n = self._n
-        return KernelSpec("esc", ("R0",) + tuple(f"R{j}" for j in range(1, n + 1))
-                          + tuple(f"tau{j}" for j in range(1, n + 1)) + ("M", "M0", "gamma"), n)
+        params = (("R0",) + tuple(f"R{j}" for j in range(1, n + 1)) + ("M", "M0")
+                  + tuple(f"tau{j}" for j in range(1, n + 1)) + ("gamma",))
+        return KernelSpec("esc", params, step=(n + 3, 2 * n + 4), output=(0, n + 3), sub=n)
 
     def _hysteresis_rate(self, i, z, temp=None):
         """``(r, ∂r/∂z, ∂r/∂I)`` of the hysteresis rate ``r = η(I) I γ(z)/(3600 Q)`` [1/s]; ``u = r·dt``."""

@@ -50,7 +50,7 @@ class ImprovedRC(Model):
         return ("z", "Ue", "Uc")
 
     def kernel_spec(self):
-        return KernelSpec("improved_rc", ("R0", "R1", "R2", "C1", "C2"))
+        return KernelSpec("improved_rc", ("R0", "R1", "R2", "C1", "C2"), step=(1, 5), output=(0, 3))
 
     # ------------------------------------------------------------------ guarded parameters
     def _capacitance(self, name, c, dc, z, guards):

@@ -78,7 +78,8 @@ class RCNetwork(Model):
         printed = self.has_integrator and self.c0_mode == C0_AS_PRINTED
         # kernels.lowering RC_INTEGRATOR, RC_C0_PRINTED
         flags = (1 if self.has_integrator else 0) | (2 if printed else 0)
-        return KernelSpec("rc_network", ("R0",) + self._branch_params + (("C0",) if printed else ()), self._n, flags)
+        params = ("R0",) + self._branch_params + (("C0",) if printed else ())
+        return KernelSpec("rc_network", params, step=(1, len(params)), output=(0, 1), sub=self._n, flags=flags)
 
     @property
     def _first_branch(self) -> int:

@@ -59,8 +59,8 @@ class StaticTermModel(Model):
 
         if self.name not in STATIC_TERMS:
             return None
-        return KernelSpec("static_terms", ("R0",) + tuple(p for p in self.param_names if p != "R0"),
-                          STATIC_TERMS[self.name])
+        params = ("R0",) + tuple(p for p in self.param_names if p != "R0")
+        return KernelSpec("static_terms", params, step=(0, 0), output=(0, len(params)), sub=STATIC_TERMS[self.name])
 
     def step(self, x, i, dt, temp=None, jac=False, guards=None):
         x, (i, dt) = self._broadcast(x, i, dt)

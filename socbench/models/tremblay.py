@@ -44,7 +44,7 @@ class TremblayGeneric(Model):
         return ("z", "Istar")
 
     def kernel_spec(self):
-        return KernelSpec("tremblay", ("tc", "K", "A", "B", "R0"))
+        return KernelSpec("tremblay", ("tc", "K", "A", "B", "R0"), step=(0, 1), output=(1, 5))
 
     def step(self, x, i, dt, temp=None, jac=False, guards=None):
         x, (i, dt) = self._broadcast(x, i, dt)
