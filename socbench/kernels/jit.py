@@ -29,6 +29,7 @@ from pathlib import Path
 #: every file holding compiled code (relative to the socbench package): their bytes name the cache directory
 SOURCES = (
     "kernels/jit.py",
+    "kernels/lowering.py",
     "kernels/evaluate.py",
     "kernels/linalg.py",
     "kernels/filters.py",
