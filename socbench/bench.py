@@ -37,7 +37,15 @@ import numpy as np
 TOLERANCE = 1e-9
 #: the estimate fields compared between the batched engine and its reference
 FIELDS = ("soc", "soc_std", "v_pred", "innovation", "innovation_var")
-ESTIMATORS = ("ekf", "ukf", "pf")
+#: every registered estimator with a reference backend (all but coulomb counting), in registry order
+def _benched() -> tuple:
+    from .estimators import estimator_names
+    from .estimators.reference import REFERENCES
+
+    return tuple(n for n in estimator_names() if n in REFERENCES)
+
+
+ESTIMATORS = _benched()
 
 
 @dataclass(frozen=True)

@@ -12,18 +12,31 @@ plus :class:`ProfileMeta` (capacity, cells in series, chemistry, name, source fi
 Validation happens on construction, so a ``Profile`` that exists is clean: every problem raises a
 :class:`~socbench.errors.DataError` naming the file, the column and the first bad row (rows count from 1).
 Gaps are reported by :meth:`Profile.gaps`, never interpolated silently.
+
+The reference SOC is the one column checked leniently, because a reference counted from a nominal capacity overshoots
+[0, 1] by a few points all the time (DESIGN.md, Reliability) and most commands never read it:
+
+* within :data:`SOC_WARN_MARGIN` (5 points) outside [0, 1]: the values are kept as they are and one
+  :class:`~socbench.errors.SocbenchWarning` says so (profiles derived from it — slices, runs, copies — do not repeat
+  it: ``soc_ref_checked`` carries the range already validated);
+* further out (a percent column, a wrong capacity): ``soc_ref`` is ``None`` — for every caller the record simply has
+  no reference — and the :class:`~socbench.errors.DataError` is kept in ``soc_ref_error``. It is raised, with its
+  file, column and row, only where the reference is used: :meth:`Profile.require` and :meth:`Profile.get`.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .errors import DataError
+from .errors import DataError, SocbenchWarning
 
-#: Tolerance on SOC bounds: amp-hour counters overshoot [0, 1] by rounding only.
+#: Tolerance on SOC bounds: below it an overshoot of [0, 1] is rounding, and nothing is said.
 SOC_TOLERANCE = 1e-6
+#: A reference SOC at most this far outside [0, 1] is kept with a warning; further out it is an error where used.
+SOC_WARN_MARGIN = 0.05
 
 
 @dataclass(frozen=True)
@@ -64,6 +77,10 @@ class Profile:
     temperature_c: np.ndarray | None = None
     soc_ref: np.ndarray | None = None
     meta: ProfileMeta = field(default_factory=ProfileMeta)
+    #: the error of a reference SOC given but refused (then ``soc_ref`` is None); raised by ``require``/``get``
+    soc_ref_error: DataError | None = field(default=None, compare=False, repr=False)
+    #: ``(min, max)`` of the reference values already validated (and warned about): derived profiles skip both
+    soc_ref_checked: tuple | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         src = self.meta.source or self.meta.name
@@ -95,20 +112,42 @@ class Profile:
                 raise DataError(f"expected (T,) or (runs, T), got shape {arr.shape}", file=src, column=name)
             self._check_finite(arr, name, src)
             object.__setattr__(self, name, arr)
-        if self.soc_ref is not None:
-            bad = (self.soc_ref < -SOC_TOLERANCE) | (self.soc_ref > 1 + SOC_TOLERANCE)
-            if bad.any():
-                row = _first_bad_row(bad)
-                raise DataError(
-                    f"SOC must be a fraction in [0, 1] (got {self.soc_ref[..., row - 1].ravel()[0]:g}; "
-                    "percent values must be divided by 100)",
-                    file=src,
-                    column="soc_ref",
-                    row=row,
-                )
+        self._check_soc_ref(src)
         shapes = {a.shape[:-1] for a in self._signals() if a is not None and a.ndim == 2}
         if len(shapes) > 1:
             raise DataError(f"batched columns disagree on the number of runs: {sorted(shapes)}", file=src)
+
+    def _check_soc_ref(self, src: str) -> None:
+        """The lenient check of the reference SOC (module docstring)."""
+        z = self.soc_ref
+        if z is None:
+            return
+        object.__setattr__(self, "soc_ref_error", None)  # a (new) reference replaces a refused one
+        lo, hi = float(z.min()), float(z.max())
+        done = self.soc_ref_checked
+        if done is not None and done[0] <= lo and hi <= done[1]:
+            return  # a subset of values already validated (a slice, a run, a copy)
+        object.__setattr__(self, "soc_ref_checked", (lo, hi))
+        if lo >= -SOC_TOLERANCE and hi <= 1 + SOC_TOLERANCE:
+            return
+        far = (z < -SOC_WARN_MARGIN) | (z > 1 + SOC_WARN_MARGIN)
+        if far.any():
+            row = _first_bad_row(far)
+            value = float(z[..., row - 1].ravel()[0])
+            hint = ("percent values must be divided by 100" if 1 + SOC_WARN_MARGIN < hi <= 100 and lo >= 0
+                    else f"more than {100 * SOC_WARN_MARGIN:g} points outside [0, 1]")
+            error = DataError(f"SOC must be a fraction in [0, 1] (got {value:g}; {hint})", file=src,
+                              column="soc_ref", row=row)
+            object.__setattr__(self, "soc_ref", None)
+            object.__setattr__(self, "soc_ref_error", error)
+            object.__setattr__(self, "soc_ref_checked", None)
+            return
+        worst = lo if -lo > hi - 1 else hi
+        row = _first_bad_row(z == worst)  # where it is furthest out
+        warnings.warn(f"{src}, column 'soc_ref', row {row}: reference SOC reaches {worst:.4g}, outside [0, 1] by "
+                      f"less than {100 * SOC_WARN_MARGIN:g} points (as a count from a nominal capacity does): "
+                      "kept as is",
+                      SocbenchWarning, stacklevel=4)
 
     @staticmethod
     def _check_finite(arr: np.ndarray, name: str, src: str) -> None:
@@ -186,10 +225,22 @@ class Profile:
         return replace(self, **changes)
 
     def require(self, *columns: str) -> None:
-        """Raise a :class:`DataError` naming the first of ``columns`` the profile lacks."""
+        """Raise a :class:`DataError` naming the first of ``columns`` the profile lacks (for a reference SOC that was
+        given but refused: the error kept for it, with its row)."""
         for c in columns:
             if getattr(self, c) is None:
+                if c == "soc_ref" and self.soc_ref_error is not None:
+                    raise self.soc_ref_error
                 raise DataError("missing column", file=self.meta.source or self.meta.name, column=c)
+
+    def get(self, column: str) -> np.ndarray | None:
+        """The values of an optional column, None when the record has none. Call it where the values are *used*: a
+        reference SOC that was given but refused raises its kept :class:`DataError` here, rather than passing as
+        "no reference"."""
+        value = getattr(self, column)
+        if value is None and column == "soc_ref" and self.soc_ref_error is not None:
+            raise self.soc_ref_error
+        return value
 
     def gaps(self, factor: float = 5.0) -> list[tuple[int, float]]:
         """Sample gaps longer than ``factor`` × the median step: ``[(row, gap_s), ...]`` (rows from 1)."""

@@ -17,7 +17,7 @@ from socbench.datasets.calce import load_calce
 from socbench.datasets.canonical import load_canonical
 from socbench.datasets.nissan_leaf import load_nissan_leaf
 from socbench.errors import DataError
-from socbench.profile import Profile
+from socbench.profile import SOC_WARN_MARGIN, Profile
 
 SETTINGS = settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -34,8 +34,10 @@ def _assert_clean(p: Profile) -> None:
         if a is not None:
             assert np.all(np.isfinite(a))
     assert np.all(np.diff(p.time_s) > 0)
-    if p.soc_ref is not None:
-        assert p.soc_ref.min() >= -1e-6 and p.soc_ref.max() <= 1 + 1e-6
+    if p.soc_ref is not None:  # kept (with a warning) up to SOC_WARN_MARGIN outside [0, 1]; further out refused
+        assert p.soc_ref.min() >= -SOC_WARN_MARGIN and p.soc_ref.max() <= 1 + SOC_WARN_MARGIN
+    elif p.soc_ref_error is not None:
+        assert p.soc_ref_error.column == "soc_ref" and p.soc_ref_error.row >= 1
 
 
 def _load_or_dataerror(fn, path):

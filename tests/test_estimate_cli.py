@@ -9,6 +9,7 @@ import pandas as pd
 import pytest
 
 from socbench.cli import main
+from socbench.estimators import estimator_names
 from socbench.models import make_model, paper_params
 from socbench.profile import Profile
 
@@ -34,7 +35,7 @@ def record(tmp_path_factory):
     return {"ref": with_ref, "noref": no_ref, "bad": bad, "soc": sim.soc}
 
 
-@pytest.mark.parametrize("estimator", ["coulomb", "ekf", "ukf", "pf"])
+@pytest.mark.parametrize("estimator", estimator_names())  # every registered estimator, without edits here
 def test_estimate_writes_csv_and_metrics(record, tmp_path, capsys, estimator):
     out = tmp_path / estimator
     rc = main(["estimate", "--data", str(record["ref"]), "--params", "paper:thevenin", "--estimator", estimator,

@@ -237,8 +237,8 @@ def test_soc_clamp_is_flagged():
 # ----------------------------------------------------------------------------------------------- registry, scoring
 def test_registry_and_options():
     m = _model("rint")
-    assert set(ESTIMATORS) == {"coulomb", "ekf", "ukf", "pf"}
-    with pytest.raises(ConfigError, match="known: coulomb, ekf, ukf, pf"):
+    assert {"coulomb", "ekf", "ukf", "pf", "aekf", "ckf", "srukf", "hinf", "dual"} <= set(ESTIMATORS)
+    with pytest.raises(ConfigError, match="known: coulomb, ekf, ukf, pf, aekf, ckf, srukf, hinf, dual"):
         make_estimator("kalman", m)
     with pytest.raises(ConfigError, match="unknown option 'alpha'"):
         make_estimator("ekf", m, alpha=0.1)

@@ -44,9 +44,13 @@ def test_profile_rejects_empty_and_missing_columns():
 
 
 def test_profile_rejects_soc_in_percent_and_length_mismatch():
-    with pytest.raises(DataError) as e:
-        Profile(np.arange(3.0), np.zeros(3), soc_ref=np.array([100.0, 99.0, 98.0]), meta=_meta())
-    assert e.value.column == "soc_ref" and e.value.row == 1 and "percent" in str(e.value)
+    # a reference in percent is refused where it is used (the profile itself loads: DESIGN.md, Reliability)
+    p = Profile(np.arange(3.0), np.zeros(3), soc_ref=np.array([100.0, 99.0, 98.0]), meta=_meta())
+    assert p.soc_ref is None
+    for use in (lambda: p.require("soc_ref"), lambda: p.get("soc_ref"), lambda: p.slice(1).require("soc_ref")):
+        with pytest.raises(DataError) as e:
+            use()
+        assert e.value.column == "soc_ref" and e.value.row == 1 and "percent" in str(e.value)
     with pytest.raises(DataError) as e:
         Profile(np.arange(3.0), np.zeros(4), meta=_meta())
     assert e.value.column == "current_a"

@@ -18,7 +18,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--quick", action="store_true", help="a small sweep and no leaderboard (under a minute)")
     parser.add_argument("--json", required=True, help="write the measurements here")
     parser.add_argument("--repeats", type=int, default=None, help="timed repeats per measurement (default 3, >= 3)")
-    parser.add_argument("--estimators", default=None, help="comma-separated subset of ekf,ukf,pf (default all)")
+    parser.add_argument("--estimators", default=None,
+                        help="comma-separated subset of the estimators with a reference backend (default all)")
     parser.add_argument("--tiny", action="store_true", help=argparse.SUPPRESS)  # smoke-test sizes for the tests
 
 
@@ -39,9 +40,9 @@ def run(args) -> int:
     result = run_bench(sizes, mode, names, log=lambda msg: print(msg, flush=True), checkpoint=save)
     save(result)
     m = result["machine"]
-    print(f"\n{'':4}{'batched µs/run-step':>20}{'filterpy µs/step':>18}{'speed-up':>10}{'max |diff|':>12}")
+    print(f"\n{'':6}{'batched µs/run-step':>20}{'filterpy µs/step':>18}{'speed-up':>10}{'max |diff|':>12}")
     for n in names:
-        print(f"{n:4}{result[f'{n}_batched_us_per_run_step']:>20.2f}{result[f'{n}_filterpy_us_per_step']:>18.1f}"
+        print(f"{n:6}{result[f'{n}_batched_us_per_run_step']:>20.2f}{result[f'{n}_filterpy_us_per_step']:>18.1f}"
               f"{result[f'{n}_speedup']:>9.0f}×{result[f'{n}_max_abs_diff']:>12.1e}")
     board = result["default_leaderboard_s"]
     print(f"fit all models: {result['fit_all_models_s']:.1f} s ({result['fit_data']}, {result['fit_effort']} effort); "

@@ -159,13 +159,7 @@ def _check_units(cols: dict, meta: ProfileMeta, src: str) -> None:
             k = int(np.argmax(bad))
             raise DataError(f"temperature {t[k]:g} °C outside {lo:g}..{hi:g} °C (kelvin or °F?)", file=src,
                             column="temperature_c", row=k + 1)
-    if "soc_ref" in cols:
-        s = cols["soc_ref"]
-        bad = (s > 1.0 + 1e-6) | (s < -1e-6)
-        if bad.any():
-            k = int(np.argmax(bad))
-            hint = " (percent? divide by 100)" if 1.0 < s.max() <= 100.0 and s.min() >= 0 else ""
-            raise DataError(f"SOC {s[k]:g} is not a fraction in [0, 1]{hint}", file=src, column="soc_ref", row=k + 1)
+    # soc_ref: its range is the Profile's to judge (a few points out: a warning; far out: an error where it is used)
 
 
 def check_current_sign(t, i, v, soc=None, *, src: str, column: str = "current_a", n_series: int = 1,

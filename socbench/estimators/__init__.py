@@ -1,4 +1,6 @@
-"""SOC estimators: coulomb counting, EKF, UKF and a particle filter as batched numpy engines, plus filterpy references.
+"""SOC estimators as batched numpy engines — coulomb counting, EKF, UKF, particle filter, adaptive EKF (Sage–Husa),
+cubature KF, square-root UKF, H∞ filter and a joint SOC–capacity–R0 EKF (``dual``) — plus per-run references
+(filterpy where it has the filter, textbook forms otherwise; docs/estimators.md compares them).
 
 ``make_estimator(name, model, noise=None, **options)`` builds one; ``estimator.run(profile, soc0=None, P0=None,
 seed=None) -> Estimate`` runs it over every Monte Carlo run of the profile at once; ``scoring.score(estimate,
@@ -20,6 +22,11 @@ ESTIMATORS: dict[str, str] = {
     "ekf": "socbench.estimators.ekf:EKF",
     "ukf": "socbench.estimators.ukf:UKF",
     "pf": "socbench.estimators.pf:ParticleFilter",
+    "aekf": "socbench.estimators.aekf:AdaptiveEKF",
+    "ckf": "socbench.estimators.ckf:CKF",
+    "srukf": "socbench.estimators.srukf:SRUKF",
+    "hinf": "socbench.estimators.hinf:HInfinityFilter",
+    "dual": "socbench.estimators.dual:JointEKF",
 }
 
 
@@ -42,7 +49,7 @@ def make_estimator(name: str, model, noise: SensorNoise | None = None, **options
 
 
 def make_reference(name: str, model, noise: SensorNoise | None = None, **options) -> Estimator:
-    """The filterpy reference backend of ``name`` (``ekf``, ``ukf``, ``pf``): one trajectory at a time."""
+    """The reference backend of ``name`` (every estimator but ``coulomb``): one trajectory at a time."""
     from .reference import REFERENCES
 
     if name not in REFERENCES:

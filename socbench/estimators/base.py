@@ -187,29 +187,34 @@ class Estimator:
         return self.model.x0(np.broadcast_to(soc0, (R,)), (R,))
 
     def initial_cov(self, R: int, P0) -> np.ndarray:
-        n = self.n
         sd = getattr(self.model, "initial_sd", None)
         if sd is None:
-            sd = np.full(n, self.options["state0_sd"])
+            sd = np.full(self.n, self.options["state0_sd"])
             sd[0] = self.options["soc0_sd"]
-        base = np.diag(np.asarray(sd, dtype=float) ** 2)
-        if P0 is None:
-            P = base
-        else:
-            P = np.asarray(P0, dtype=float)
-            if P.ndim == 0:
-                P = base.copy()
-                P[0, 0] = float(P0)
-            elif P.shape == (n,):
-                P = np.diag(P)
-            elif P.shape not in ((n, n), (R, n, n)):
-                raise ConfigError(f"P0 must be a scalar, ({n},), ({n}, {n}) or ({R}, {n}, {n}); got {P.shape}")
-        if not np.all(np.isfinite(P)):
-            raise ConfigError("P0 must be finite")
-        P = 0.5 * (P + np.swapaxes(P, -1, -2))
-        if np.min(np.linalg.eigvalsh(P)) <= 0:
-            raise ConfigError("P0 must be positive definite")
-        return np.ascontiguousarray(np.broadcast_to(P, (R, n, n)))
+        return initial_cov(R, P0, self.n, sd)
+
+
+def initial_cov(R: int, P0, n: int, default_sd) -> np.ndarray:
+    """``(R, n, n)`` initial covariances from ``P0``: None (``diag(default_sd²)``), a scalar (the SOC variance, the
+    rest from ``default_sd``), ``(n,)`` variances, ``(n, n)`` or ``(R, n, n)``; symmetric positive definite."""
+    base = np.diag(np.asarray(default_sd, dtype=float) ** 2)
+    if P0 is None:
+        P = base
+    else:
+        P = np.asarray(P0, dtype=float)
+        if P.ndim == 0:
+            P = base.copy()
+            P[0, 0] = float(P0)
+        elif P.shape == (n,):
+            P = np.diag(P)
+        elif P.shape not in ((n, n), (R, n, n)):
+            raise ConfigError(f"P0 must be a scalar, ({n},), ({n}, {n}) or ({R}, {n}, {n}); got {P.shape}")
+    if not np.all(np.isfinite(P)):
+        raise ConfigError("P0 must be finite")
+    P = 0.5 * (P + np.swapaxes(P, -1, -2))
+    if np.min(np.linalg.eigvalsh(P)) <= 0:
+        raise ConfigError("P0 must be positive definite")
+    return np.ascontiguousarray(np.broadcast_to(P, (R, n, n)))
 
 
 class Recorder:
@@ -229,6 +234,7 @@ class Recorder:
         self.P_diag = np.empty((R, T, n_states)) if store_states else None
         self.failed = np.zeros(R, dtype=bool)
         self.failed_at = np.full(R, -1)
+        self.psd_repairs = np.zeros(R, dtype=int)  # updates whose covariance needed the PSD repair, per run
         self._soc0 = np.asarray(soc0, dtype=float)
         self._std0 = np.asarray(std0, dtype=float)
         self._x0 = None
@@ -283,7 +289,7 @@ class Recorder:
             innovation=self.innovation, innovation_var=self.innovation_var, failed=self.failed.copy(),
             failed_at=self.failed_at.copy(), clamped=self.clamped, gated=self.gated, x=self.x, P_diag=self.P_diag,
             estimator=estimator, model=getattr(model, "name", type(model).__name__),
-            state_names=tuple(model.state_names), info=dict(info or {}),
+            state_names=tuple(model.state_names), info={"psd_repairs": self.psd_repairs.copy(), **(info or {})},
         )
 
 
@@ -293,13 +299,40 @@ def restore(values: np.ndarray, good: np.ndarray, failed: np.ndarray) -> None:
         values[failed] = good[failed]
 
 
-def settle_update(rec: Recorder, k: int, x, P, x_good, P_good, v_pred, e, S, nis, gated, opt: dict):
+def settle_update(rec: Recorder, k: int, x, P, x_good, P_good, v_pred, e, S, nis, gated, opt: dict, factor=False):
     """The safety tail every Kalman update shares, in order: symmetrise and PSD-repair ``P``, clamp SOC (flagged),
-    detect divergence, put failed runs back on their last good state, record sample ``k``. Returns ``(x, P)``."""
-    P, _ = repair_psd(symmetrise(P), opt["psd_floor"], opt["psd_rel_floor"])
+    detect divergence, put failed runs back on their last good state, record sample ``k``. Returns ``(x, P)``.
+
+    ``factor=True``: ``P`` is a lower-triangular square root ``L`` of the covariance (``L Lᵀ``, the square-root
+    filters); it is PSD by construction, so nothing is symmetrised or repaired, and the recorded variances are the
+    row sums ``Σ_j L_ij²``."""
+    if factor:  # clamping the SOC cannot change what is finite: check first
+        var = np.einsum("rij,rij->ri", P, P)
+        bad = diverged(x, var[:, 0], nis, opt["var_max"], opt["nis_max"]) | ~np.all(np.isfinite(var), axis=-1)
+    else:
+        P, repaired = repair_psd(symmetrise(P), opt["psd_floor"], opt["psd_rel_floor"])
+        rec.psd_repairs += repaired
+        bad = None
     clamped = clamp_soc(x)
-    failed = rec.fail(k, diverged(x, P, nis, opt["var_max"], opt["nis_max"]))
+    if bad is None:
+        bad = diverged(x, P, nis, opt["var_max"], opt["nis_max"])
+    failed = rec.fail(k, bad)
     restore(x, x_good, failed)
     restore(P, P_good, failed)
-    rec.record(k, x[:, 0], np.sqrt(P[:, 0, 0]), v_pred, e, S, clamped, gated, x, np.diagonal(P, 0, -2, -1))
+    if factor:
+        var = np.einsum("rij,rij->ri", P, P)
+    else:
+        var = np.diagonal(P, 0, -2, -1)
+    rec.record(k, x[:, 0], np.sqrt(var[:, 0]), v_pred, e, S, clamped, gated, x, var)
     return x, P
+
+
+def settle_predict(rec: Recorder, k: int, x, P, x_good, P_good) -> None:
+    """The safety tail every prediction shares (in place): runs whose predicted state or covariance (or its square
+    root) is not finite fail at sample ``k``; failed runs go back to their last good values; the others become the
+    new last good values."""
+    failed = rec.fail(k, diverged(x, P, None, np.inf, np.inf))
+    restore(x, x_good, failed)
+    restore(P, P_good, failed)
+    np.copyto(x_good, x, where=~failed[:, None])
+    np.copyto(P_good, P, where=~failed[:, None, None])

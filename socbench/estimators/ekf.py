@@ -20,52 +20,64 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Estimator, restore, settle_update
+from .base import Estimator, settle_predict, settle_update
 from .estimate import Estimate
-from .safety import diverged, symmetrise
+from .safety import symmetrise
+
+
+def kalman_update(x, P, H, Rk, S, e, gated):
+    """The scalar-measurement Kalman update in Joseph form, batched over runs (module docstring): ``(x⁺, P⁺, K)``
+    from the prior ``x (R, n)``, ``P (R, n, n)``, ``H (R, n)``, ``R_k (R,)``, ``S = H P Hᵀ + R_k (R,)``, the
+    innovation ``e (R,)`` and the gate flags (``K = 0`` where gated)."""
+    K = np.where(gated[:, None], 0.0, np.einsum("rij,rj->ri", P, H) / S[:, None])
+    x = x + K * e[:, None]
+    A = np.eye(x.shape[-1]) - K[:, :, None] * H[:, None, :]
+    P = A @ P @ np.swapaxes(A, -1, -2) + Rk[:, None, None] * (K[:, :, None] * K[:, None, :])
+    return x, P, K
+
+
+def innovation_var(P, H, Rk):
+    """``S = H P Hᵀ + R_k`` (R,)."""
+    return np.einsum("ri,rij,rj->r", H, P, H) + Rk
 
 
 class EKF(Estimator):
     """Batched extended Kalman filter on any :class:`~socbench.models.base.Model`."""
 
     name = "ekf"
+    #: methods the compiled kernel implements: a subclass overriding one runs numpy (kernels.engine.plan)
+    kernel_hooks = ("process_cov",)
 
     def _run(self, inputs, x0, P0, seed=None) -> Estimate:
         m, opt, noise = self.model, self.options, self.noise
-        R, T, n = inputs.n_runs, inputs.n, self.n
+        R, T = inputs.n_runs, inputs.n
         x, P = x0.copy(), P0.copy()
         x_good, P_good = x.copy(), P.copy()
         rec = self.recorder(inputs, x0, P0)
         gate = self.gate(R)
-        eye = np.eye(n)
         with np.errstate(all="ignore"):
             for k in range(T):
                 ik, tk = inputs.current[:, k], inputs.temp_at(k)
                 # ---------------------------------------------------------------- update
                 y, H, D = m.output(x, ik, tk, jac=True)
                 Rk = noise.R(D, (R,))
-                PHt = np.einsum("rij,rj->ri", P, H)
-                S = np.einsum("ri,ri->r", H, PHt) + Rk
                 e = inputs.voltage[:, k] - y
+                S = innovation_var(P, H, Rk)
                 nis = e * e / S
                 gated = gate(nis)
-                K = np.where(gated[:, None], 0.0, PHt / S[:, None])
-                x = x + K * e[:, None]
-                A = eye - K[:, :, None] * H[:, None, :]
-                P = A @ P @ np.swapaxes(A, -1, -2) + Rk[:, None, None] * (K[:, :, None] * K[:, None, :])
+                x, P, _ = kalman_update(x, P, H, Rk, S, e, gated)
                 x, P = settle_update(rec, k, x, P, x_good, P_good, y, e, S, nis, gated, opt)
                 if k + 1 == T:
                     break
                 # ---------------------------------------------------------------- predict
                 x, F, B = m.step(x, ik, inputs.dt[k], tk, jac=True)
-                Q = noise.Q(B, inputs.dt[k])
-                P = symmetrise(F @ P @ np.swapaxes(F, -1, -2) + Q)
-                failed = rec.fail(k + 1, diverged(x, P, None, np.inf, np.inf))
-                restore(x, x_good, failed)
-                restore(P, P_good, failed)
-                np.copyto(x_good, x, where=~failed[:, None])
-                np.copyto(P_good, P, where=~failed[:, None, None])
+                P = symmetrise(F @ P @ np.swapaxes(F, -1, -2) + self.process_cov(x, B, inputs.dt[k]))
+                settle_predict(rec, k + 1, x, P, x_good, P_good)
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold})
+
+    def process_cov(self, x, B, dt):
+        """``Q_k`` of the step from the posterior: the sensor model's (subclasses add their own terms)."""
+        return self.noise.Q(B, dt)
 
     def _run_compiled(self, job, seed=None):
         from ..kernels.engine import parallel_runs

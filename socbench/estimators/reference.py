@@ -4,7 +4,15 @@
   which also sets ``F`` and ``Q``), ``update(z, HJacobian, Hx, R)`` (filterpy's Joseph form);
 * :class:`ReferenceUKF` — ``filterpy.kalman.UnscentedKalmanFilter`` + ``MerweScaledSigmaPoints``;
 * :class:`ReferencePF` — a per-run bootstrap filter whose resampling is ``filterpy.monte_carlo.systematic_resample``
-  (the rare tempered updates reuse ``ParticleFilter.assimilate`` on a one-row slice: its rows are independent).
+  (the rare tempered updates reuse ``ParticleFilter.assimilate`` on a one-row slice: its rows are independent);
+* :class:`ReferenceCKF` — ``filterpy.kalman.CubatureKalmanFilter`` (Arasaratnam & Haykin 2009);
+* :class:`ReferenceJointEKF` — filterpy's ``ExtendedKalmanFilter`` (as :class:`ReferenceEKF`) on the joint model
+  ``[x, cap, ΔR0]`` with the parameter random walks (Plett 2004, Part 3);
+* :class:`ReferenceAEKF`, :class:`ReferenceSRUKF`, :class:`ReferenceHInf` — filterpy has none of these, so each is a
+  plain per-run textbook implementation, one trajectory at a time with scalar code, of the equations in its docstring
+  (Sage & Husa 1969; van der Merwe & Wan 2001; Simon 2006 §11.3), written independently of the batched engine's
+  algebra (e.g. the H∞ update inverts Simon's ``A`` instead of the batched Sherman–Morrison form, the SRUKF factors
+  with ``scipy.linalg.qr``/``eigh`` and evaluates the model one sigma point at a time).
 
 Around filterpy's predict/update each reference applies the same safety rules as the batched engines (gate, clamp,
 symmetrise, PSD repair, divergence freeze: ``safety.py``) and records through the same :class:`~.base.Recorder`, so the
@@ -20,14 +28,19 @@ from __future__ import annotations
 from unittest import mock
 
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
+import scipy.linalg
+from filterpy.kalman import CubatureKalmanFilter, ExtendedKalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
+from filterpy.kalman.CubatureKalmanFilter import spherical_radial_sigmas
 from filterpy.monte_carlo import resampling as fp_resampling
 
+from .aekf import AdaptiveEKF
 from .base import Estimator, Inputs
+from .dual import JointParameters
 from .estimate import Estimate
+from .hinf import HInfinityFilter
 from .pf import ParticleFilter, log_likelihood, roughening_sd, shrink, weighted_mean_root
 from .safety import clamp_soc, diverged, repair_psd, symmetrise
-from .ukf import UKF
+from .ukf import UKF, merwe_weights
 
 
 def _one_run(inputs: Inputs, r: int) -> Inputs:
@@ -67,6 +80,14 @@ class _KalmanReference(Estimator):
         failed = rec.fail(k, diverged(x[None], P[None], np.atleast_1d(nis), opt["var_max"], opt["nis_max"]))
         return P, clamped, bool(failed[0])
 
+    def _predicted_ok(self, rec, k: int, T: int, *arrays) -> bool:
+        """False (the run failed at ``k``, its outputs frozen) when a predicted array is not finite."""
+        if all(np.all(np.isfinite(a)) for a in arrays):
+            return True
+        rec.fail(k, np.ones(1, bool))
+        self._freeze_rest(rec, k, T)
+        return False
+
     @staticmethod
     def _freeze_rest(rec, k0: int, T: int):
         z = np.zeros(1)
@@ -78,16 +99,16 @@ class _KalmanReference(Estimator):
 class _ModelEKF(ExtendedKalmanFilter):
     """filterpy's EKF whose prediction is the model's nonlinear step; ``u = (I, dt, T)``."""
 
-    def __init__(self, model, noise):
+    def __init__(self, model, process_cov):
         super().__init__(dim_x=model.n_states, dim_z=1)
         self.model = model
-        self.noise = noise
+        self.process_cov = process_cov  # (B, dt) -> Q
 
     def predict_x(self, u=0):
         i, dt, temp = u
         xn, F, B = self.model.step(self.x[:, 0], i, dt, temp, jac=True)
         self.F = F
-        self.Q = self.noise.Q(B, dt)
+        self.Q = self.process_cov(B, dt)
         self.x = xn[:, None]
 
 
@@ -98,7 +119,7 @@ class ReferenceEKF(_KalmanReference):
 
     def _filter(self, inputs, x0, P0, rec):
         m, T = self.model, inputs.n
-        ekf = _ModelEKF(m, self.noise)
+        ekf = _ModelEKF(m, self.process_cov)
         ekf.x = x0[:, None].copy()
         ekf.P = P0.copy()
         gate = self.gate(1)
@@ -128,6 +149,9 @@ class ReferenceEKF(_KalmanReference):
                     rec.fail(k + 1, np.ones(1, bool))
                     self._freeze_rest(rec, k + 1, T)
                     return
+
+    def process_cov(self, B, dt):
+        return self.noise.Q(B, dt)
 
 
 class ReferenceUKF(_KalmanReference):
@@ -255,5 +279,234 @@ def _clamp_one(X: np.ndarray) -> bool:
     return bool(out.any())
 
 
+class ReferenceCKF(_KalmanReference):
+    """Per-run CKF on ``filterpy.kalman.CubatureKalmanFilter``; the update's cubature points are redrawn from the
+    prior ``(x⁻, P⁻)`` (Arasaratnam & Haykin's measurement update), ``Q_k``, ``R_k`` from ``B``, ``D`` at the mean."""
+
+    name = "ckf"
+
+    def _filter(self, inputs, x0, P0, rec):
+        m, T, n, opt = self.model, inputs.n, self.n, self.options
+
+        def fx(s, dt, i, temp):
+            return m.step(s, i, dt, temp)[0]
+
+        def hx(s, i, temp):
+            return np.atleast_1d(m.output(s, i, temp)[0])
+
+        ckf = CubatureKalmanFilter(dim_x=n, dim_z=1, dt=1.0, hx=hx, fx=fx)
+        ckf.x = x0[:, None].copy()  # filterpy's CKF keeps a column state
+        ckf.P = P0.copy()
+        ckf.sigmas_f = spherical_radial_sigmas(ckf.x, ckf.P)
+        gate = self.gate(1)
+        floors = (opt["psd_floor"], opt["psd_rel_floor"])
+        for k in range(T):
+            i, v = inputs.current[0, k], inputs.voltage[0, k]
+            temp = None if inputs.temp is None else inputs.temp[0, k]
+            D = m.output(ckf.x[:, 0], i, temp, jac=True)[2]
+            x_prior, P_prior = ckf.x.copy(), ckf.P.copy()
+            ckf.update(np.array([v]), R=np.array([[float(self.noise.R(D, ()))]]), hx_args=(i, temp))
+            e, S = float(np.ravel(ckf.y)[0]), float(ckf.S[0, 0])
+            yhat = float(np.mean(ckf.sigmas_h[:, 0]))
+            gated = gate(np.array([e * e / S]))
+            if gated[0]:
+                ckf.x, ckf.P = x_prior, P_prior
+            ckf.P, clamped, failed = self._guard(rec, k, ckf.x[:, 0], ckf.P, e * e / S)
+            if failed:
+                self._freeze_rest(rec, k, T)
+                return
+            rec.record(k, ckf.x[0], np.sqrt(ckf.P[0, 0])[None], np.array([yhat]), np.array([e]), np.array([S]),
+                       clamped, gated, ckf.x[:, 0][None], np.diag(ckf.P)[None])
+            if k + 1 < T:
+                ckf.Q = self.noise.Q(m.step(ckf.x[:, 0], i, inputs.dt[k], temp, jac=True)[2], inputs.dt[k])
+                ckf.predict(dt=inputs.dt[k], fx_args=(i, temp))
+                ckf.P = repair_psd(symmetrise(ckf.P)[None], *floors)[0][0]
+                if not self._predicted_ok(rec, k + 1, T, ckf.x, ckf.P):
+                    return
+                ckf.sigmas_f = spherical_radial_sigmas(ckf.x, ckf.P)
+
+
+class ReferenceJointEKF(JointParameters, ReferenceEKF):
+    """Per-run joint EKF: :class:`ReferenceEKF` (filterpy) on ``[x, cap, ΔR0]`` with the parameters' random walks."""
+
+    name = "dual"
+    defaults = JointParameters.defaults
+
+    def __init__(self, model, noise=None, **options):
+        self.setup_joint(model, noise, options)
+
+    def _run(self, inputs, x0, P0, seed=None) -> Estimate:
+        return self.finish_joint(ReferenceEKF._run(self, inputs, x0, P0, seed), inputs)
+
+    def process_cov(self, B, dt):
+        return self.noise.Q(B, dt) + self.param_cov(dt)
+
+
+class ReferenceAEKF(_KalmanReference):
+    """Per-run adaptive EKF: the textbook EKF with the fading-memory Sage–Husa recursions of :mod:`.aekf`, scalar
+    code, one trajectory at a time."""
+
+    name = "aekf"
+    defaults = AdaptiveEKF.defaults
+
+    def _filter(self, inputs, x0, P0, rec):
+        m, T, n, opt = self.model, inputs.n, self.n, self.options
+        d = 1.0 - opt["forgetting"]
+        lo, hi = opt["r_min_ratio"], opt["r_max_ratio"]
+        x, P = x0.copy(), P0.copy()
+        r_hat, q_hat = None, np.zeros((n, n))
+        gate = self.gate(1)
+        for k in range(T):
+            i, v = inputs.current[0, k], inputs.voltage[0, k]
+            temp = None if inputs.temp is None else inputs.temp[0, k]
+            y, H, D = m.output(x, i, temp, jac=True)
+            r_nom = float(self.noise.R(D, ()))
+            if r_hat is None:
+                r_hat = r_nom
+            Rk = r_hat if opt["adapt_r"] else r_nom
+            hph = float(H @ P @ H)
+            S = hph + Rk
+            e = float(v - y)
+            gated = gate(np.array([e * e / S]))
+            K = np.zeros(n) if gated[0] else P @ H / S
+            x = x + K * e
+            A = np.eye(n) - np.outer(K, H)
+            P = A @ P @ A.T + Rk * np.outer(K, K)
+            P, clamped, failed = self._guard(rec, k, x, P, e * e / S)
+            if failed:
+                self._freeze_rest(rec, k, T)
+                return
+            rec.record(k, x[:1], np.sqrt(P[0, 0])[None], np.atleast_1d(y), np.array([e]), np.array([S]), clamped,
+                       gated, x[None], np.diag(P)[None])
+            if not gated[0]:
+                r = (1.0 - d) * r_hat + d * (e * e - hph)
+                if r < lo * r_nom:  # Sage–Husa's estimate lost positivity: its biased form
+                    r = (1.0 - d) * r_hat + d * e * e
+                r_hat = min(max(r, lo * r_nom), hi * r_nom)
+                q_hat = (1.0 - d) * q_hat + d * np.outer(K * e, K * e)
+            if k + 1 < T:
+                x, F, B = m.step(x, i, inputs.dt[k], temp, jac=True)
+                Q = self.noise.Q(B, inputs.dt[k]) + (q_hat if opt["adapt_q"] else 0.0)
+                P = symmetrise(F @ P @ F.T + Q)
+                if not self._predicted_ok(rec, k + 1, T, x, P):
+                    return
+
+
+class ReferenceHInf(_KalmanReference):
+    """Per-run extended H∞ filter in Simon's printed form (2006, eq. 11.89): ``A = I − θ S̄ P + Hᵀ R⁻¹ H P``
+    inverted with ``numpy.linalg.inv``, ``K = P A⁻¹ Hᵀ R⁻¹``, ``P⁺ = P A⁻¹``; θ capped per step as in :mod:`.hinf`."""
+
+    name = "hinf"
+    defaults = HInfinityFilter.defaults
+
+    def _filter(self, inputs, x0, P0, rec):
+        m, T, n, opt = self.model, inputs.n, self.n, self.options
+        Sbar = np.zeros((n, n))
+        Sbar[0, 0] = 1.0
+        x, P = x0.copy(), P0.copy()
+        gate = self.gate(1)
+        for k in range(T):
+            i, v = inputs.current[0, k], inputs.voltage[0, k]
+            temp = None if inputs.temp is None else inputs.temp[0, k]
+            y, H, D = m.output(x, i, temp, jac=True)
+            Rk = float(self.noise.R(D, ()))
+            PH = P @ H
+            S = float(H @ PH) + Rk
+            e = float(v - y)
+            gated = gate(np.array([e * e / S]))
+            if not gated[0]:
+                pzz_kalman = P[0, 0] - PH[0] * PH[0] / S  # the Kalman posterior's SOC variance
+                theta = min(opt["theta"], opt["feasibility_margin"] / pzz_kalman)
+                A = np.eye(n) - theta * Sbar @ P + np.outer(H, H) @ P / Rk
+                P_new = P @ np.linalg.inv(A)
+                x = x + P_new @ H / Rk * e
+                P = P_new
+            P, clamped, failed = self._guard(rec, k, x, P, e * e / S)
+            if failed:
+                self._freeze_rest(rec, k, T)
+                return
+            rec.record(k, x[:1], np.sqrt(P[0, 0])[None], np.atleast_1d(y), np.array([e]), np.array([S]), clamped,
+                       gated, x[None], np.diag(P)[None])
+            if k + 1 < T:
+                x, F, B = m.step(x, i, inputs.dt[k], temp, jac=True)
+                P = symmetrise(F @ P @ F.T + self.noise.Q(B, inputs.dt[k]))
+                if not self._predicted_ok(rec, k + 1, T, x, P):
+                    return
+
+
+def cholupdate_one(L: np.ndarray, u: np.ndarray, sign: float, floor: float) -> np.ndarray:
+    """Textbook rank-one update/downdate of one lower Cholesky factor (Golub & Van Loan §6.5.4), column by column."""
+    L, u = L.copy(), u.copy()
+    n = L.shape[0]
+    for j in range(n):
+        r2 = L[j, j] ** 2 + u[j] ** 2 if sign > 0 else (L[j, j] - u[j]) * (L[j, j] + u[j])
+        r = np.sqrt(max(r2, floor))
+        c, s = r / L[j, j], u[j] / L[j, j]
+        L[j, j] = r
+        for i in range(j + 1, n):
+            L[i, j] = (L[i, j] + sign * s * u[i]) / c
+            u[i] = c * u[i] - s * L[i, j]
+    return L
+
+
+class ReferenceSRUKF(_KalmanReference):
+    """Per-run square-root UKF (van der Merwe & Wan 2001, Algorithm 3.1): ``scipy.linalg.qr`` of the weighted
+    deviations and ``√Q``, :func:`cholupdate_one`, the model evaluated one sigma point at a time."""
+
+    name = "srukf"
+    defaults = UKF.defaults
+
+    def _filter(self, inputs, x0, P0, rec):
+        m, T, n, opt = self.model, inputs.n, self.n, self.options
+        lam, Wm, Wc = merwe_weights(n, opt["alpha"], opt["beta"], opt["kappa"])
+        gamma = np.sqrt(n + lam)
+        floor = opt["psd_floor"]
+        x, L = x0.copy(), scipy.linalg.cholesky(P0, lower=True)
+        gate = self.gate(1)
+
+        def points(x, L):
+            return np.array([x] + [x + gamma * L[:, j] for j in range(n)] + [x - gamma * L[:, j] for j in range(n)])
+
+        for k in range(T):
+            i, v = inputs.current[0, k], inputs.voltage[0, k]
+            temp = None if inputs.temp is None else inputs.temp[0, k]
+            X = points(x, L)
+            Y = np.array([float(m.output(p, i, temp)[0]) for p in X])
+            Rk = float(self.noise.R(m.output(x, i, temp, jac=True)[2], ()))
+            yhat = float(Wm @ Y)
+            S = float(Wc @ (Y - yhat) ** 2) + Rk
+            Pxy = sum(Wc[j] * (X[j] - x) * (Y[j] - yhat) for j in range(2 * n + 1))
+            e = v - yhat
+            gated = gate(np.array([e * e / S]))
+            if not gated[0]:
+                K = Pxy / S
+                x = x + K * e
+                L = cholupdate_one(L, K * np.sqrt(S), -1.0, floor)
+            clamped = clamp_soc(x[None])
+            var = np.sum(L * L, axis=1)
+            if rec.fail(k, diverged(x[None], var[:1], np.array([e * e / S]), opt["var_max"], opt["nis_max"])
+                        | ~np.all(np.isfinite(var)))[0]:
+                self._freeze_rest(rec, k, T)
+                return
+            rec.record(k, x[:1], np.sqrt(var[:1]), np.array([yhat]), np.array([e]), np.array([S]), clamped, gated,
+                       x[None], var[None])
+            if k + 1 < T:
+                X = points(x, L)
+                Xf = np.array([m.step(p, i, inputs.dt[k], temp)[0] for p in X])
+                Q = self.noise.Q(m.step(x, i, inputs.dt[k], temp, jac=True)[2], inputs.dt[k])
+                x = Wm @ Xf
+                w, V = scipy.linalg.eigh(Q)
+                rows = np.vstack([np.sqrt(Wc[j]) * (Xf[j] - x) for j in range(1, 2 * n + 1)]
+                                 + [np.sqrt(max(w[j], 0.0)) * V[:, j] for j in range(n)])
+                Rf = scipy.linalg.qr(rows, mode="r")[0][:n]
+                L = (Rf * np.where(np.diag(Rf) < 0, -1.0, 1.0)[:, None]).T
+                for j in range(n):
+                    L[j, j] = max(L[j, j], np.sqrt(floor))
+                L = cholupdate_one(L, np.sqrt(abs(Wc[0])) * (Xf[0] - x), 1.0 if Wc[0] >= 0 else -1.0, floor)
+                if not self._predicted_ok(rec, k + 1, T, x, L):
+                    return
+
+
 #: name -> reference class
-REFERENCES = {"ekf": ReferenceEKF, "ukf": ReferenceUKF, "pf": ReferencePF}
+REFERENCES = {"ekf": ReferenceEKF, "ukf": ReferenceUKF, "pf": ReferencePF, "ckf": ReferenceCKF,
+              "dual": ReferenceJointEKF, "aekf": ReferenceAEKF, "hinf": ReferenceHInf, "srukf": ReferenceSRUKF}

@@ -80,9 +80,10 @@ def score(estimate: Estimate, profile: Profile, skip_s: float = 0.0, band: float
         out["rmse_v"] = _f(np.sqrt(np.mean(ev[ok] ** 2)))
         out["nis_mean"] = _f(np.mean(nis[ok]))
         out["nis_band"] = chi2_band(1, n_ok * int(keep.sum()), confidence)
-    if profile.soc_ref is None:
+    soc_ref = profile.get("soc_ref")  # a reference given but refused (far outside [0, 1]) fails here, where used
+    if soc_ref is None:
         return out
-    z_ref = np.broadcast_to(profile.soc_ref, (R, T))
+    z_ref = np.broadcast_to(soc_ref, (R, T))
     err = estimate.soc - z_ref
     e_k, sd_k = err[:, keep], estimate.soc_std[:, keep]
     nees = normalized_error_squared(e_k, sd_k**2)

@@ -26,9 +26,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from .base import Estimator, restore, settle_update
+from .base import Estimator, settle_predict, settle_update
 from .estimate import Estimate
-from .safety import diverged, repair_psd, symmetrise
+from .safety import repair_psd, symmetrise
 
 
 def merwe_weights(n: int, alpha: float, beta: float, kappa: float):
@@ -62,20 +62,26 @@ class UKF(Estimator):
     """Batched unscented Kalman filter (Merwe scaled sigma points α, β, κ)."""
 
     name = "ukf"
+    #: methods the compiled kernel implements (weights() only feeds it λ, Wm, Wc: a subclass may change those)
+    kernel_hooks = ("points",)
     defaults = {"alpha": 1.0, "beta": 2.0, "kappa": 0.0}
 
     def __init__(self, model, noise=None, **options):
         super().__init__(model, noise, **options)
+        self.lam, self.Wm, self.Wc = self.weights()
+
+    def weights(self):
+        """``(λ, Wm, Wc)`` of the Merwe scaled sigma points with this filter's α, β, κ."""
         n = self.n
         a, b, kp = self.options["alpha"], self.options["beta"], self.options["kappa"]
         if not a > 0 or not n + kp > 0:
             raise ConfigError(f"ukf: need alpha > 0 and n + kappa > 0 (n={n}, alpha={a}, kappa={kp})")
-        self.lam, self.Wm, self.Wc = merwe_weights(n, a, b, kp)
+        return merwe_weights(n, a, b, kp)
 
     def _run(self, inputs, x0, P0, seed=None) -> Estimate:
         m, opt, noise = self.model, self.options, self.noise
         R, T = inputs.n_runs, inputs.n
-        lam, Wm, Wc = self.lam, self.Wm, self.Wc
+        Wm, Wc = self.Wm, self.Wc
         x, P = x0.copy(), P0.copy()
         x_good, P_good = x.copy(), P.copy()
         rec = self.recorder(inputs, x0, P0)
@@ -87,7 +93,7 @@ class UKF(Estimator):
                 ik_s = ik[:, None]
                 tk_s = None if tk is None else tk[:, None]
                 # ---------------------------------------------------------------- update
-                X = sigma_points(x, P, lam)
+                X = self.points(x, P)
                 Y, _, D = m.output(X, ik_s, tk_s, jac=noise.needs_D)
                 Rk = noise.R(None if D is None else D[:, 0], (R,))
                 yhat = Y @ Wm
@@ -104,19 +110,20 @@ class UKF(Estimator):
                 if k + 1 == T:
                     break
                 # ---------------------------------------------------------------- predict
-                X = sigma_points(x, P, lam)
+                X = self.points(x, P)
                 Xf, _, B = m.step(X, ik_s, inputs.dt[k], tk_s, jac=noise.needs_B)
                 Q = noise.Q(None if B is None else B[:, 0], inputs.dt[k])
                 x = np.einsum("s,rsi->ri", Wm, Xf)
                 dX = Xf - x[:, None, :]
                 P = np.einsum("rsi,rsj->rij", dX * Wc[:, None], dX) + Q
-                P, _ = repair_psd(symmetrise(P), *floors)
-                failed = rec.fail(k + 1, diverged(x, P, None, np.inf, np.inf))
-                restore(x, x_good, failed)
-                restore(P, P_good, failed)
-                np.copyto(x_good, x, where=~failed[:, None])
-                np.copyto(P_good, P, where=~failed[:, None, None])
-        return rec.finish(self.name, m, {"gate_threshold": gate.threshold, "lambda": lam})
+                P, repaired = repair_psd(symmetrise(P), *floors)
+                rec.psd_repairs += repaired
+                settle_predict(rec, k + 1, x, P, x_good, P_good)
+        return rec.finish(self.name, m, {"gate_threshold": gate.threshold, "lambda": self.lam})
+
+    def points(self, x, P):
+        """The sigma points of ``(x, P)``, ``(R, 2n+1, n)``: point 0 is the mean (``R_k``, ``Q_k`` are taken there)."""
+        return sigma_points(x, P, self.lam)
 
     def _run_compiled(self, job, seed=None):
         from ..kernels.engine import parallel_runs

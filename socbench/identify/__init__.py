@@ -1,6 +1,7 @@
 """Identification: HPPC analysis (rests, pulses, OCV points, pulse resistances) and parameter fitting.
 
-* :func:`analyze_hppc`, :func:`ocv_from_hppc`, :func:`ocv_from_slow_test` — :mod:`socbench.identify.hppc`
+* :func:`analyze_hppc`, :func:`ocv_from_hppc`, :func:`ocv_from_slow_test`, :func:`rest_level` (the current sensor's
+  offset, noise and rest thresholds) — :mod:`socbench.identify.hppc`
 * :func:`fit_model` — any registered model in the paper's modes (``paper``, ``constant``, ``lookup``)
 * :func:`fit_parameters` — the generic bounded least-squares building block (batched finite-difference Jacobian)
 * :func:`compress_profile` — exact merging of constant-current steps before fitting
@@ -13,12 +14,14 @@ from .hppc import (
     HPPCAnalysis,
     Pulse,
     Rest,
+    RestLevel,
     SlowOCV,
     analyze_hppc,
     discharged_ah,
     edge_resistance,
     ocv_from_hppc,
     ocv_from_slow_test,
+    rest_level,
     unrecorded_charge,
 )
 from .lsq import LsqResult, covariance, fit_parameters, simulate_voltage
@@ -36,12 +39,14 @@ __all__ = [
     "HPPCAnalysis",
     "Pulse",
     "Rest",
+    "RestLevel",
     "SlowOCV",
     "analyze_hppc",
     "discharged_ah",
     "edge_resistance",
     "ocv_from_hppc",
     "ocv_from_slow_test",
+    "rest_level",
     "unrecorded_charge",
     "LsqResult",
     "covariance",

@@ -21,6 +21,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..profile import Profile
+from .hppc import rest_level
+
+#: samples whose current differs from the previous one by less than this many standard deviations of the difference
+#: of two noisy readings (√2 σ, σ the sensor noise measured on the rests) belong to the same step
+NOISE_TOL_K = 5.0
 
 
 @dataclass(frozen=True)
@@ -51,10 +56,13 @@ def compress_profile(profile: Profile, max_step_s: float = 60.0, first_step_s: f
                      i_tol: float | None = None, max_ah: float | None = None) -> Compression:
     """Merge samples of constant current (within ``i_tol`` A of the previous sample) into longer ZOH steps.
 
-    ``i_tol`` defaults to 0.1 % of the largest |I| (plus 1 µA), well above the tester's current noise and far below
-    any load step. ``max_ah`` caps the charge moved by one merged step (SOC-dependent parameters are frozen over a
-    step, so a long discharge step is cut into pieces of at most ``max_ah`` Ah; ``fit_parameters`` uses 0.5 % of the
-    model's capacity). The first and last samples are always kept. Works on plain (non-batched) profiles.
+    ``i_tol`` defaults to 0.1 % of the largest |I| (plus 1 µA), well above a lab tester's current noise and far below
+    any load step, or, for a noisier sensor, ``NOISE_TOL_K·√2·σ`` with ``σ`` the current noise measured on the
+    record's rests (:func:`~socbench.identify.hppc.rest_level`): white noise alone then splits a step once in
+    ~10⁶ samples instead of at every sample. ``max_ah`` caps the charge moved by one merged step (SOC-dependent
+    parameters are frozen over a step, so a long discharge step is cut into pieces of at most ``max_ah`` Ah;
+    ``fit_parameters`` uses 0.5 % of the model's capacity). The first and last samples are always kept. Works on
+    plain (non-batched) profiles.
     """
     if profile.batched:
         raise ValueError("compress_profile needs a plain profile; use profile.run(r)")
@@ -64,7 +72,7 @@ def compress_profile(profile: Profile, max_step_s: float = 60.0, first_step_s: f
     if n < 3:
         return Compression(profile, np.arange(n))
     if i_tol is None:
-        i_tol = 1e-3 * float(np.max(np.abs(i))) + 1e-6
+        i_tol = max(1e-3 * float(np.max(np.abs(i))) + 1e-6, NOISE_TOL_K * np.sqrt(2.0) * rest_level(i).noise_a)
     di = np.abs(np.diff(i))
     new_run = np.ones(n, dtype=bool)
     new_run[1:] = di > i_tol

@@ -14,7 +14,9 @@ measured by the HPPC analysis (:mod:`socbench.identify.hppc`). Positive quantiti
 
 The OCV curve, when not given, is built from the HPPC rest points (:func:`~socbench.identify.hppc.ocv_from_hppc`);
 the capacity defaults to the charge the HPPC discharges from full to empty. Records with gaps whose charge only the
-reference SOC knows (the Panasonic HPPC files) get the missing charge added to the SOC at the gaps.
+reference SOC knows (the Panasonic HPPC files) get the missing charge added to the SOC at the gaps. The current
+sensor's offset, measured on the HPPC rests (where the cell carries no current), is removed from the current the
+model is fitted on (:meth:`FitProblem.fit_profile`), so the fitted SOC axis is the one the OCV points sit on.
 
 Polynomial and lookup fits start from a constant fit (warm start), which is cheap and keeps the high-dimensional
 fits away from the poor local minima a cold start in 35+ parameters can find.
@@ -151,6 +153,13 @@ class FitProblem:
     soc_jumps: np.ndarray | None
     guess: Guess
     notes: tuple
+    current_offset_a: float = 0.0  # the current sensor's offset measured on the HPPC rests [A]
+
+    def fit_profile(self, profile: Profile) -> Profile:
+        """The record the parameters are fitted on: its current less the sensor offset measured on its rests."""
+        if self.current_offset_a == 0.0:
+            return profile
+        return profile.with_(current_a=profile.current_a - self.current_offset_a)
 
     def params(self, theta) -> ModelParams:
         theta = np.asarray(theta, dtype=float)
@@ -184,12 +193,15 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
     profile.require("voltage_v")
     src = profile.meta.source or profile.name
     notes = []
+    offset = 0.0
     try:
         analysis = analyze_hppc(profile, capacity_ah=capacity_ah)
     except DataError as exc:
         analysis = None
         notes.append(f"no HPPC structure ({exc.message}); scales from current steps")
     if analysis is not None:
+        notes += [n for n in analysis.notes if not n.startswith("pulse set at")]
+        offset = analysis.current_offset_a
         med = analysis.medians()
         q = analysis.capacity_ah
         r_inst = med["r_inst"] if np.isfinite(med["r_inst"]) and med["r_inst"] > 0 else edge_resistance(profile)
@@ -201,7 +213,7 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
             notes.append(f"OCV from {analysis.ocv_soc.size} HPPC rest points")
         if soc0 is None:
             soc0 = float(analysis.soc[0])
-        extra = unrecorded_charge(profile)
+        extra = unrecorded_charge(profile, current_offset_a=offset)
         jumps = -extra / q if np.any(extra) else None
         if jumps is not None:
             notes.append(f"{int(np.count_nonzero(extra))} record gaps: {float(np.sum(extra)):.4g} Ah not in the "
@@ -243,7 +255,7 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
         hi += [s.theta_bounds[1]] * f.size
     notes.append(f"fitted by socbench.identify ({mode} mode) on {src}")
     return FitProblem(name, tuple(specs), tuple(forms), tuple(labels), tuple(slices), np.concatenate(th0),
-                      np.asarray(lo), np.asarray(hi), q, ocv, options, soc0, jumps, guess, tuple(notes))
+                      np.asarray(lo), np.asarray(hi), q, ocv, options, soc0, jumps, guess, tuple(notes), offset)
 
 
 def _warnings(prob: FitProblem, res: LsqResult, values: dict, stderr: dict) -> list:
@@ -282,6 +294,7 @@ def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
     if compress is True:
         compress = dict(FIT_COMPRESSION)
     prob = setup_fit(name, profile, mode, ocv, capacity_ah, soc0, knots, options)
+    profile = prob.fit_profile(profile)
     theta0 = prob.theta0.copy()
     if warm_start and any(not isinstance(f, ConstantForm) for f in prob.forms):
         const = setup_fit(name, profile, "constant", prob.ocv, prob.capacity_ah, prob.soc0, None, prob.options)

@@ -1,25 +1,74 @@
-"""HPPC analysis: rests, pulses, OCV points, the SOC axis and pulse resistances; OCV curves from a slow (C/20) test.
+"""HPPC analysis: the current sensor's rest level, rests and pulses, OCV points, the SOC axis and pulse resistances;
+OCV curves from a slow (C/20) test.
 
-An HPPC record (ECM_SPEC §1; Panasonic 18650PF, Kollmeyer 2018, doi:10.17632/wykht8y7tg.1) is a sequence of pulse
-*sets*, one per SOC level, separated by discharge steps (or, in the Panasonic files, by a gap in the record during which
-the step happened) and long rests. The analysis
+An HPPC record (ECM_SPEC §1; Panasonic 18650PF, Kollmeyer 2018, doi:10.17632/wykht8y7tg.1; ORNL Nissan Leaf cell,
+Wiggins, Allu & Wang) is a sequence of pulse *sets*, one per SOC level, separated by discharge steps (or, in the
+Panasonic files, by a gap in the record during which the step happened) and long rests. Real instruments add noise, an
+offset and quantisation to the current and log at 0.1–60 s, so nothing below is a fixed fraction of the peak current
+or a fixed duration where the record can tell. The analysis
 
-1. splits the record into **rests** (``|I| ≤ i_rest``) and **active intervals**; an active interval that starts from a
-   rest and lasts at most ``max_pulse_s`` is a **pulse**, a longer one is a discharge step;
-2. puts every sample on the **SOC axis** from the amp-hours: ``z = 1 − Ah/Q``, where ``Ah`` is the charge discharged
-   since the first sample (the current integrated under zero-order hold or, when the record has gaps whose charge only
-   the reference SOC knows, that reference; see :func:`discharged_ah`) and ``Q`` the capacity (default: the total
-   discharged over the record, which runs from full to empty — ECM_SPEC §2 recommends the HPPC's own Ah);
-3. groups pulses into **sets**: a new set starts whenever charge moved between two pulses other than by the pulses
-   themselves (more than ``0.2 %`` of Q);
-4. takes an **OCV point** at the end of the rest before each set (the last rest sample before its first pulse), plus
-   the end of a final rest after a last discharge step;
-5. estimates per pulse the **instantaneous resistance** ``r_inst = −ΔV/ΔI`` across the leading edge (one sample: under
+1. **measures the current sensor on the rests** (:func:`rest_level`): at rest the cell carries no current, so the
+   sensor reads its offset ``b`` plus noise. With ``P = max|I|`` and the *near-zero band* ``|I| ≤ 5 % P``:
+
+   * rough level ``b₀ = median(I)`` over the band;
+   * noise ``σ = max(1.4826·median|I − b₀|, 1.4826·median|ΔI|/√2)`` over the band (robust standard deviations: the
+     first from the levels, right for coloured noise too; the second from sample-to-sample differences);
+   * quantisation step ``q``: the smallest spacing between distinct current values in the band (0 when all are
+     equal, negligible for an unquantised reading);
+   * thresholds ``θ_lo = max(4σ, 1.5 q, 0.5 % P)`` and ``θ_hi = 1.5 θ_lo`` (the 0.5 % floor is what a noise-free
+     record needs, and was the whole rule before);
+   * offset ``b``: the *mean* current over the rest samples ``|I − b₀| ≤ θ_lo`` away from any edge (the mean, not the
+     median: it is unbiased for a quantised, dithered reading);
+
+2. **splits the record into rests and active runs, with hysteresis**: a sample with ``|I − b| ≤ θ_lo`` may be rest;
+   a run of the other samples is active only if one of them reaches beyond ``θ_hi``, so noise that crosses ``θ_lo``
+   stays rest. *Blips* — active runs shorter than :data:`MIN_PULSE_S` or of at most two samples, that peak below
+   ``2 θ_hi`` — are merged into the surrounding rest (a short run of a large current stays: the Panasonic cells at
+   −20 °C hit their voltage limit 1–1.5 s into the 11.6 A pulses, and those aborted pulses are real). An active run
+   is cut into *phases* where ``I − b`` changes sign (a charge pulse that runs straight into a discharge step, as in
+   the ORNL Leaf HPPC); a phase shorter than :data:`MIN_PULSE_S` joins its neighbour;
+3. puts every sample on the **SOC axis** ``z = 1 − (Ah − Ah_full)/Q``. ``Ah`` is the charge discharged since the
+   first sample: ``I − b`` integrated under zero-order hold or, when the record has gaps whose charge only the
+   reference SOC knows, that reference (:func:`discharged_ah`). ``Ah_full`` is its minimum, the most charged point:
+   an HPPC starts full, and the ORNL Leaf files first discharge to empty and charge to full — phases before the
+   record first comes within :data:`FULL_TOL` of full are pre-conditioning, not part of the test. ``Q`` is the
+   capacity (default: the charge discharged from full to the most discharged point — ECM_SPEC §2 recommends the
+   HPPC's own Ah);
+4. **tells pulses from steps**: a *pulse* is a phase that
+
+   * starts from a rest at least half as long as itself (an HPPC rests before every pulse; a drive cycle only
+     crosses zero for a moment);
+   * holds its current: median absolute deviation from its median within ``max(θ_lo, 15 %)`` of it (driving is not
+     held; a pulse held at a voltage limit, which decays by up to 30 %, is);
+   * carries at least ``3 θ_hi`` (stands clear of the rest level: a drive cycle's near-zero band, without true rests,
+     makes the thresholds as wide as its currents);
+   * lasts at most ``max_pulse_s``. By default that bound is read from the record: the sorted durations of the phases
+     that pass the tests above are split at their largest ratio between neighbours when it is at least
+     :data:`DURATION_GAP` (4: pulses of seconds against steps of minutes, while the pulses of one record differ by
+     less — 30 s discharge and 10 s regen pulses in the ORNL Leaf test, or a pulse that coarse sampling makes one or
+     two samples long) and at least two phases lie below it; without such a split (a file whose steps fall in gaps)
+     every phase up to :data:`MAX_PULSE_S` is a pulse.
+
+   Anything else (steps, a CV charge, driving) is a step;
+5. groups pulses into **sets**: a new set starts whenever charge moved between two pulses other than by the pulses
+   themselves (more than :data:`SET_SPLIT` of Q);
+6. takes an **OCV point** at the end of the rest before each set, when that rest lasts ``min_rest_s`` (default
+   :data:`MIN_OCV_REST_S`, 4 min) or is the record's initial rest (the cell rested before the test began), and at the
+   end of a final rest after a last discharge step. The point is the end of the least-squares line through the
+   voltage over the rest's last ``min(60 s, 10 % of the rest)`` — noise averaged, without the lag of a mean behind a
+   voltage still relaxing — never reaching back across a gap in the record longer than that window. A record is an
+   HPPC test when it has at least two OCV points and rests before at least half of its pulse sets
+   (:data:`REST_SHARE`); otherwise (a drive cycle, a constant discharge, a flight) :func:`analyze_hppc` raises one
+   :class:`DataError` line;
+7. estimates per pulse the **instantaneous resistance** ``r_inst = −ΔV/ΔI`` across the leading edge (one sample: under
    the ZOH convention ``y_k = h(x_k, I_k)`` this is exactly the model's ``R0(z)`` plus the decay of the RC states over
    one sample), the same across the trailing edge, the **pulse resistance** ``(V_before − V_end)/I`` at the end of
-   the pulse, and the **relaxation time constant**: the time the voltage needs, in the rest after the pulse, to recover
-   ``1 − 1/e`` of what it recovers by the end of that rest (after the instantaneous jump), and a slow one, a third of
-   the time to recover 95 % (both equal τ for a single exponential).
+   the pulse (``V_before`` the end of the rest before it, as in 6), and the **relaxation time constant**: the time the
+   voltage needs, in the rest after the pulse, to recover ``1 − 1/e`` of what it recovers by the end of that rest
+   (after the instantaneous jump), and a slow one, a third of the time to recover 95 % (both equal τ for a single
+   exponential). An edge resistance needs a pulse of at least :data:`MIN_EDGE_SAMPLES` samples and an edge that
+   carries at least half the pulse current: with a sample period near the pulse length, or a ramping edge, ``ΔV/ΔI``
+   would measure polarisation, not ``R0``; such edges give NaN and a note says so.
 """
 
 from __future__ import annotations
@@ -33,9 +82,52 @@ from ..ocv import OCVCurve, monotone_points
 from ..profile import Profile
 
 #: relative disagreement between the integrated current and the reference SOC above which the reference is used
+#: (when jumps across the record's gaps explain it)
 AH_MISMATCH = 5e-3
+#: a step where the reference and the counted current move apart by more than this fraction of the record's charge is
+#: a jump (charge the current column does not carry: a gap in the record)
+JUMP_FRAC = 1e-3
+#: the reference is a record of gaps when its jumps explain at least this share of its disagreement with the current
+JUMP_SHARE = 0.75
 #: a step moving more than this fraction of Q between two pulses starts a new pulse set
 SET_SPLIT = 2e-3
+#: the test starts where the record first comes within this fraction of its charge of its most charged point (what
+#: comes before is pre-conditioning: the ORNL Leaf files discharge to empty and charge to full first)
+FULL_TOL = 0.02
+#: the near-zero band where the rest level and the sensor noise are measured, as a fraction of max|I|
+REST_BAND_FRAC = 0.05
+#: rest threshold θ_lo in robust standard deviations of the current noise; θ_hi = HYSTERESIS × θ_lo
+REST_K = 4.0
+HYSTERESIS = 1.5
+#: θ_lo is at least this fraction of max|I − b| (a noise-free record) and this many quantisation steps
+REST_FLOOR_FRAC = 5e-3
+QUANT_K = 1.5
+#: a blip: an active run shorter than MIN_PULSE_S [s] (or of at most two samples) that peaks below BLIP_K θ_hi; a
+#: phase shorter than MIN_PULSE_S is a transition and joins its neighbour
+MIN_PULSE_S = 2.0
+BLIP_K = 2.0
+#: a held pulse: median absolute deviation of its current within max(θ_lo, this fraction of its level); loose enough
+#: for a pulse the cycler holds at a voltage limit (the ORNL Leaf regen pulse at full charge decays by 30 %)
+PULSE_FLATNESS = 0.15
+#: a pulse's current is at least PULSE_SNR θ_hi, and the rest before it at least PULSE_REST_RATIO × its duration
+PULSE_SNR = 3.0
+PULSE_REST_RATIO = 0.5
+#: pulse/step split: the largest ratio between neighbouring sorted phase durations, when at least this
+DURATION_GAP = 4.0
+#: longest pulse when the durations show no split [s]
+MAX_PULSE_S = 120.0
+#: edge resistances need this many samples in the pulse and an edge carrying EDGE_FRACTION of the pulse current
+MIN_EDGE_SAMPLES = 3
+EDGE_FRACTION = 0.5
+#: shortest rest before a pulse set that gives an OCV point [s]: HPPC protocols rest 5 min to 2 h (4 min leaves room
+#: for a coarse sampling of a 5 min rest); after a shorter rest most of the polarisation is still there, and drive
+#: cycles stop for a minute or two
+MIN_OCV_REST_S = 240.0
+#: an HPPC rests (≥ min_rest_s) before at least this share of its pulse sets; a drive cycle with stops does not
+REST_SHARE = 0.5
+#: OCV point: line through the voltage over the last min(OCV_WINDOW_S, OCV_WINDOW_FRAC × duration) of a rest
+OCV_WINDOW_S = 60.0
+OCV_WINDOW_FRAC = 0.1
 
 
 @dataclass(frozen=True)
@@ -44,27 +136,45 @@ class Rest:
     stop: int  # one past the last rest sample
     duration_s: float
     soc_end: float
-    v_end: float
+    v_end: float  # voltage at the rest's end, from a line through its last window (module docstring, 6)
 
 
 @dataclass(frozen=True)
 class Pulse:
     start: int  # first sample with the pulse current
-    stop: int  # first rest sample after the pulse
-    current_a: float  # charge-weighted mean current (A, positive = discharge)
+    stop: int  # first sample after the pulse (a rest, or the next phase)
+    current_a: float  # charge-weighted mean current, offset removed (A, positive = discharge)
     duration_s: float
     soc: float  # SOC at the pulse start
     level: int  # index of the pulse set
-    r_inst: float  # leading edge  −ΔV/ΔI  [Ω]
-    r_inst_off: float  # trailing edge −ΔV/ΔI [Ω]
+    r_inst: float  # leading edge  −ΔV/ΔI  [Ω] (nan where the edge is not resolved)
+    r_inst_off: float  # trailing edge −ΔV/ΔI [Ω] (nan where the edge is not resolved)
     r_pulse: float  # (V_before − V_end)/I at the end of the pulse [Ω]
     tau_s: float  # relaxation time constant in the following rest [s] (nan if the rest is too short)
     tau_slow_s: float = float("nan")  # a third of the time to recover 95 % (the slow process) [s]
 
 
+@dataclass(frozen=True)
+class RestLevel:
+    """The current sensor as the rests show it (module docstring, 1); all in A."""
+
+    offset_a: float  # b
+    noise_a: float  # σ
+    step_a: float  # quantisation step q (0: none seen)
+    lo_a: float  # θ_lo
+    hi_a: float  # θ_hi
+    peak_a: float  # max|I − b₀|
+
+    def describe(self) -> str:
+        q = f", quantisation step {self.step_a:.3g} A" if self.step_a > 1e-3 * self.lo_a else ""
+        return (f"current sensor at rest: offset {self.offset_a:+.3g} A, noise {self.noise_a:.3g} A{q}; rest where "
+                f"|I - b| <= {self.lo_a:.3g} A (hysteresis {self.hi_a:.3g} A)")
+
+
 @dataclass(frozen=True, eq=False)
 class HPPCAnalysis:
-    """Result of :func:`analyze_hppc`. ``soc`` and ``ah`` are per sample of the analysed profile."""
+    """Result of :func:`analyze_hppc`. ``soc`` and ``ah`` are per sample of the analysed profile; ``ah`` counts the
+    current with the sensor offset ``sensor.offset_a`` removed (or comes from the reference SOC, ``ah_source``)."""
 
     rests: tuple
     pulses: tuple
@@ -76,6 +186,13 @@ class HPPCAnalysis:
     ah_source: str
     level_soc: np.ndarray
     notes: tuple = field(default_factory=tuple)
+    sensor: RestLevel | None = None
+    max_pulse_s: float = float("nan")  # the pulse/step bound used [s]
+
+    @property
+    def current_offset_a(self) -> float:
+        """The current sensor's offset measured on the rests [A] (0 when unknown)."""
+        return self.sensor.offset_a if self.sensor is not None else 0.0
 
     def ocv(self, source: str = "") -> OCVCurve:
         """Monotone PCHIP through the OCV points (made monotone by isotonic regression first)."""
@@ -83,61 +200,124 @@ class HPPCAnalysis:
         return OCVCurve(z, v, source or "HPPC rest points")
 
     def resistance_table(self) -> dict:
-        """Per pulse set: SOC and the median pulse resistances ``{"soc", "r_inst", "r_pulse", "tau_s"}`` (arrays)."""
+        """Per pulse set: SOC and the median pulse resistances ``{"soc", "r_inst", "r_pulse", "tau_s"}`` (arrays;
+        NaN where no pulse of the set measured it)."""
         lv = np.array([p.level for p in self.pulses])
         out = {"soc": [], "r_inst": [], "r_pulse": [], "tau_s": []}
         for j in np.unique(lv):
             ps = [p for p in self.pulses if p.level == j]
             out["soc"].append(ps[0].soc)
-            out["r_inst"].append(float(np.median([p.r_inst for p in ps])))
-            out["r_pulse"].append(float(np.median([p.r_pulse for p in ps])))
-            taus = [p.tau_s for p in ps if np.isfinite(p.tau_s)]
-            out["tau_s"].append(float(np.median(taus)) if taus else float("nan"))
+            out["r_inst"].append(_finite_median([p.r_inst for p in ps]))
+            out["r_pulse"].append(_finite_median([p.r_pulse for p in ps]))
+            out["tau_s"].append(_finite_median([p.tau_s for p in ps]))
         return {k: np.asarray(v) for k, v in out.items()}
 
     def medians(self) -> dict:
         """Record-wide medians used as fitting scales: ``r_inst``, ``r_pulse``, ``tau_s``, ``tau_slow_s``."""
-
-        def med(xs):
-            xs = [x for x in xs if np.isfinite(x)]
-            return float(np.median(xs)) if xs else float("nan")
-
         return {
-            "r_inst": med([p.r_inst for p in self.pulses]),
-            "r_pulse": med([p.r_pulse for p in self.pulses]),
-            "tau_s": med([p.tau_s for p in self.pulses]),
-            "tau_slow_s": med([p.tau_slow_s for p in self.pulses]),
+            "r_inst": _finite_median([p.r_inst for p in self.pulses]),
+            "r_pulse": _finite_median([p.r_pulse for p in self.pulses]),
+            "tau_s": _finite_median([p.tau_s for p in self.pulses]),
+            "tau_slow_s": _finite_median([p.tau_slow_s for p in self.pulses]),
         }
 
 
+def _finite_median(xs) -> float:
+    xs = [x for x in xs if np.isfinite(x)]
+    return float(np.median(xs)) if xs else float("nan")
+
+
 # ------------------------------------------------------------------------------------------------ SOC axis
-def discharged_ah(profile: Profile) -> tuple[np.ndarray, str]:
+def _counted_ah(profile: Profile, current_offset_a: float = 0.0) -> np.ndarray:
+    """``∫(I − b) dt`` since the first sample [Ah], zero-order hold."""
+    if current_offset_a == 0.0:
+        return profile.amp_hours()
+    return profile.with_(current_a=profile.current_a - current_offset_a).amp_hours()
+
+
+def _reference_ah(profile: Profile) -> np.ndarray | None:
+    """The reference SOC as discharged charge since the first sample [Ah] (None without a reference or a capacity).
+    A reference given but refused (far outside [0, 1]) raises here: this is where it is used."""
+    soc_ref = profile.get("soc_ref")
+    if soc_ref is None or not profile.meta.capacity_ah:
+        return None
+    return (soc_ref[0] - soc_ref) * float(profile.meta.capacity_ah)
+
+
+def discharged_ah(profile: Profile, current_offset_a: float = 0.0) -> tuple[np.ndarray, str]:
     """Charge discharged since the first sample [Ah] and where it came from (``"current"`` or ``"soc_ref"``).
 
-    The integrated current (zero-order hold) is used unless the profile's reference SOC (with ``meta.capacity_ah``)
-    disagrees with it by more than 0.5 % of the record's charge: then the record has gaps whose charge only the
+    The integrated current (zero-order hold, the sensor offset ``current_offset_a`` removed) is used unless the
+    profile's reference SOC (with ``meta.capacity_ah``) disagrees with it by more than 0.5 % of the record's charge
+    *in jumps*: the steps where the two move apart by more than :data:`JUMP_FRAC` of the record's charge, added to
+    the integrated current, explain at least 3/4 of the disagreement. Then the record has gaps whose charge only the
     reference knows (the Panasonic HPPC files omit the discharges between pulse sets), and the reference is used.
+    A reference that drifts away a little at every step (counted from another capacity, or from a sensor with an
+    offset) is not a record of gaps: the current is used. A reference given but refused (far outside [0, 1]) raises
+    here.
     """
-    ah = profile.amp_hours()
-    if profile.soc_ref is not None and profile.meta.capacity_ah:
-        ref = (profile.soc_ref[0] - profile.soc_ref) * float(profile.meta.capacity_ah)
+    ah = _counted_ah(profile, current_offset_a)
+    ref = _reference_ah(profile)
+    if ref is not None:
         scale = max(float(np.max(np.abs(ref))), float(np.max(np.abs(ah))), 1e-12)
-        if float(np.max(np.abs(ref - ah))) > AH_MISMATCH * scale:
-            return ref, "soc_ref"
+        mismatch = float(np.max(np.abs(ref - ah)))
+        if mismatch > AH_MISMATCH * scale:
+            d = np.diff(ref) - np.diff(ah)
+            jumps = np.where(np.abs(d) > JUMP_FRAC * scale, d, 0.0)
+            filled = ah + np.concatenate([[0.0], np.cumsum(jumps)])
+            if float(np.max(np.abs(ref - filled))) <= (1.0 - JUMP_SHARE) * mismatch:
+                return ref, "soc_ref"
     return ah, "current"
 
 
-def unrecorded_charge(profile: Profile, threshold_frac: float = 1e-3) -> np.ndarray:
+def unrecorded_charge(profile: Profile, threshold_frac: float = 1e-3, current_offset_a: float = 0.0) -> np.ndarray:
     """Per sample, the charge [Ah] discharged in the step *into* the sample that the current column does not carry
-    (0 where the column and the reference agree to ``threshold_frac`` of the record's charge)."""
-    ah, src = discharged_ah(profile)
+    (0 where the column, less the offset ``current_offset_a``, and the reference agree to ``threshold_frac`` of the
+    record's charge; non-zero only where :func:`discharged_ah` takes the reference, i.e. across gaps)."""
+    ah, src = discharged_ah(profile, current_offset_a)
     out = np.zeros(profile.n)
     if src != "soc_ref":
         return out
-    extra = np.diff(ah) - np.diff(profile.amp_hours())
+    extra = np.diff(ah) - np.diff(_counted_ah(profile, current_offset_a))
     thr = threshold_frac * max(float(np.max(np.abs(ah))), 1e-12)
     out[1:] = np.where(np.abs(extra) > thr, extra, 0.0)
     return out
+
+
+# ------------------------------------------------------------------------------------------------ the sensor
+def _robust_sd(x: np.ndarray) -> float:
+    """1.4826 × the median absolute value: the standard deviation of zero-mean Gaussian samples, robustly."""
+    return 1.4826 * float(np.median(np.abs(x))) if x.size else 0.0
+
+
+def rest_level(current, i_rest: float | None = None) -> RestLevel:
+    """The current sensor's offset, noise and quantisation, and the rest thresholds (module docstring, 1).
+
+    ``i_rest`` fixes ``θ_lo = θ_hi = i_rest`` instead of the noise-derived thresholds (the offset is still measured).
+    """
+    i = np.asarray(current, dtype=float)
+    peak = float(np.max(np.abs(i), initial=0.0))
+    band = np.abs(i) <= REST_BAND_FRAC * peak
+    b0 = float(np.median(i[band])) if band.any() else 0.0
+    sigma = step = 0.0
+    if band.any():
+        both = band[:-1] & band[1:]
+        sigma = max(_robust_sd(i[band] - b0), _robust_sd(np.diff(i)[both]) / np.sqrt(2.0))
+        levels = np.unique(i[band])
+        step = float(np.min(np.diff(levels))) if levels.size > 1 else 0.0
+    peak_b = float(np.max(np.abs(i - b0), initial=0.0))
+    if i_rest is not None:
+        lo = hi = float(i_rest)
+    else:
+        lo = max(REST_K * sigma, QUANT_K * step, REST_FLOOR_FRAC * peak_b)
+        hi = HYSTERESIS * lo
+    rest = np.abs(i - b0) <= lo
+    inner = rest.copy()
+    inner[1:] &= rest[:-1]
+    inner[:-1] &= rest[1:]
+    pick = inner if inner.any() else rest
+    b = float(np.mean(i[pick])) if pick.any() else 0.0
+    return RestLevel(b, sigma, step, lo, hi, peak_b)
 
 
 # ------------------------------------------------------------------------------------------------ structure
@@ -146,6 +326,67 @@ def _intervals(mask: np.ndarray) -> list[tuple[int, int]]:
     m = np.concatenate([[False], mask, [False]]).astype(np.int8)
     d = np.diff(m)
     return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
+
+
+def _active_mask(t_after: np.ndarray, t: np.ndarray, dev: np.ndarray, lev: RestLevel) -> tuple[np.ndarray, int]:
+    """Samples in active runs (hysteresis, blips merged into rests) and the number of blips merged."""
+    active = dev > lev.lo_a
+    blips = 0
+    for a, b in _intervals(active):
+        peak = float(np.max(dev[a:b]))
+        short = (t_after[b - 1] - t[a]) < MIN_PULSE_S or (b - a) <= 2
+        if peak <= lev.hi_a or (short and peak < BLIP_K * lev.hi_a):
+            active[a:b] = False
+            blips += peak > lev.hi_a  # a run that reached θ_hi yet was dropped: a blip
+    return active, blips
+
+
+def _phases(a: int, b: int, sign: np.ndarray, t_after: np.ndarray, t: np.ndarray) -> list[tuple[int, int]]:
+    """The run ``[a, b)`` cut where the sign of ``I − b`` changes; phases under MIN_PULSE_S join a neighbour."""
+    cuts = (a + 1 + np.flatnonzero(sign[a + 1:b] != sign[a:b - 1])).tolist()
+    bounds = [a] + cuts + [b]
+    phases = [(bounds[k], bounds[k + 1]) for k in range(len(bounds) - 1)]
+    merged = []
+    for p in phases:
+        if merged and t_after[p[1] - 1] - t[p[0]] < MIN_PULSE_S:
+            merged[-1] = (merged[-1][0], p[1])  # a transition: part of the phase before
+        elif merged and t_after[merged[-1][1] - 1] - t[merged[-1][0]] < MIN_PULSE_S:
+            merged[-1] = (merged[-1][0], p[1])  # the run opened with a transition: part of this phase
+        else:
+            merged.append(p)
+    return merged
+
+
+def _pulse_bound(durations: np.ndarray) -> float:
+    """Longest pulse: the largest ratio gap of the sorted durations (≥ DURATION_GAP, two or more below it), or
+    MAX_PULSE_S (module docstring, 3)."""
+    d = np.sort(durations[durations > 0])
+    if d.size >= 3:
+        ratio = d[1:] / d[:-1]
+        ratio[:1] = 0.0  # at least two durations below the split
+        k = int(np.argmax(ratio))
+        if ratio[k] >= DURATION_GAP and d[k] <= MAX_PULSE_S:
+            return float(d[k])
+    return MAX_PULSE_S
+
+
+def _rest_end_voltage(t: np.ndarray, v: np.ndarray, start: int, stop: int, duration_s: float) -> float:
+    """The voltage at the end of the rest ``[start, stop)``: the least-squares line through the samples of its last
+    ``min(OCV_WINDOW_S, OCV_WINDOW_FRAC × duration)`` (not reaching back across a gap in the record longer than
+    that window), evaluated at the last sample. The line, not the mean: a still-relaxing voltage would pull a mean
+    back by half the window's drift; the line's end keeps the noise averaging (variance ``4σ²/N`` instead of ``σ²``)
+    without that lag."""
+    w = min(OCV_WINDOW_S, OCV_WINDOW_FRAC * duration_s)
+    k = stop - 1
+    first = max(int(np.searchsorted(t, t[k] - w, side="left")), start)
+    gaps = np.flatnonzero(np.diff(t[first:stop]) > w)
+    if gaps.size:
+        first += int(gaps[-1]) + 1
+    if stop - first < 3:
+        return float(np.mean(v[first:stop]))
+    x = t[first:stop] - t[k]
+    slope, intercept = np.polyfit(x, v[first:stop], 1)
+    return float(intercept)
 
 
 def _recovery_tau(t: np.ndarray, v: np.ndarray, level: float = 1.0 - np.exp(-1.0)) -> float:
@@ -166,45 +407,96 @@ def _recovery_tau(t: np.ndarray, v: np.ndarray, level: float = 1.0 - np.exp(-1.0
 
 
 def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: float | None = None,
-                 max_pulse_s: float = 60.0, min_rest_s: float = 60.0) -> HPPCAnalysis:
-    """Analyse an HPPC record (see the module docstring). Raises :class:`DataError` when it holds no pulse."""
+                 max_pulse_s: float | None = None, min_rest_s: float = MIN_OCV_REST_S) -> HPPCAnalysis:
+    """Analyse an HPPC record (see the module docstring). Raises :class:`DataError` (one line) when the record is not
+    an HPPC test: no pulse, fewer than two OCV rest points, or rests before fewer than half of its pulse sets.
+
+    ``i_rest`` fixes the rest threshold [A] (default: from the sensor noise); ``max_pulse_s`` the longest pulse
+    (default: from the record's phase durations); ``min_rest_s`` the shortest rest that gives an OCV point.
+    """
     if profile.batched:
         raise DataError("analyze_hppc needs a plain profile", file=profile.meta.source or profile.name)
     profile.require("voltage_v")
     src = profile.meta.source or profile.name
     t, i, v = profile.time_s, profile.current_a, profile.voltage_v
-    if i_rest is None:
-        i_rest = 5e-3 * float(np.max(np.abs(i))) + 1e-6
-    ah, ah_source = discharged_ah(profile)
-    q = float(capacity_ah) if capacity_ah else float(np.max(ah))
+    n = t.size
+    # a sample's interval ends at the next time stamp; the last one lasts the median step
+    t_after = np.append(t[1:], t[-1] + (float(np.median(np.diff(t))) if n > 1 else 0.0))
+    lev = rest_level(i, i_rest)
+    notes = [lev.describe()]
+    di = i - lev.offset_a
+    active, blips = _active_mask(t_after, t, np.abs(di), lev)
+    if blips:
+        notes.append(f"{blips} current blip(s) shorter than {MIN_PULSE_S:g} s or at the noise level merged into rests")
+
+    ah, ah_source = discharged_ah(profile, lev.offset_a)
+    ref = _reference_ah(profile)
+    if ah_source == "current" and ref is not None:
+        scale = max(float(np.max(np.abs(ref))), float(np.max(np.abs(ah))), 1e-12)  # as discharged_ah
+        off = float(np.max(np.abs(ref - ah))) / scale
+        if off > AH_MISMATCH:
+            notes.append(f"the reference SOC departs from the counted current by up to {100 * off:.2g} % of the "
+                         "charge, not in jumps at gaps (another capacity, or counting error): the SOC axis follows "
+                         "the current")
+    # full: the most charged point; the test starts where the record first comes within FULL_TOL of it (charge
+    # pulses at full may return to it or beyond, and noise and coarse sampling blur the count by tenths of a percent)
+    ah_full = float(np.min(ah))
+    k_full = int(np.argmax(ah <= ah_full + FULL_TOL * max(float(np.ptp(ah)), 1e-12)))
+    q = float(capacity_ah) if capacity_ah else float(np.max(ah[k_full:]) - ah_full)
     if not q > 0:
         raise DataError("the record discharges no charge: cannot place it on the SOC axis", file=src)
-    soc = 1.0 - ah / q
-    t_end = np.append(t[1:], t[-1])  # a sample's interval ends at the next time stamp
+    soc = 1.0 - (ah - ah_full) / q
 
-    rest_mask = np.abs(i) <= i_rest
     rests = []
-    for a, b in _intervals(rest_mask):
-        dur = float(t_end[b - 1] - t[a]) if b < t.size else float(t[b - 1] - t[a])
-        rests.append(Rest(a, b, dur, float(soc[b - 1]), float(v[b - 1])))
+    for a, b in _intervals(~active):
+        dur = float(t_after[b - 1] - t[a]) if b < n else float(t[b - 1] - t[a])
+        rests.append(Rest(a, b, dur, float(soc[b - 1]), _rest_end_voltage(t, v, a, b, dur)))
+    rest_by_start = {r.start: r for r in rests}
+    rest_by_stop = {r.stop: r for r in rests}
+
+    # pulse candidates: held phases that start from a rest and end inside the record
+    sign = np.sign(di)
+    candidates = []
+    for a, b in _intervals(active):
+        for pa, pb in _phases(a, b, sign, t_after, t):
+            if pa != a or pa == 0 or pb <= k_full or pb >= n:
+                continue
+            seg = di[pa:pb]
+            level = float(np.median(seg))
+            if float(np.median(np.abs(seg - level))) > max(lev.lo_a, PULSE_FLATNESS * abs(level)):
+                continue  # not a held current (driving, a ramp)
+            if abs(level) < PULSE_SNR * lev.hi_a:
+                continue  # hardly above the rest threshold: a wobble of a current that has no clear rest level
+            dur = float(t[pb] - t[pa])
+            before = rest_by_stop.get(pa)
+            if before is None or before.duration_s < PULSE_REST_RATIO * dur:
+                continue  # an HPPC rests before every pulse; a drive cycle crosses zero for a moment
+            candidates.append((pa, pb, dur))
+    if max_pulse_s is None:
+        max_pulse_s = _pulse_bound(np.array([c[2] for c in candidates])) if candidates else MAX_PULSE_S
+        notes.append(f"pulses: held phases from a rest of at most {max_pulse_s:.3g} s (read from the record)")
+
     pulses = []
     level = -1
     last_stop_ah = None
-    for a, b in _intervals(~rest_mask):
-        if a == 0 or b >= t.size:  # must start from a rest and end in one
-            continue
-        dur = float(t[b] - t[a])
+    unresolved = 0
+    for a, b, dur in candidates:
         if dur > max_pulse_s:
             continue
         if last_stop_ah is None or abs(ah[a - 1] - last_stop_ah) > SET_SPLIT * q:
             level += 1
         last_stop_ah = ah[b]
         dts = t[a + 1:b + 1] - t[a:b]
-        cur = float(np.sum(i[a:b] * dts) / np.sum(dts))
-        r_inst = float((v[a - 1] - v[a]) / (i[a] - i[a - 1]))
-        r_off = float((v[b] - v[b - 1]) / (i[b - 1] - i[b]))
-        r_pulse = float((v[a - 1] - v[b - 1]) / cur)
-        nxt = next((r for r in rests if r.start == b), None)
+        cur = float(np.sum(di[a:b] * dts) / np.sum(dts))
+        resolved = b - a >= MIN_EDGE_SAMPLES
+        unresolved += not resolved
+        d_on, d_off = i[a] - i[a - 1], i[b - 1] - i[b]
+        r_inst = float((v[a - 1] - v[a]) / d_on) if resolved and abs(d_on) >= EDGE_FRACTION * abs(cur) else np.nan
+        r_off = float((v[b] - v[b - 1]) / d_off) if resolved and abs(d_off) >= EDGE_FRACTION * abs(cur) else np.nan
+        before = rest_by_stop.get(a)
+        v_before = before.v_end if before is not None else float(v[a - 1])
+        r_pulse = float((v_before - v[b - 1]) / cur)
+        nxt = rest_by_start.get(b)
         tau = tau_slow = float("nan")
         if nxt is not None and nxt.stop - nxt.start >= 4:
             tr, vr = t[nxt.start:nxt.stop], v[nxt.start:nxt.stop]
@@ -212,34 +504,46 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
             tau_slow = _recovery_tau(tr, vr, 0.95) / 3.0
         pulses.append(Pulse(a, b, cur, dur, float(soc[a - 1]), level, r_inst, r_off, r_pulse, tau, tau_slow))
     if not pulses:
-        raise DataError(f"no pulse found (active intervals from rest to rest of at most {max_pulse_s:g} s)", file=src)
+        raise DataError(f"not an HPPC test: no pulse found (a held current of at most {max_pulse_s:.3g} s that "
+                        "starts from a rest)", file=src)
+    if unresolved:
+        period = float(np.median(np.diff(t))) if n > 1 else float("nan")
+        notes.append(f"{unresolved} of {len(pulses)} pulses span fewer than {MIN_EDGE_SAMPLES} samples (sample "
+                     f"period {period:.3g} s): their edge resistances are not measured")
 
     # OCV points: end of the rest before each set's first pulse, and a final rest after a last step
-    ocv_z, ocv_v, notes = [], [], []
+    ocv_z, ocv_v = [], []
     firsts = {}
     for p in pulses:
         firsts.setdefault(p.level, p)
-    rest_by_stop = {r.stop: r for r in rests}
+    unrested = []
     for p in firsts.values():
         r = rest_by_stop.get(p.start)
         if r is not None and r.start == 0 and r.duration_s < min_rest_s:
             # the record starts at rest: the cell rested before the test began (HPPC protocol), keep the point
             notes.append(f"pulse set at z={p.soc:.3f}: OCV point from the record's initial rest ({r.duration_s:g} s)")
         elif r is None or r.duration_s < min_rest_s:
-            notes.append(f"pulse set at z={p.soc:.3f}: rest before it shorter than {min_rest_s:g} s, no OCV point")
+            unrested.append(p.soc)
             continue
         ocv_z.append(r.soc_end)
         ocv_v.append(r.v_end)
+    n_sets, n_rested = len(firsts), len(ocv_z)
+    if unrested:
+        notes.append(f"{len(unrested)} of {n_sets} pulse sets (at z = {', '.join(f'{z:.3f}' for z in unrested[:5])}"
+                     f"{', ...' if len(unrested) > 5 else ''}) follow a rest shorter than {min_rest_s:g} s: no OCV "
+                     "point")
     last = rests[-1] if rests else None
-    if last is not None and last.stop == t.size and last.duration_s >= min_rest_s:
+    if last is not None and last.stop == n and last.duration_s >= min_rest_s:
         if abs(ah[-1] - ah[pulses[-1].stop]) > SET_SPLIT * q:
             ocv_z.append(last.soc_end)
             ocv_v.append(last.v_end)
-    if len(ocv_z) < 2:
-        raise DataError(f"only {len(ocv_z)} OCV rest point(s) found; an OCV curve needs 2", file=src)
+    if len(ocv_z) < 2 or n_rested < REST_SHARE * n_sets:
+        raise DataError(f"not an HPPC test: {n_rested} of {n_sets} pulse set(s) follow a rest of {min_rest_s:g} s or "
+                        f"more, {len(ocv_z)} OCV rest point(s) in all (an HPPC rests before most of its pulse sets; "
+                        "an OCV curve needs 2 points)", file=src)
     level_soc = np.array([p.soc for p in firsts.values()])
     return HPPCAnalysis(tuple(rests), tuple(pulses), np.asarray(ocv_z), np.asarray(ocv_v), q, soc, ah, ah_source,
-                        level_soc, tuple(notes))
+                        level_soc, tuple(notes), lev, float(max_pulse_s))
 
 
 def ocv_from_hppc(profile: Profile, capacity_ah: float | None = None, **options) -> OCVCurve:

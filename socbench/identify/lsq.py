@@ -90,7 +90,7 @@ def simulate_voltage(model, time_s, current, temp=None, x0=None, soc_jumps=None,
 def _initial_soc(model, profile: Profile, soc0):
     if soc0 is not None:
         return float(soc0)
-    if profile.soc_ref is not None:
+    if profile.get("soc_ref") is not None:
         return float(profile.soc_ref[0])
     return float(np.clip(model.ocv.inverse(profile.voltage_v[0]), 0.0, 1.0))
 

@@ -34,7 +34,7 @@ def validation_rmse(fit: FitResult, record: Profile) -> float:
     """Open-loop voltage RMSE of ``fit`` on ``record``, from the record's reference SOC at its start (else full)."""
     record.require("voltage_v")
     model = make_model(fit.name, fit.params)
-    soc0 = float(record.soc_ref[0]) if record.soc_ref is not None else 1.0
+    soc0 = float(record.soc_ref[0]) if record.get("soc_ref") is not None else 1.0
     e = record.voltage_v - model.simulate(record, soc0=soc0).voltage_v
     return float(np.sqrt(np.mean(e * e))) if np.all(np.isfinite(e)) else float("inf")
 

@@ -58,8 +58,14 @@ def plan(estimator) -> tuple[Lowered | None, str]:
         return None, "numba is not installed"
     from ..estimators.base import Estimator
 
-    if type(estimator)._run_compiled is Estimator._run_compiled:
+    cls = type(estimator)
+    if cls._run_compiled is Estimator._run_compiled:
         return None, f"estimator '{estimator.name}' has no compiled form"
+    owner = next(c for c in cls.__mro__ if "_run_compiled" in c.__dict__)
+    for hook in ("_run",) + tuple(getattr(owner, "kernel_hooks", ())):
+        if getattr(cls, hook) is not getattr(owner, hook):
+            return None, (f"estimator '{estimator.name}' overrides {hook}() of {owner.__name__}, whose compiled "
+                          "kernel does not follow it")
     lowered, why = try_lower(estimator.model)
     if lowered is None:
         return None, why
@@ -100,6 +106,7 @@ class Job:
         self.failed = np.zeros(R, dtype=np.bool_)
         self.failed_at = np.full(R, -1, dtype=np.int64)
         self.status = np.zeros(R, dtype=np.int64)
+        self.repairs = np.zeros(R, dtype=np.int64)
 
     @property
     def model_args(self) -> tuple:
@@ -111,7 +118,8 @@ class Job:
 
     @property
     def out_args(self) -> tuple:
-        return (self.outf, self.outb, self.xs, self.pd, self.store, self.failed, self.failed_at, self.status)
+        return (self.outf, self.outb, self.xs, self.pd, self.store, self.failed, self.failed_at, self.status,
+                self.repairs)
 
     def finish(self, info: dict):
         """The :class:`Estimate`, or None when a run met a condition only the numpy engine reports (its status)."""
@@ -125,5 +133,6 @@ class Job:
             innovation=self.outf[3], innovation_var=self.outf[4], failed=self.failed, failed_at=self.failed_at,
             clamped=self.outb[0], gated=self.outb[1], x=self.xs if self.store else None,
             P_diag=self.pd if self.store else None, estimator=self.estimator.name,
-            model=getattr(m, "name", type(m).__name__), state_names=tuple(m.state_names), info=dict(info),
+            model=getattr(m, "name", type(m).__name__), state_names=tuple(m.state_names),
+            info={"psd_repairs": self.repairs.astype(int), **info},
         )

@@ -18,7 +18,8 @@ Shared arguments (built by :mod:`socbench.kernels.engine`):
 * ``opt``        safety options (:data:`OPTION_FIELDS`);
 * outputs        ``outf (5, R, T)``: soc, soc_std, v_pred, innovation, innovation_var; ``outb (2, R, T)``: clamped,
                  gated; ``xs, pd (R, T, n)`` when ``store``; ``failed (R,)``, ``failed_at (R,)``, ``status (R,)``
-                 (1: the model met a condition where numpy raises — the caller reruns the batch with numpy).
+                 (1: the model met a condition where numpy raises — the caller reruns the batch with numpy),
+                 ``repairs (R,)`` the covariances the PSD repair acted on (``Estimate.info["psd_repairs"]``).
 
 Noise (:mod:`socbench.estimators.noise`): ``R_k = σ_V² + σ_in²·D_k²`` (or the override), ``Q_k = σ_in²·B_k B_kᵀ +
 diag(walk)·dt_k/dt0`` (or the override matrix).
@@ -139,12 +140,13 @@ def clamp_soc(x):
 
 @kernel(inline=True)
 def settle(x, P, n, nis, opt, w, V, work):
-    """The update's safety tail (``estimators.base.settle_update``) up to recording: ``(clamped, failed)``."""
+    """The update's safety tail (``estimators.base.settle_update``) up to recording: ``(clamped, failed,
+    repaired)``."""
     Pp = ptr(P)
     symmetrise(Pp, n)
-    repair_psd(Pp, n, opt[PSD_ABS], opt[PSD_REL], ptr(w), ptr(V), ptr(work))
+    repaired = repair_psd(Pp, n, opt[PSD_ABS], opt[PSD_REL], ptr(w), ptr(V), ptr(work))
     clamped = clamp_soc(x)
-    return clamped, diverged_cov(x, n, Pp, nis, opt[VAR_MAX], opt[NIS_MAX])
+    return clamped, diverged_cov(x, n, Pp, nis, opt[VAR_MAX], opt[NIS_MAX]), repaired
 
 
 @kernel(inline=True)
@@ -158,7 +160,7 @@ def load_run(x0, P0, r, n, x, P):
 # ================================================================================================ EKF
 @kernel
 def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, opt, outf, outb, xs, pd, store,
-        failed, failed_at, status):
+        failed, failed_at, status, repairs):
     """Extended Kalman filter (estimators/ekf.py) over runs ``r0 … r1 − 1``."""
     T = cur.shape[1]
     n = x0.shape[1]
@@ -220,7 +222,9 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                     for c in range(n):
                         s += M[a, c] * A[b, c]
                     P[a, b] = s + Rk * (K[a] * K[b])
-            clamped, bad = settle(x, P, n, nis, opt, w, V, work)
+            clamped, bad, repaired = settle(x, P, n, nis, opt, w, V, work)
+            if repaired:
+                repairs[r] += 1
             if bad:
                 failed[r] = True
                 failed_at[r] = k
@@ -270,7 +274,7 @@ def sigma_points(x, P, n, lam, X, L, M, w, V, work):
 
 @kernel
 def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, opt, Wm, Wc, lam, needs_D, needs_B,
-        outf, outb, xs, pd, store, failed, failed_at, status):
+        outf, outb, xs, pd, store, failed, failed_at, status, repairs):
     """Unscented Kalman filter (estimators/ukf.py) over runs ``r0 … r1 − 1``."""
     T = cur.shape[1]
     n = x0.shape[1]
@@ -335,7 +339,9 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             for a in range(n):
                 for b in range(n):
                     P[a, b] = P[a, b] - S * (K[a] * K[b])
-            clamped, bad = settle(x, P, n, nis, opt, w, V, work)
+            clamped, bad, repaired = settle(x, P, n, nis, opt, w, V, work)
+            if repaired:
+                repairs[r] += 1
             if bad:
                 failed[r] = True
                 failed_at[r] = k
@@ -370,7 +376,8 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                     P[a, b] = s_ + Q[a, b]
             Pp = ptr(P)
             symmetrise(Pp, n)
-            repair_psd(Pp, n, opt[PSD_ABS], opt[PSD_REL], ptr(w), ptr(V), ptr(work))
+            if repair_psd(Pp, n, opt[PSD_ABS], opt[PSD_REL], ptr(w), ptr(V), ptr(work)):
+                repairs[r] += 1
             if diverged_cov(x, n, Pp, 0.0, np.inf, np.inf):
                 failed[r] = True
                 failed_at[r] = k + 1
@@ -381,7 +388,7 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
 # ================================================================================================ coulomb counting
 @kernel
 def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, ratio, outf, outb, xs, pd, store,
-            failed, failed_at, status):
+            failed, failed_at, status, repairs):
     """Coulomb counting with the declared capacity (estimators/coulomb.py) over runs ``r0 … r1 − 1``."""
     T = cur.shape[1]
     n = x0.shape[1]

@@ -192,7 +192,7 @@ def likelihoods(imp, fmp, X, v, i, temp, has_temp, needs_D, nz, N, n, Y, Rk, ll,
 # ================================================================================================ the filter
 @kernel
 def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Qroot, opt, pfopt, seed,
-       outf, outb, xs, pd, store, failed, failed_at, status, counts):
+       outf, outb, xs, pd, store, failed, failed_at, status, repairs, counts):
     """Bootstrap particle filter (estimators/pf.py) over runs ``r0 … r1 − 1``."""
     T = cur.shape[1]
     n = x0.shape[1]

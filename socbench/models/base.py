@@ -211,7 +211,7 @@ class Model(ABC):
         i = profile.current_a
         if x0 is None:
             if soc0 is None:
-                if profile.soc_ref is not None:
+                if profile.get("soc_ref") is not None:
                     soc0 = profile.soc_ref[..., 0]
                 elif profile.voltage_v is not None:
                     soc0 = np.clip(self.ocv.inverse(profile.voltage_v[..., 0]), 0.0, 1.0)

@@ -334,6 +334,39 @@ class CurrentBias(Effect):
     record_states = _constant_states
 
 
+class ResistanceOffset(Effect):
+    """An offset on the ohmic resistance, ``ΔR0`` (a random-walk state, ``ΔR0⁺ = ΔR0``): ``y −= ΔR0·I``.
+
+    Not one of the missing physical effects (the base model already has its R0), so it is not in :data:`EFFECTS` and
+    the diagnosis never proposes it: it is the state through which a joint estimator tracks resistance growth
+    (``estimators.dual``). ``∂y/∂ΔR0 = −I``, ``∂y/∂I = −ΔR0``. Parameter ``dR0`` is its initial value [Ω].
+    """
+
+    name = "r0_offset"
+    state_names = ("dR0",)
+    param_names = ("dR0",)
+    defaults = {"dR0": 0.0}
+
+    def bounds(self, model):
+        return {"dR0": (-resistance_scale(model), resistance_scale(model))}
+
+    def initial(self):
+        return self["dR0"][..., None]
+
+    def advance(self, e, z, i, dt, temp, base, jac):
+        if not jac:
+            return e, None, None, None
+        return e, np.ones(e.shape + (1,)), np.zeros(e.shape), np.zeros(e.shape)
+
+    record_states = _constant_states
+
+    def output_term(self, e, z, i, temp, base, jac):
+        dy = -e[..., 0] * i
+        if not jac:
+            return dy, None, None, None
+        return dy, -np.broadcast_to(i, dy.shape)[..., None], np.zeros(dy.shape), -e[..., 0] * np.ones(dy.shape)
+
+
 class ExtraRC(Effect):
     """A further RC branch (diffusion, ECM_SPEC §9.7): ``U_x⁺ = a U_x + b I``, ``y −= U_x`` (block B2).
 

@@ -202,7 +202,7 @@ def reduce_cell(estimate, profile, elapsed_s: float, score=None) -> dict:
         from ..estimators.scoring import score
     T = profile.n
     R = profile.n_runs
-    truth = _as_runs(profile.soc_ref, R, T)
+    truth = _as_runs(profile.get("soc_ref"), R, T)
     meas = _as_runs(profile.voltage_v, R, T)
     soc = _as_runs(estimate.soc, R, T)
     std = _as_runs(estimate.soc_std, R, T)

@@ -1,0 +1,270 @@
+"""The HPPC analysis on records shaped like real instruments make them (issue 13).
+
+Records come from ``tests/hppc_records.py``: an exact continuous-time truth (R0 + one or two RC branches, three OCV
+shapes, 1–50 Ah) sampled at 0.1–10 s by sensors with current noise up to 1 % of 1C, offsets up to ±0.5 % of 1C, ADC
+quantisation and voltage noise, in several pulse layouts with and without Panasonic-style gaps. Every expected value
+comes from that truth. The seeds here (10 000 +) are not the ones the analysis was developed on (0–900). Real-data
+checks use the Panasonic 18650PF HPPCs (Kollmeyer 2018, doi:10.17632/wykht8y7tg.1) and the ORNL Nissan Leaf HPPCs
+(Wiggins, Allu & Wang; /work/shared/data/nissan_leaf_ornl/PROVENANCE.md).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from socbench.cli import main
+from socbench.datasets import load
+from socbench.errors import DataError, SocbenchWarning
+from socbench.identify import analyze_hppc, fit_model, setup_fit
+from socbench.identify.hppc import MIN_EDGE_SAMPLES
+from socbench.models import Constant, ModelParams, make_model
+from socbench.profile import Profile
+
+from . import hppc_records as H
+
+N_DRAWS = 200
+
+
+def _analyse_quietly(profile, **kw):
+    """analyze_hppc with every warning recorded (a numpy RuntimeWarning must not even be emitted)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        a = analyze_hppc(profile, **kw)
+    return a, caught
+
+
+@pytest.fixture(scope="module")
+def draws():
+    """``N_DRAWS`` random HPPC records and their analyses (given the nominal capacity, as the sidecar would)."""
+    out = []
+    for seed in range(10_000, 10_000 + N_DRAWS):
+        rec = H.random_hppc(seed)
+        a, caught = _analyse_quietly(rec.profile, capacity_ah=rec.cell.capacity_ah)
+        out.append((rec, a, caught))
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ randomised rates
+def test_random_records_structure_without_warnings(draws):
+    # nothing is warned about: no RuntimeWarning (divide by zero...) and nothing else
+    assert sum(len(c) for _, _, c in draws) == 0, [str(w.message) for _, _, c in draws for w in c][:3]
+    # every pulse set found, and one OCV point before each plus the final rest's, despite noise, offset, quantisation
+    ok = [len({p.level for p in a.pulses}) == rec.n_sets and a.ocv_soc.size == rec.n_sets + 1 for rec, a, _ in draws]
+    assert np.mean(ok) >= 0.98, np.mean(ok)
+    # the pulses: every one the truth has (sets × pulses per set), none from the noise
+    n_true = [rec.n_sets * len(rec.layout.pulses_c) for rec, _, _ in draws]
+    assert np.mean([len(a.pulses) == n for (_, a, _), n in zip(draws, n_true)]) >= 0.98
+
+
+def test_random_records_sensor_offset_and_soc_axis(draws):
+    # the current offset read from the rests, against the truth's (the sensor noise is up to 1 % of 1C)
+    err = [abs(a.current_offset_a - rec.instrument.i_offset_c * rec.cell.capacity_ah) / rec.cell.capacity_ah
+           for rec, a, _ in draws]
+    assert np.mean(np.array(err) <= 1e-3) >= 0.98, np.quantile(err, [0.5, 0.95, 1.0])
+    # OCV points sit at the true SOC: within 0.5 points wherever the logger samples at 2 s or faster; within 1 point
+    # at any period up to 10 s (a logger that samples a 10 s pulse once counts its charge to a sample period)
+    fine, coarse = [], []
+    for rec, a, _ in draws:
+        if a.ocv_soc.size != rec.ocv_rows.size:
+            continue
+        dz, _ = H.ocv_point_errors(rec, a)
+        (fine if rec.instrument.dt <= 2.0 else coarse).append(np.max(np.abs(dz)))
+    assert len(fine) > 60 and len(coarse) > 60
+    assert np.mean(np.array(fine) <= 0.005) >= 0.95, np.quantile(fine, [0.5, 0.95, 1.0])
+    assert np.mean(np.array(fine + coarse) <= 0.01) >= 0.95, np.quantile(fine + coarse, [0.5, 0.95, 1.0])
+
+
+def test_random_records_ocv_voltages(draws):
+    # each OCV point is the true OCV within what the truth has not relaxed yet, plus 1.5 σ of the voltage noise
+    # (a line through the rest's last minute averages it); coarse logging leaves fewer samples to average: + 2 mV
+    fine, every = [], []
+    for rec, a, _ in draws:
+        if a.ocv_soc.size != rec.ocv_rows.size:
+            continue
+        _, dv = H.ocv_point_errors(rec, a)
+        excess = float(np.max(dv)) - 1.5 * rec.instrument.v_noise - rec.instrument.v_lsb
+        every.append(excess <= 2e-3)
+        if rec.instrument.dt <= 2.0:
+            fine.append(excess <= 0.0)
+    assert np.mean(fine) >= 0.97 and np.mean(every) >= 0.95, (np.mean(fine), np.mean(every))
+
+
+def test_random_records_edge_resistances_resolved_or_absent(draws):
+    rel = []
+    for rec, a, _ in draws:
+        for p in a.pulses:
+            if p.stop - p.start < MIN_EDGE_SAMPLES:  # a pulse one or two samples long: no edge resistance at all
+                assert math.isnan(p.r_inst) and math.isnan(p.r_inst_off)
+        unresolved = [p for p in a.pulses if p.stop - p.start < MIN_EDGE_SAMPLES]
+        assert bool(unresolved) == any("edge resistances are not measured" in n for n in a.notes)
+        if rec.instrument.dt <= 0.5:
+            rel.append(a.medians()["r_inst"] / rec.cell.r0 - 1.0)
+    # sampled within 0.5 s of the edge, −ΔV/ΔI is R0 plus at most ~R1·dt/τ1 of polarisation, and noise
+    assert len(rel) > 40 and np.mean(np.abs(rel) <= 0.05) >= 0.95, np.quantile(np.abs(rel), [0.5, 0.95, 1.0])
+
+
+# ------------------------------------------------------------------------------------------------ the issue record
+def test_generator_truth_is_the_zoh_model():
+    """Cross-check of the generator's exact solution with socbench's dp model: on a grid holding every sample and
+    every edge of the true current, zero-order hold is exact, so the two agree to rounding at the samples."""
+    rec = H.issue_record(seed=3, v_noise=0.0)
+    c = H.ISSUE_CELL
+    (r1, t1), (r2, t2) = c.branches
+    params = ModelParams(c.capacity_ah, c.ocv, {"R0": Constant(c.r0), "R1": Constant(r1), "C1": Constant(t1 / r1),
+                                                "R2": Constant(r2), "C2": Constant(t2 / r2)})
+    seg_t0, seg_i = rec.schedule
+    grid = np.union1d(rec.profile.time_s, seg_t0)
+    current = seg_i[np.searchsorted(seg_t0, grid, side="right") - 1]
+    sim = make_model("dp", params).simulate(Profile(grid, current), soc0=1.0)
+    at = np.searchsorted(grid, rec.profile.time_s)
+    assert np.mean(np.isin(seg_t0, rec.profile.time_s)) < 0.9  # the steps end between samples: a real test
+    np.testing.assert_allclose(sim.voltage_v[at], rec.v_clean, atol=1e-9)
+    np.testing.assert_allclose(sim.soc[at], rec.soc_true, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_issue_record_is_analysed(seed):
+    rec = H.issue_record(seed=seed)
+    a, caught = _analyse_quietly(rec.profile)
+    assert not caught
+    q = H.ISSUE_CELL.capacity_ah
+    assert len({p.level for p in a.pulses}) == 10 and len(a.pulses) == 20
+    currents = np.array([p.current_a for p in a.pulses]) / q
+    np.testing.assert_allclose(currents[0::2], 1.0, atol=0.01)
+    np.testing.assert_allclose(currents[1::2], -0.75, atol=0.01)
+    dz, dv = H.ocv_point_errors(rec, a)
+    assert a.ocv_soc.size == 11 and np.max(np.abs(dz)) < 2e-3
+    assert np.max(dv) < 1e-3  # 1 h rests: the truth is relaxed; 1 mV voltage noise averaged over the last minute
+    assert a.sensor.noise_a == pytest.approx(0.010, rel=0.15)  # the 10 mA of the issue
+    # samples on the edges: −ΔV/ΔI is R0 itself, up to the current and voltage noise
+    assert a.medians()["r_inst"] == pytest.approx(H.ISSUE_CELL.r0, rel=0.03)
+
+
+# ------------------------------------------------------------------------------------------------ not an HPPC
+def test_records_that_are_not_hppc_get_one_error_line():
+    rng = np.random.default_rng(20_000)
+    refused = 0
+    for k in range(30):
+        cell, ins = H.random_cell(rng), H.random_instrument(rng)
+        rec = H.drive_record(cell, ins, seed=20_000 + k, stops=bool(k % 2), duration_s=float(rng.uniform(1800, 7200)))
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            with pytest.raises(DataError) as e:
+                analyze_hppc(rec.profile)
+        assert "not an HPPC test" in str(e.value) and "\n" not in str(e.value)
+        refused += 1
+    assert refused == 30
+    # a constant discharge with a noisy sensor, then a rest
+    cell = H.random_cell(rng)
+    t = np.arange(0.0, 4000.0)
+    i = np.where(t < 3000, cell.capacity_ah, 0.0) + rng.normal(0, 0.005 * cell.capacity_ah, t.size)
+    prof = Profile(t, i, voltage_v=cell.ocv(1 - np.cumsum(i) / 3600 / cell.capacity_ah))
+    with pytest.raises(DataError, match="not an HPPC test: no pulse"):
+        analyze_hppc(prof)
+    # where an HPPC is required (fit without an OCV curve), the same record gives one line too
+    with pytest.raises(DataError, match="no HPPC rest points to build an OCV curve"):
+        fit_model("thevenin", rec.profile, mode="constant")
+
+
+def test_fit_removes_the_sensor_offset_measured_on_the_rests():
+    """An offset of +0.5 % of 1C over a 15 h HPPC is 7 % of the capacity: the fit must not count it. The same record
+    without the offset (same seed, same noise) is the yardstick."""
+    lay = H.Layout(pulses_c=(1.0,), rest_s=1800.0)
+    q = H.ISSUE_CELL.capacity_ah
+    fits = {}
+    for offset in (0.0, 0.005):
+        ins = H.Instrument(dt=1.0, i_noise_c=0.003, i_offset_c=offset, v_noise=1e-3)
+        rec = H.hppc_record(H.ISSUE_CELL, lay, ins, seed=7, with_soc_ref=False)
+        assert setup_fit("dp", rec.profile, "constant", capacity_ah=q).current_offset_a == pytest.approx(
+            offset * q, abs=2e-4 * q)
+        fits[offset] = fit_model("dp", rec.profile, mode="constant", capacity_ah=q)
+    assert fits[0.005].rmse_v == pytest.approx(fits[0.0].rmse_v, rel=0.05)
+    assert fits[0.005].values["R0"] == pytest.approx(fits[0.0].values["R0"], rel=0.02)
+
+
+@pytest.mark.parametrize("dt", [10.0, 7.0])
+def test_fit_at_a_sample_period_as_long_as_the_pulses(dt):
+    """At 7-10 s a 10 s pulse is one or two samples: no edge resistance (a note says so), yet the OCV points, the
+    capacity and a fit come out, with R0 from the pulse voltages. Truth: the issue cell (R0 22 mΩ, τ 25 s and 400 s);
+    the worst sensor of the issue's range (1 % noise, 0.4 % offset, 0.1 % quantisation of 1C; 3 mV)."""
+    ins = H.Instrument(dt=dt, i_noise_c=0.01, i_offset_c=0.004, i_lsb_c=0.001, v_noise=3e-3)
+    rec = H.hppc_record(H.ISSUE_CELL, H.Layout(), ins, seed=5, with_soc_ref=False)
+    res = fit_model("dp", rec.profile, mode="constant")
+    assert any("edge resistances are not measured" in n for n in res.params.notes)
+    assert res.params.capacity_ah == pytest.approx(H.ISSUE_CELL.capacity_ah, rel=0.01)
+    assert np.all(np.isfinite(list(res.values.values()))) and res.rmse_v < 0.02
+    assert res.values["R0"] == pytest.approx(H.ISSUE_CELL.r0, rel=0.15)
+    assert res.values["R1"] * res.values["C1"] == pytest.approx(25.0, rel=0.3)  # the fast time constant
+
+
+# ------------------------------------------------------------------------------------------------ the CLI
+def test_cli_fit_and_diagnose_the_noisy_issue_record(tmp_path, capsys):
+    """The issue's 1 Hz HPPC with 10 mA current noise and a counted reference that ends at −0.7 %: `socbench fit` and
+    `socbench diagnose` run, and the only thing said on stderr is the one-line warning about the reference."""
+    with pytest.warns(SocbenchWarning):  # building the counted reference (the CLI says it again, below)
+        rec = H.issue_record(seed=11, soc_ref_capacity_ratio=0.993)
+    assert -0.01 < rec.profile.soc_ref.min() < -0.005
+    data, drive = tmp_path / "rec.csv", tmp_path / "drive.csv"
+    H.write_canonical(rec.profile, data)
+    ins = H.Instrument(dt=1.0, i_noise_c=0.010 / H.ISSUE_CELL.capacity_ah, v_noise=1e-3)
+    H.write_canonical(H.drive_record(H.ISSUE_CELL, ins, seed=12, duration_s=3600.0).profile, drive)
+    runs = {"fit": ["fit", "--data", str(data), "--model", "dp", "--out", str(tmp_path / "p.json")],
+            "diagnose": ["diagnose", "--fit", str(data), "--eval", str(drive), "--model", "thevenin",
+                         "--out", str(tmp_path / "D"), "--no-figures"]}
+    for name, argv in runs.items():
+        rc = main(argv)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 0, err
+        assert len(err) == 1 and err[0].startswith(f"socbench {name}: warning: {data}, column 'soc_ref', row"), err
+    assert (tmp_path / "p.json").is_file() and (tmp_path / "D" / "diagnosis.json").is_file()
+
+
+# ------------------------------------------------------------------------------------------------ real data
+@pytest.mark.realdata
+@pytest.mark.parametrize("temp", ["10", "25", "40"])
+def test_real_nissan_leaf_hppc(data_dir, temp):
+    """ORNL Leaf HPPC: pre-conditioning, a 10 A charge to full and a rest, then per 10 % level a 30 s 30 A pulse,
+    40 s rest, a 10 s 22.5 A regen pulse that runs straight into the 10 A step, 1 h rest (PROVENANCE.md). The pulse
+    counts below are read from the raw current, independently of the analysis."""
+    p = load(data_dir / "nissan_leaf_ornl" / f"hppc_{temp}degC.csv", "nissan-leaf")
+    i = p.current_a
+    runs = lambda m: int(np.sum(np.diff(np.r_[0, m.astype(int)]) == 1))  # noqa: E731
+    n_dis = runs(np.abs(i - 30.0) < 1.0)
+    n_regen = runs(i < -15.0)  # (the charge to full at the start is at 10 A)
+    a, caught = _analyse_quietly(p)
+    assert not caught
+    assert n_dis == n_regen == 10
+    assert len(a.pulses) == n_dis + n_regen and len({q.level for q in a.pulses}) == n_dis
+    assert sum(q.current_a > 0 for q in a.pulses) == n_dis
+    # one OCV point after each 1 h rest, 10 % apart, from full down; the voltage rises with SOC
+    z = np.sort(a.ocv_soc)
+    assert a.ocv_soc.size == 10 and z[-1] == pytest.approx(1.0, abs=1e-3)
+    np.testing.assert_allclose(np.diff(z), np.median(np.diff(z)), atol=0.01)
+    assert 0.09 < np.median(np.diff(z)) < 0.11
+    assert np.all(np.diff(a.ocv_voltage[np.argsort(a.ocv_soc)]) > 0)
+    assert 28.0 < a.capacity_ah < 33.1  # the rated 33.1 Ah; 1C discharges give ~30.3 Ah (PROVENANCE.md)
+    assert 0.0005 < a.medians()["r_inst"] < 0.005  # a large pouch cell: a few mΩ
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("folder", ["25degC", "10degC", "0degC", "n10degC", "n20degC"])
+def test_real_panasonic_hppc_every_temperature(data_dir, folder):
+    """Panasonic: five discharge pulses per level, the steps between levels not in the file (gaps in time); the cold
+    cell at low SOC hits its voltage limit within 1-1.5 s of the largest pulses, or before the first sample."""
+    path = sorted((data_dir / "panasonic_18650pf" / folder).glob("*[Pp]ulse_HPPC*.mat"))[0]
+    p = load(path, "panasonic-mat")
+    a, caught = _analyse_quietly(p)
+    assert not caught
+    n_sets = len({q.level for q in a.pulses})
+    assert n_sets == len(p.gaps()) + 1  # a level per stretch of record between the gaps
+    assert a.ocv_soc.size == n_sets and a.ah_source == "soc_ref"
+    # every discharge pulse of the file, aborted or not (runs of more than 0.5 A, read from the raw current)
+    raw = int(np.sum(np.diff(np.r_[0, (p.current_a > 0.5).astype(int)]) == 1))
+    assert len(a.pulses) == raw
+    per_set = np.bincount([q.level for q in a.pulses])
+    assert per_set.max() <= 5 and np.all(np.diff(per_set) <= 0)  # lower SOC: more pulses stopped at the limit
+    assert np.all(np.diff(a.ocv_voltage[np.argsort(a.ocv_soc)]) > 0)
