@@ -311,7 +311,7 @@ def settle_update(rec: Recorder, k: int, x, P, x_good, P_good, v_pred, e, S, nis
         bad = diverged(x, var[:, 0], nis, opt["var_max"], opt["nis_max"]) | ~np.all(np.isfinite(var), axis=-1)
     else:
         P, repaired = repair_psd(symmetrise(P), opt["psd_floor"], opt["psd_rel_floor"])
-        rec.psd_repairs += repaired
+        rec.psd_repairs += repaired & ~rec.failed  # a failed run is frozen: it counts nothing more
         bad = None
     clamped = clamp_soc(x)
     if bad is None:

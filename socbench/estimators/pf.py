@@ -227,7 +227,7 @@ class ParticleFilter(Estimator):
                 gated = gate(nis)
                 X, w, n_stages = self.assimilate(X, w, log_likelihood(vk[:, None], Y, Rk), gated, vk, ik, tk,
                                                  lambda s, k=k: draws.stage(k, s))
-                staged += n_stages > 1
+                staged += (n_stages > 1) & ~rec.failed  # runs failed earlier are frozen: they count nothing
                 mean = np.einsum("rp,rpi->ri", w, X)
                 var = np.einsum("rp,rpi->ri", w, (X - mean[:, None, :]) ** 2)
                 failed = rec.fail(k, diverged(mean, var[:, 0], nis, opt["var_max"], opt["nis_max"]))

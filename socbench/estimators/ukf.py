@@ -117,7 +117,7 @@ class UKF(Estimator):
                 dX = Xf - x[:, None, :]
                 P = np.einsum("rsi,rsj->rij", dX * Wc[:, None], dX) + Q
                 P, repaired = repair_psd(symmetrise(P), *floors)
-                rec.psd_repairs += repaired
+                rec.psd_repairs += repaired & ~rec.failed
                 settle_predict(rec, k + 1, x, P, x_good, P_good)
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold, "lambda": self.lam})
 

@@ -24,6 +24,7 @@ confidence intervals.
 
 from __future__ import annotations
 
+import contextlib
 import time as _time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -68,6 +69,21 @@ class LsqResult:
 
     def as_dict(self) -> dict:
         return dict(zip(self.names, self.theta.tolist()))
+
+
+def one_blas_thread():
+    """A context in which BLAS/LAPACK run on one thread (``threadpoolctl``; a no-op without it).
+
+    The optimiser factors a small Jacobian (a few hundred rows × tens of parameters) by SVD on every iteration: far
+    too small to gain from threads, and on a busy machine (or next to other worker processes) OpenBLAS's threads
+    wait on each other — an SVD that takes 2 ms on one thread took 0.3 s with two (``improved_rc``'s paper fit: 31 s
+    → 1.4 s at load 8, benchmarks/default_leaderboard.py and docs/performance.md).
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - a declared dependency
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
 
 
 def simulate_voltage(model, time_s, current, temp=None, x0=None, soc_jumps=None, engine: str = "auto") -> np.ndarray:
@@ -293,17 +309,18 @@ def fit_parameters(
 
     r0 = fun(theta0)
     rmse_start = float(np.sqrt(np.mean(r0 * r0))) if r0.size else float("nan")
-    if P == 0:
-        r = fun(theta0)
-        J = np.zeros((r.size, 0))
-        res_x, success, message, nfev = theta0, True, "no parameters", 1
-    else:
-        sol = least_squares(fun, theta0, jac=jac, bounds=(lower, upper), method="trf", x_scale="jac", loss=loss,
-                            f_scale=f_scale, ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev)
-        res_x, success, message, nfev = sol.x, bool(sol.success), str(sol.message), int(sol.nfev)
-        r = fun(res_x)
-        J = jac(res_x)
-    cov, stderr, corr = covariance(J, r, P)
+    with one_blas_thread():
+        if P == 0:
+            r = fun(theta0)
+            J = np.zeros((r.size, 0))
+            res_x, success, message, nfev = theta0, True, "no parameters", 1
+        else:
+            sol = least_squares(fun, theta0, jac=jac, bounds=(lower, upper), method="trf", x_scale="jac", loss=loss,
+                                f_scale=f_scale, ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev)
+            res_x, success, message, nfev = sol.x, bool(sol.success), str(sol.message), int(sol.nfev)
+            r = fun(res_x)
+            J = jac(res_x)
+        cov, stderr, corr = covariance(J, r, P)
     rmse = float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
     rel = np.where(np.isfinite(span), 1e-4 * span, 0.0)
     at_bounds = tuple(n for n, th, lo, hi, tol in zip(names, res_x, lower, upper, rel)

@@ -822,7 +822,7 @@ def model_step(im, fm, x, i, dt, temp, has_temp, jac, xn, F, B, work):
                 F[s0 * nn + s0] = a
                 F[(s0 + 1) * nn + (s0 + 1)] = 0.0 if moving else 1.0
                 B[s0] = -a * c * dt * sg * (h + sg)
-        elif code == 3 or code == 4:  # capacity, current bias: random walks
+        elif code == 3 or code == 4 or code == 9:  # capacity, current bias, R0 offset: random walks
             xn[s0] = x[s0]
             if jac:
                 F[s0 * nn + s0] = 1.0
@@ -886,6 +886,11 @@ def model_output(im, fm, x, i, temp, has_temp, jac, H, work):
             y = y + -x[s0]
             if jac:
                 H[s0] += -1.0
+        elif code == 9:  # r0_offset: −ΔR0·I
+            y = y + -x[s0] * ie
+            D = D + -x[s0] * 1.0
+            if jac:
+                H[s0] += -ie
         elif code == 6:  # butler_volmer [I0, dR, n_cells]
             tk = (temp if has_temp else T_REF_C) + KELVIN
             g = fm[v + 2] * 2.0 * R_GAS * tk / FARADAY

@@ -26,7 +26,8 @@ import time
 from functools import cache
 from pathlib import Path
 
-#: every file holding compiled code (relative to the socbench package): their bytes name the cache directory
+#: every file holding compiled code or constants compiled into it (relative to the socbench package): their bytes
+#: name the cache directory
 SOURCES = (
     "kernels/jit.py",
     "kernels/lowering.py",
@@ -36,6 +37,10 @@ SOURCES = (
     "kernels/pf.py",
     "kernels/openloop.py",
     "estimators/draws.py",
+    "estimators/safety.py",
+    "models/blocks.py",
+    "models/effects.py",
+    "ocv.py",
 )
 
 

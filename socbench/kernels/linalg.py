@@ -7,7 +7,8 @@ matrices, :func:`socbench.kernels.evaluate.ptr`) and writes into the memory it i
 * ``psd_certified``   the LDLᵀ certificate of ``safety.psd_certified`` (same margin, same operations);
 * ``eigh_jacobi``     cyclic Jacobi eigen-decomposition of a symmetric matrix (Golub & Van Loan §8.5): accurate to
                       rounding for the small covariances here, and free of LAPACK calls inside parallel loops;
-* ``repair_psd``      ``safety.repair_psd``: where not certified and ``λ_min < floor = max(abs, rel·λ_max)``, rebuild
+* ``repair_psd``      ``safety.repair_psd``: where not certified and ``λ_min < (1 − slack)·floor``, ``floor = max(abs,
+                      rel·λ_max)``, rebuild
                       ``V max(Λ, floor) Vᵀ`` (symmetrised); non-finite matrices are left alone (the divergence check
                       catches them);
 * ``cholesky_lower``  ``L Lᵀ = A``; returns False where a pivot is not positive (numpy's LinAlgError);
@@ -24,6 +25,7 @@ import math
 
 import numpy as np
 
+from ..estimators.safety import REPAIR_SLACK
 from .jit import kernel
 
 EPS = float(np.finfo(float).eps)
@@ -134,7 +136,7 @@ def repair_psd(P, n, abs_floor, rel_floor, w, V, work):
         lo = min(lo, w[a])
         hi = max(hi, w[a])
     floor = max(abs_floor, rel_floor * abs(hi))
-    if not lo < floor:
+    if not lo < (1.0 - REPAIR_SLACK) * floor:
         return False
     for a in range(n):
         if w[a] < floor:

@@ -43,7 +43,7 @@ import numpy as np
 FAMILIES = {"rc_network": 1, "improved_rc": 2, "static_terms": 3, "tremblay": 4, "esc": 5}
 #: effects: Effect.name -> code (one compiled hook set each in evaluate.py)
 EFFECT_CODES = {"temperature": 1, "hysteresis": 2, "capacity": 3, "current_bias": 4, "extra_rc": 5,
-                "butler_volmer": 6, "coulombic_efficiency": 7, "self_discharge": 8}
+                "butler_volmer": 6, "coulombic_efficiency": 7, "self_discharge": 8, "r0_offset": 9}
 #: static-term models: sub code of the static_terms family
 STATIC_TERMS = {"shepherd": 1, "unnewehr": 2, "nernst": 3, "fang": 4, "tremblay1": 5, "plett": 6}
 

@@ -36,18 +36,21 @@ TEMPER_ITERS = 24
 # ================================================================================================ random numbers
 @kernel
 def prefix(seed, stream, k, r):
-    """``A(A(A(seed, stream), k), r)`` (draws.prefix for one run)."""
-    return absorb(absorb(absorb(seed, np.uint64(stream)), np.uint64(k)), np.uint64(r))
+    """``A(A(A(seed, stream), k), r)`` (draws.prefix for one run). Every hash argument is cast to uint64: numba
+    computes int64 ⊕ uint64 in float64."""
+    return absorb(absorb(absorb(np.uint64(seed), np.uint64(stream)), np.uint64(k)), np.uint64(r))
 
 
 @kernel
 def uniform0(pre):
     """The uniform at counter 0 of a prefix (draws.uniforms)."""
-    return float(absorb(pre, np.uint64(0)) >> D.S11) * D.TWO_M53
+    return float(absorb(np.uint64(pre), np.uint64(0)) >> D.S11) * D.TWO_M53
 
 
 @kernel
 def normal(pre, c):
+    """The standard normal at counter ``c`` of a prefix (draws.normals: Box–Muller)."""
+    pre = np.uint64(pre)
     u1 = float((absorb(pre, np.uint64(2 * c)) >> D.S11) + D.ONE) * D.TWO_M53
     u2 = float(absorb(pre, np.uint64(2 * c + 1)) >> D.S11) * D.TWO_M53
     return math.sqrt(-2.0 * math.log(u1)) * math.cos(D.TWO_PI * u2)

@@ -353,6 +353,9 @@ class ResistanceOffset(Effect):
     def initial(self):
         return self["dR0"][..., None]
 
+    def kernel_values(self, base):
+        return ()
+
     def advance(self, e, z, i, dt, temp, base, jac):
         if not jac:
             return e, None, None, None
