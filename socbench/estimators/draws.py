@@ -10,8 +10,8 @@ with ``mix64`` the splitmix64 finaliser (Steele, Lea & Flood 2014: multiply–xo
 ``γ = 0x9E3779B97F4A7C15`` (the golden-ratio increment); all arithmetic modulo 2⁶⁴. From a hash::
 
     uniform [0, 1)    u = ⌊h / 2¹¹⌋ · 2⁻⁵³
-    normal            Box–Muller: u₁ = (⌊h(2c) / 2¹¹⌋ + 1)·2⁻⁵³ ∈ (0, 1], u₂ = ⌊h(2c + 1) / 2¹¹⌋·2⁻⁵³,
-                      ε = √(−2 ln u₁) · cos(2π u₂)
+    normal            Box–Muller on pairs: counters 2q and 2q + 1 share u₁ = (⌊h(2q) / 2¹¹⌋ + 1)·2⁻⁵³ ∈ (0, 1] and
+                      u₂ = ⌊h(2q + 1) / 2¹¹⌋·2⁻⁵³: ε_2q = √(−2 ln u₁)·cos(2π u₂), ε_2q+1 = √(−2 ln u₁)·sin(2π u₂)
 
 :func:`absorb` is the one primitive: written with operators only, it runs on numpy ``uint64`` arrays here and is
 compiled as is by :mod:`socbench.kernels.pf` (the two implementations of the few lines that compose it are checked
@@ -63,12 +63,17 @@ def uniforms(pre: np.ndarray, count: int) -> np.ndarray:
 
 
 def normals(pre: np.ndarray, count: int) -> np.ndarray:
-    """``(R, count)`` standard normals at counters ``0 … count − 1`` of each prefix (Box–Muller)."""
-    c = np.arange(count, dtype=np.uint64) * np.uint64(2)
+    """``(R, count)`` standard normals at counters ``0 … count − 1`` of each prefix (Box–Muller on pairs)."""
+    q = np.arange((count + 1) // 2, dtype=np.uint64) * np.uint64(2)
     p = pre[:, None]
-    u1 = ((absorb(p, c) >> S11) + ONE).astype(np.float64) * TWO_M53
-    u2 = (absorb(p, c + ONE) >> S11).astype(np.float64) * TWO_M53
-    return np.sqrt(-2.0 * np.log(u1)) * np.cos(TWO_PI * u2)
+    u1 = ((absorb(p, q) >> S11) + ONE).astype(np.float64) * TWO_M53
+    u2 = (absorb(p, q + ONE) >> S11).astype(np.float64) * TWO_M53
+    rho = np.sqrt(-2.0 * np.log(u1))
+    theta = TWO_PI * u2
+    out = np.empty((pre.shape[0], 2 * q.size))
+    out[:, 0::2] = rho * np.cos(theta)
+    out[:, 1::2] = rho * np.sin(theta)
+    return out[:, :count]
 
 
 class StepDraws:

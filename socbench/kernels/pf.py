@@ -49,52 +49,62 @@ def uniform0(pre):
 
 @kernel
 def normal(pre, c):
-    """The standard normal at counter ``c`` of a prefix (draws.normals: Box–Muller)."""
+    """The standard normal at counter ``c`` of a prefix (draws.normals: Box–Muller on the pair ⌊c/2⌋)."""
     pre = np.uint64(pre)
-    u1 = float((absorb(pre, np.uint64(2 * c)) >> D.S11) + D.ONE) * D.TWO_M53
-    u2 = float(absorb(pre, np.uint64(2 * c + 1)) >> D.S11) * D.TWO_M53
-    return math.sqrt(-2.0 * math.log(u1)) * math.cos(D.TWO_PI * u2)
-
-
-# ================================================================================================ PF pieces
-@kernel(inline=True)
-def normalise_log(lw, N):
-    mx = lw[0]
-    for p in range(1, N):
-        if lw[p] > mx:
-            mx = lw[p]
-    s = 0.0
-    for p in range(N):
-        lw[p] = lw[p] - mx
-        s += math.exp(lw[p])
-    ls = math.log(s)
-    for p in range(N):
-        lw[p] = lw[p] - ls
+    q = 2 * (c // 2)
+    u1 = float((absorb(pre, np.uint64(q)) >> D.S11) + D.ONE) * D.TWO_M53
+    u2 = float(absorb(pre, np.uint64(q + 1)) >> D.S11) * D.TWO_M53
+    rho = math.sqrt(-2.0 * math.log(u1))
+    return rho * math.cos(D.TWO_PI * u2) if c % 2 == 0 else rho * math.sin(D.TWO_PI * u2)
 
 
 @kernel
-def ess_of(lw, ll, phi, N, tmp):
-    """ESS of ``normalise_log(lw + φ·ll)`` (``tmp``: scratch)."""
+def normals_into(pre, out, count):
+    """``out[0 … count − 1]``: the normals at counters ``0 … count − 1`` of a prefix, a Box–Muller pair at a time."""
+    pre = np.uint64(pre)
+    for q in range(0, count, 2):
+        u1 = float((absorb(pre, np.uint64(q)) >> D.S11) + D.ONE) * D.TWO_M53
+        u2 = float(absorb(pre, np.uint64(q + 1)) >> D.S11) * D.TWO_M53
+        rho = math.sqrt(-2.0 * math.log(u1))
+        theta = D.TWO_PI * u2
+        out[q] = rho * math.cos(theta)
+        if q + 1 < count:
+            out[q + 1] = rho * math.sin(theta)
+
+
+# ================================================================================================ PF pieces
+@kernel
+def exp_weights(lw, ll, phi, N, e):
+    """``a = lw + φ·ll``: ``e_p = exp(a_p − max a)`` into ``e``; returns ``(max a, Σe, Σe²)``.
+
+    One exponential per particle gives both the normalised weights ``w = e/Σe`` (pf.normalise_log) and the effective
+    sample size ``1/Σw² = (Σe)²/Σe²`` (pf.ess), to rounding.
+    """
+    m = lw[0] + phi * ll[0]
+    for p in range(1, N):
+        a = lw[p] + phi * ll[p]
+        if a > m:
+            m = a
+    s1 = 0.0
+    s2 = 0.0
     for p in range(N):
-        tmp[p] = lw[p] + phi * ll[p]
-    normalise_log(tmp, N)
-    s = 0.0
-    for p in range(N):
-        s += math.exp(2.0 * tmp[p])
-    return 1.0 / s
+        v = math.exp((lw[p] + phi * ll[p]) - m)
+        e[p] = v
+        s1 += v
+        s2 += v * v
+    return m, s1, s2
 
 
 @kernel(inline=True)
-def temper_exponent(lw, ll, phi_max, accept, target, N, tmp):
-    """pf.temper_exponent for one run."""
-    lwp, llp, tp = ptr(lw), ptr(ll), ptr(tmp)
-    if not ess_of(lwp, llp, phi_max, N, tp) < accept:
-        return phi_max
+def temper_bisect(lw, ll, phi_max, target, N, e):
+    """pf.temper_exponent's bisection: the largest ``φ`` with ``ESS(lw + φ·ll) ≥ target`` (at least
+    ``phi_max/2^24``)."""
     lo = 0.0
     hi = phi_max
     for _ in range(TEMPER_ITERS):
         mid = 0.5 * (lo + hi)
-        if ess_of(lwp, llp, mid, N, tp) >= target:
+        _, s1, s2 = exp_weights(lw, ll, mid, N, e)
+        if s1 * s1 / s2 >= target:
             lo = mid
         else:
             hi = mid
@@ -152,16 +162,15 @@ def resample_into(X, idx, N, n, Xr):
 
 
 @kernel(inline=True)
-def shrink_with(Xr, mean, root, h, pre, N, n, X, eps):
-    """``X = a·Xr + (1 − a)·mean + h·root·ε`` (pf.shrink), ε from the stream prefix ``pre`` (``eps``: scratch)."""
+def shrink_with(Xr, mean, root, h, pre, N, n, X, E):
+    """``X = a·Xr + (1 − a)·mean + h·root·ε`` (pf.shrink), ε from the stream prefix ``pre`` (``E``: N·n scratch)."""
     a_ = math.sqrt(1.0 - h * h)
+    normals_into(pre, E, N * n)
     for p in range(N):
-        for d in range(n):
-            eps[d] = normal(pre, p * n + d)
         for a in range(n):
             s = 0.0
             for d in range(n):
-                s += root[a, d] * eps[d]
+                s += root[a, d] * E[p * n + d]
             X[p, a] = a_ * Xr[p, a] + (1.0 - a_) * mean[a] + h * s
 
 
@@ -232,7 +241,8 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
     var = np.empty(n)
     mean_r = np.empty(n)
     ev = np.empty(n)
-    eps = np.empty(n)
+    E = np.empty(N * n)  # normals of one stream
+    Ei = np.empty(N)  # the current-noise normals
     F = np.empty((n, n))
     root = np.empty((n, n))
     Vm = np.empty((n, n))
@@ -241,14 +251,12 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
     scratch = np.empty(WORK_SIZE)
     imp, fmp, Hp, xnp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(H), ptr(xn), ptr(Bv), ptr(F), ptr(scratch)
     for r in range(r0, r1):
-        pre = prefix(seed, stream_initial, stream_initial, r)  # stream 0, sample 0
+        normals_into(prefix(seed, stream_initial, stream_initial, r), E, N * n)  # stream 0, sample 0
         for p in range(N):
-            for d in range(n):
-                eps[d] = normal(pre, p * n + d)
             for a in range(n):
                 s = 0.0
                 for d in range(n):
-                    s += L0[r, a, d] * eps[d]
+                    s += L0[r, a, d] * E[p * n + d]
                 X[p, a] = x0[r, a] + s
         pending_clamp = clamp_particles(X, N)
         for p in range(N):
@@ -281,15 +289,18 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                 lw[p] = math.log(w[p])
             left = 0.0 if gated else 1.0
             stages = 0
+            s1 = 0.0
             for s_ in range(max_stages):
                 if not left > 0.0:
                     break
                 phi = left
-                if s_ != max_stages - 1:
-                    phi = temper_exponent(lw, ll, left, accept, target, N, tmp)
+                m, s1, s2 = exp_weights(lw, ll, phi, N, tmp)
+                if s_ != max_stages - 1 and s1 * s1 / s2 < accept:  # the whole likelihood would collapse the cloud
+                    phi = temper_bisect(lw, ll, left, target, N, tmp)
+                    m, s1, s2 = exp_weights(lw, ll, phi, N, tmp)
+                ls = math.log(s1)
                 for p in range(N):
-                    lw[p] = lw[p] + phi * ll[p]
-                normalise_log(lw, N)
+                    lw[p] = ((lw[p] + phi * ll[p]) - m) - ls
                 left = left - phi
                 stages += 1
                 if left > 0.0:
@@ -299,7 +310,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                     systematic(w, uniform0(prefix(seed, D.STAGE + 2 * s_, k, r)), N, cum, idx)
                     resample_into(X, idx, N, n, Xr)
                     shrink_with(Xr, mean_r, root, pfopt[TEMPER_H], prefix(seed, D.STAGE + 2 * s_ + 1, k, r), N, n, X,
-                                eps)
+                                E)
                     clamp_particles(X, N)
                     for p in range(N):
                         lw[p] = -math.log(N)
@@ -309,8 +320,12 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
             if st != 0:
                 status[r] = st
                 break
-            for p in range(N):
-                w[p] = math.exp(lw[p])
+            if stages == 0:
+                for p in range(N):
+                    w[p] = math.exp(lw[p])
+            else:  # the last normalisation's exponentials: w = exp(lw) to rounding
+                for p in range(N):
+                    w[p] = tmp[p] / s1
             if stages > 1:
                 counts[r, 1] += 1
             for a in range(n):
@@ -347,7 +362,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                 counts[r, 0] += 1
                 pre = prefix(seed, stream_roughen, k, r)
                 if h > 0.0:
-                    shrink_with(Xr, mean_r, root, h, pre, N, n, X, eps)
+                    shrink_with(Xr, mean_r, root, h, pre, N, n, X, E)
                 else:
                     if K_rough > 0.0:
                         for a in range(n):  # roughening_sd: K (max − min) N^(−1/d), on the resampled cloud
@@ -357,18 +372,21 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                                 lo = min(lo, Xr[p, a])
                                 hi = max(hi, Xr[p, a])
                             ev[a] = K_rough * (hi - lo) * pfopt[ROUGH_C]
+                        normals_into(pre, E, N * n)
                         for p in range(N):
                             for a in range(n):
-                                Xr[p, a] += ev[a] * normal(pre, p * n + a)
+                                Xr[p, a] += ev[a] * E[p * n + a]
                     for p in range(N):
                         for a in range(n):
                             X[p, a] = Xr[p, a]
             # ---------------------------------------------------------------- predict
             dt = dts[k]
-            pre_i = prefix(seed, stream_current, k, r)
-            pre_q = prefix(seed, stream_additive, k, r)
+            if sd_i > 0.0:
+                normals_into(prefix(seed, stream_current, k, r), Ei, N)
+            if additive != ADD_NONE:
+                normals_into(prefix(seed, stream_additive, k, r), E, N * n)
             for p in range(N):
-                i_p = ik + sd_i * normal(pre_i, p) if sd_i > 0.0 else ik
+                i_p = ik + sd_i * Ei[p] if sd_i > 0.0 else ik
                 st = model_step(imp, fmp, ptr_at(X, p * n), i_p, dt, tk, has_temp, jac, xnp, Fp, Bp, sp)
                 if st != 0:
                     break
@@ -376,14 +394,12 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                     X[p, a] = xn[a]
                 if additive == ADD_WALK:
                     for a in range(n):
-                        X[p, a] += math.sqrt(walk[a] * (dt / nz[DT0])) * normal(pre_q, p * n + a)
+                        X[p, a] += math.sqrt(walk[a] * (dt / nz[DT0])) * E[p * n + a]
                 elif additive == ADD_ROOT:
-                    for d in range(n):
-                        eps[d] = normal(pre_q, p * n + d)
                     for a in range(n):
                         s = 0.0
                         for d in range(n):
-                            s += Qroot[a, d] * eps[d]
+                            s += Qroot[a, d] * E[p * n + d]
                         X[p, a] += s
             if st != 0:
                 status[r] = st
