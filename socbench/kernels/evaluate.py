@@ -277,8 +277,9 @@ def floor0(p, dp, lower):
 
 
 @kernel(inline=True)
-def rc_coef(R, dR, C, dC, dt):
-    """B2 ``(a, b, a_z, b_z)`` of one branch, robust mode (R floored at 0, C at C_FLOOR where τ ≤ 0)."""
+def rc_coef(R, dR, C, dC, dt, jac):
+    """B2 ``(a, b, a_z, b_z)`` of one branch, robust mode (R floored at 0, C at C_FLOOR where τ ≤ 0); ``a_z = b_z = 0``
+    unless ``jac``."""
     if R < 0.0 or C <= 0.0:
         if R < 0.0:
             R = R_FLOOR
@@ -291,6 +292,8 @@ def rc_coef(R, dR, C, dC, dt):
         return 0.0, R, 0.0, dR
     em = math.expm1(-dt / tau)
     a = em + 1.0
+    if not jac:
+        return a, -R * em, 0.0, 0.0
     a_z = a * dt * (dR * C + R * dC) / (tau * tau)
     return a, -R * em, a_z, dR * (1.0 - a) - R * a_z
 
@@ -462,7 +465,7 @@ def _rc_step(im, fm, x, i, dt, t, jac, xn, F, B, work):
             B[1] = g
     for j in range(n):
         a, b, a_z, b_z = rc_coef(work[W_VAL + 1 + j], work[W_DER + 1 + j], work[W_VAL + 1 + n + j],
-                                 work[W_DER + 1 + n + j], dt)
+                                 work[W_DER + 1 + n + j], dt, jac)
         c = first + j
         u = x[c]
         xn[c] = a * u + b * i
@@ -827,7 +830,7 @@ def model_step(im, fm, x, i, dt, temp, has_temp, jac, xn, F, B, work):
             if jac:
                 F[s0 * nn + s0] = 1.0
         elif code == 5:  # extra RC [R, C]
-            a, b, _, _ = rc_coef(fm[v], 0.0, fm[v + 1], 0.0, dt)
+            a, b, _, _ = rc_coef(fm[v], 0.0, fm[v + 1], 0.0, dt, jac)
             xn[s0] = a * x[s0] + b * ie
             if jac:
                 F[s0 * nn + s0] = a

@@ -261,6 +261,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
         pending_clamp = clamp_particles(X, N)
         for p in range(N):
             w[p] = 1.0 / N
+            lw[p] = math.log(w[p])  # the log-weights are carried from sample to sample (numpy takes log(w) anew)
         consecutive = np.int64(0)
         for k in range(T):
             ik = cur[r, k]
@@ -285,8 +286,6 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
             nis = e * e / S
             gated, consecutive = gate(nis, opt[0], consecutive, opt[1])
             # tempered assimilation (pf.ParticleFilter.assimilate)
-            for p in range(N):
-                lw[p] = math.log(w[p])
             left = 0.0 if gated else 1.0
             stages = 0
             s1 = 0.0
@@ -320,10 +319,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
             if st != 0:
                 status[r] = st
                 break
-            if stages == 0:
-                for p in range(N):
-                    w[p] = math.exp(lw[p])
-            else:  # the last normalisation's exponentials: w = exp(lw) to rounding
+            if stages > 0:  # the last normalisation's exponentials: w = exp(lw) to rounding
                 for p in range(N):
                     w[p] = tmp[p] / s1
             if stages > 1:
@@ -359,6 +355,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                 resample_into(X, idx, N, n, Xr)
                 for p in range(N):
                     w[p] = 1.0 / N
+                    lw[p] = math.log(w[p])
                 counts[r, 0] += 1
                 pre = prefix(seed, stream_roughen, k, r)
                 if h > 0.0:
