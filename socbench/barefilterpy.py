@@ -1,8 +1,9 @@
 """The yardstick of ``socbench bench``: the filters as a filterpy user writes them, with no socbench code in the loop.
 
-A hand-written dual-polarisation (2RC, 3-state) model — the paper's DP parameters (6th-degree polynomials in SOC,
-``np.polyval``) on an OCV curve (``scipy.interpolate.PchipInterpolator`` through the same rest points, its derivative,
-linear beyond the rest points) — in a plain per-run loop:
+A hand-written dual-polarisation (2RC, 3-state) model — the paper's DP parameters (6th-degree polynomials in SOC, by
+Horner in plain Python on one state, ``np.polyval`` on a particle cloud) on an OCV curve
+(``scipy.interpolate.PchipInterpolator`` through the same rest points, its derivative, linear beyond the rest points)
+— in a plain per-run loop:
 
 * :func:`bare_ekf`  ``filterpy.kalman.ExtendedKalmanFilter``: hand-coded ``h, H`` passed to ``update`` and a
   ``predict_x`` that applies ``f`` and sets ``F, Q`` (one update + one predict per sample);
@@ -35,7 +36,7 @@ class BareDP:
         self.q = float(capacity_ah)
         self.eta = float(eta_charge)
         self.c = {k: np.asarray(coeffs[k], dtype=float) for k in ("R0", "R1", "C1", "R2", "C2")}
-        self.dc = {k: np.polyder(v) for k, v in self.c.items()}
+        self.cl = {k: [float(c) for c in v] for k, v in self.c.items()}  # plain floats for the scalar Horner
         self.ocv = PchipInterpolator(ocv_soc, ocv_voltage, extrapolate=False)
         self.docv = self.ocv.derivative()
         self.z_lo, self.z_hi = float(ocv_soc[0]), float(ocv_soc[-1])
@@ -50,10 +51,14 @@ class BareDP:
 
     # ---------------------------------------------------------------- one state (EKF, UKF)
     def p(self, name, z):
-        """Parameter and its z-derivative (the polynomial on z clipped to [0, 1], flat outside)."""
+        """Parameter and its z-derivative (the polynomial on z clipped to [0, 1], flat outside), Horner."""
         zp = min(max(z, 0.0), 1.0)
-        d = float(np.polyval(self.dc[name], zp)) if 0.0 <= z <= 1.0 else 0.0
-        return float(np.polyval(self.c[name], zp)), d
+        c = self.cl[name]
+        v, d = c[0], 0.0
+        for cj in c[1:]:
+            d = d * zp + v
+            v = v * zp + cj
+        return v, (d if 0.0 <= z <= 1.0 else 0.0)
 
     def u(self, z):
         if z < self.z_lo:
@@ -137,8 +142,8 @@ def bare_ekf(model: BareDP, current, voltage, dt, soc0, P0, sigma_v, sigma_i) ->
     for k in range(T):
         i = current[k]
         r0 = model.p("R0", ekf.x[0, 0])[0]
-        ekf.update(voltage[k], HJacobian=lambda x, i=i: model.h(x[:, 0], i)[1],
-                   Hx=lambda x, i=i: model.h(x[:, 0], i)[0], R=sigma_v**2 + sigma_i**2 * r0 * r0)
+        ekf.update(np.array([[voltage[k]]]), HJacobian=lambda x, i=i: model.h(x[:, 0], i)[1],
+                   Hx=lambda x, i=i: np.array([[model.h(x[:, 0], i)[0]]]), R=sigma_v**2 + sigma_i**2 * r0 * r0)
         soc[k] = ekf.x[0, 0]
         if k + 1 < T:
             ekf.predict(u=(i, dt[k]))

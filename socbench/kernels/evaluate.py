@@ -245,7 +245,7 @@ def _pchip(im, fm, rec, z):
     return v, dv
 
 
-@kernel
+@kernel(inline=True)
 def ocv_eval(im, fm, z, t):
     """``(U_oc(z, t), dU_oc/dz)`` of the model's OCV record."""
     rec = im[H_OCV]
@@ -429,7 +429,7 @@ def coupled_rc(Re, dRe, Rc, dRc, Ce, dCe, Cc, dCc, dt, out):
 # ================================================================================================ families
 # Each family's step and output read their parameters from ``work``: model_step and model_output evaluate the range
 # the family declared (KernelSpec.step / .output) once, in one loop (one call site of soc_fn), before calling it.
-@kernel
+@kernel(inline=True)
 def load_params(im, fm, z, t, j0, j1, work):
     """Parameters ``j0 … j1 − 1`` of the family's list at ``(z, t)``: values into ``work[W_VAL + j]``, z-derivatives
     into ``work[W_DER + j]``."""
@@ -712,7 +712,7 @@ def _esc_output(im, fm, x, i, u, du, t, jac, H, work):
 
 
 # ---------------------------------------------------------------------------------------- family dispatch
-@kernel
+@kernel(inline=True)
 def base_step(im, fm, x, i, dt, t, jac, xn, F, B, work):
     """The base model's step on ``x[:nb]``: B1 for the SOC, then the family's other states (``F, B`` pre-zeroed)."""
     nn = im[H_N]  # row length of F
@@ -733,7 +733,7 @@ def base_step(im, fm, x, i, dt, t, jac, xn, F, B, work):
     return 0  # static_terms: SOC only
 
 
-@kernel
+@kernel(inline=True)
 def base_output(im, fm, x, i, u, du, t, jac, H, work):
     """The base model's output with ``(u, du)`` its OCV and slope at ``x[0]``."""
     fam = im[H_FAMILY]
