@@ -141,9 +141,12 @@ class Estimator:
         """``(lowered model or None, why not compiled)`` under this estimator's ``engine`` option."""
         if self.options["engine"] == "numpy":
             return None, "engine='numpy'"
-        from ..kernels.engine import plan
+        cached = self.__dict__.get("_engine_plan")
+        if cached is None:  # the model and options are fixed at construction: lower once
+            from ..kernels.engine import plan
 
-        lowered, why = plan(self)
+            cached = self._engine_plan = plan(self)
+        lowered, why = cached
         if lowered is None and self.options["engine"] == "compiled":
             raise ConfigError(f"{self.name}: engine='compiled' is not available: {why}")
         return lowered, why

@@ -118,8 +118,9 @@ class Job:
 
     @property
     def out_args(self) -> tuple:
-        return (self.outf, self.outb, self.xs, self.pd, self.store, self.failed, self.failed_at, self.status,
-                self.repairs)
+        # the flags as bytes: a compiled function stores into them through a pointer (kernels.filters.record)
+        return (self.outf, self.outb.view(np.uint8), self.xs, self.pd, self.store, self.failed, self.failed_at,
+                self.status, self.repairs)
 
     def finish(self, info: dict):
         """The :class:`Estimate`, or None when a run met a condition only the numpy engine reports (its status)."""

@@ -87,6 +87,15 @@ def ptr(typingctx, arr):
 
 
 @intrinsic
+def ptr_off(typingctx, p, k):
+    """``p + k``: a pointer ``k`` elements further."""
+    def codegen(context, builder, sig, args):
+        return builder.gep(args[0], [args[1]])
+
+    return p(p, k), codegen
+
+
+@intrinsic
 def ptr_at(typingctx, arr, k):
     """Pointer to element ``k`` (flat, C order) of a C-contiguous array."""
     def codegen(context, builder, sig, args):

@@ -17,9 +17,10 @@ Shared arguments (built by :mod:`socbench.kernels.engine`):
                  ``Qo (n, n)`` a constant Q override (used when ``nz[Q_OVR] = 1``);
 * ``opt``        safety options (:data:`OPTION_FIELDS`);
 * outputs        ``outf (5, R, T)``: soc, soc_std, v_pred, innovation, innovation_var; ``outb (2, R, T)``: clamped,
-                 gated; ``xs, pd (R, T, n)`` when ``store``; ``failed (R,)``, ``failed_at (R,)``, ``status (R,)``
-                 (1: the model met a condition where numpy raises — the caller reruns the batch with numpy),
-                 ``repairs (R,)`` the covariances the PSD repair acted on (``Estimate.info["psd_repairs"]``).
+                 gated (the bytes of a bool array); ``xs, pd (R, T, n)`` when ``store``; ``failed (R,)``,
+                 ``failed_at (R,)``; ``status (R,)``: 1 where the model met a condition where numpy raises (the caller
+                 reruns the batch with numpy); ``repairs (R,)``: covariances the PSD repair acted on
+                 (``Estimate.info["psd_repairs"]``).
 
 Noise (:mod:`socbench.estimators.noise`): ``R_k = σ_V² + σ_in²·D_k²`` (or the override), ``Q_k = σ_in²·B_k B_kᵀ +
 diag(walk)·dt_k/dt0`` (or the override matrix).
@@ -44,9 +45,11 @@ G_THR, G_REL, VAR_MAX, NIS_MAX, PSD_ABS, PSD_REL = range(6)
 
 
 # ================================================================================================ shared pieces
+# Helpers called inside a time loop take pointers (evaluate.ptr), never arrays: an array argument is reference-counted
+# with atomic operations on every call, even of an inlined function (~10 ns per array).
 @kernel(inline=True)
 def measurement_var(nz, D):
-    """``R_k`` (noise.NoiseModel.R)."""
+    """``R_k`` (noise.NoiseModel.R); ``nz`` a pointer to the noise numbers."""
     if nz[R_OVR] == nz[R_OVR]:  # an override (NaN: none)
         return nz[R_OVR]
     return nz[V_VAR] + nz[IN_VAR] * D * D
@@ -54,50 +57,52 @@ def measurement_var(nz, D):
 
 @kernel(inline=True)
 def process_cov(nz, walk, Qo, B, n, dt, var, Q):
-    """``Q_k`` into ``Q`` (noise.SensorNoise.process_cov with input variance ``var``, or the override)."""
+    """``Q_k`` into ``Q`` (n × n) (noise.SensorNoise.process_cov with input variance ``var``, or the override)."""
     if nz[Q_OVR] != 0.0:
-        for a in range(n):
-            for b in range(n):
-                Q[a, b] = Qo[a, b]
+        for a in range(n * n):
+            Q[a] = Qo[a]
         return
     for a in range(n):
         for b in range(n):
-            Q[a, b] = var * B[a] * B[b]
+            Q[a * n + b] = var * B[a] * B[b]
     if nz[HAS_WALK] != 0.0:
         for a in range(n):
-            Q[a, a] += walk[a] * (dt / nz[DT0])
+            Q[a * n + a] += walk[a] * (dt / nz[DT0])
 
 
 @kernel(inline=True)
 def propagate(F, P, Q, n, FP):
-    """``P ← F P Fᵀ + Q`` (``FP``: scratch)."""
+    """``P ← F P Fᵀ + Q`` (all n × n; ``FP``: scratch)."""
     for a in range(n):
         for b in range(n):
             s = 0.0
             for c in range(n):
-                s += F[a, c] * P[c, b]
-            FP[a, b] = s
+                s += F[a * n + c] * P[c * n + b]
+            FP[a * n + b] = s
     for a in range(n):
         for b in range(n):
             s = 0.0
             for c in range(n):
-                s += FP[a, c] * F[b, c]
-            P[a, b] = s + Q[a, b]
+                s += FP[a * n + c] * F[b * n + c]
+            P[a * n + b] = s + Q[a * n + b]
 
 
 @kernel(inline=True)
-def record(outf, outb, xs, pd, store, r, k, soc, std, v_pred, e, S, clamped, gated, x, diag, n):
-    outf[0, r, k] = soc
-    outf[1, r, k] = std
-    outf[2, r, k] = v_pred
-    outf[3, r, k] = e
-    outf[4, r, k] = S
-    outb[0, r, k] = clamped
-    outb[1, r, k] = gated
+def record(outf, outb, xs, pd, store, R, T, r, k, soc, std, v_pred, e, S, clamped, gated, x, diag, n):
+    """Sample ``k`` of run ``r`` into the outputs (pointers to ``outf (5, R, T)``, ``outb (2, R, T)``, ``xs, pd
+    (R, T, n)``)."""
+    rk = r * T + k
+    outf[rk] = soc
+    outf[R * T + rk] = std
+    outf[2 * R * T + rk] = v_pred
+    outf[3 * R * T + rk] = e
+    outf[4 * R * T + rk] = S
+    outb[rk] = 1 if clamped else 0  # outb: uint8 (the flags' bytes)
+    outb[R * T + rk] = 1 if gated else 0
     if store:
         for a in range(n):
-            xs[r, k, a] = x[a]
-            pd[r, k, a] = diag[a]
+            xs[rk * n + a] = x[a]
+            pd[rk * n + a] = diag[a]
 
 
 @kernel
@@ -123,8 +128,8 @@ def freeze(outf, outb, xs, pd, store, r, kf, T, n, soc0, std0, v0):
                 for a in range(n):
                     xs[r, k, a] = xs[r, k - 1, a]
                     pd[r, k, a] = pd[r, k - 1, a]
-        outb[0, r, k] = False
-        outb[1, r, k] = False
+        outb[0, r, k] = 0
+        outb[1, r, k] = 0
 
 
 @kernel(inline=True)
@@ -141,12 +146,11 @@ def clamp_soc(x):
 @kernel(inline=True)
 def settle(x, P, n, nis, opt, w, V, work):
     """The update's safety tail (``estimators.base.settle_update``) up to recording: ``(clamped, failed,
-    repaired)``."""
-    Pp = ptr(P)
-    symmetrise(Pp, n)
-    repaired = repair_psd(Pp, n, opt[PSD_ABS], opt[PSD_REL], ptr(w), ptr(V), ptr(work))
+    repaired)`` (pointers: ``x``, ``P`` n × n, ``opt``, scratch ``w``, ``V``, ``work``)."""
+    symmetrise(P, n)
+    repaired = repair_psd(P, n, opt[PSD_ABS], opt[PSD_REL], w, V, work)
     clamped = clamp_soc(x)
-    return clamped, diverged_cov(x, n, Pp, nis, opt[VAR_MAX], opt[NIS_MAX]), repaired
+    return clamped, diverged_cov(x, n, P, nis, opt[VAR_MAX], opt[NIS_MAX]), repaired
 
 
 @kernel(inline=True)
@@ -181,6 +185,10 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
     work = np.empty((n, n))
     scratch = np.empty(WORK_SIZE)
     imp, fmp, xp, xnp, Hp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(x), ptr(xn), ptr(H), ptr(B), ptr(F), ptr(scratch)
+    Pp, Qp, Mp, Vp, wp, workp = ptr(P), ptr(Q), ptr(M), ptr(V), ptr(w), ptr(work)
+    nzp, walkp, Qop, optp = ptr(nz), ptr(walk), ptr(Qo), ptr(opt)
+    outfp, outbp, xsp, pdp = ptr(outf), ptr(outb), ptr(xs), ptr(pd)
+    R_all = outf.shape[1]
     for r in range(r0, r1):
         load_run(x0, P0, r, n, x, P)
         consecutive = np.int64(0)
@@ -192,7 +200,7 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             if st != 0:
                 status[r] = st
                 break
-            Rk = measurement_var(nz, D)
+            Rk = measurement_var(nzp, D)
             S = 0.0
             for a in range(n):
                 s = 0.0
@@ -222,7 +230,7 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                     for c in range(n):
                         s += M[a, c] * A[b, c]
                     P[a, b] = s + Rk * (K[a] * K[b])
-            clamped, bad, repaired = settle(x, P, n, nis, opt, w, V, work)
+            clamped, bad, repaired = settle(xp, Pp, n, nis, optp, wp, Vp, workp)
             if repaired:
                 repairs[r] += 1
             if bad:
@@ -232,7 +240,8 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                 break
             for a in range(n):
                 w[a] = P[a, a]
-            record(outf, outb, xs, pd, store, r, k, x[0], math.sqrt(P[0, 0]), y, e, S, clamped, gated, x, w, n)
+            record(outfp, outbp, xsp, pdp, store, R_all, T, r, k, x[0], math.sqrt(P[0, 0]), y, e, S, clamped, gated,
+                   xp, wp, n)
             if k + 1 == T:
                 break
             # ---------------------------------------------------------------- predict
@@ -242,10 +251,10 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                 break
             for a in range(n):
                 x[a] = xn[a]
-            process_cov(nz, walk, Qo, B, n, dts[k], nz[IN_VAR], Q)
-            propagate(F, P, Q, n, M)
-            symmetrise(ptr(P), n)
-            if diverged_cov(x, n, ptr(P), 0.0, np.inf, np.inf):
+            process_cov(nzp, walkp, Qop, Bp, n, dts[k], nz[IN_VAR], Qp)
+            propagate(Fp, Pp, Qp, n, Mp)
+            symmetrise(Pp, n)
+            if diverged_cov(xp, n, Pp, 0.0, np.inf, np.inf):
                 failed[r] = True
                 failed_at[r] = k + 1
                 freeze(outf, outb, xs, pd, store, r, k + 1, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
@@ -256,20 +265,19 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
 @kernel(inline=True)
 def sigma_points(x, P, n, lam, X, L, M, w, V, work):
     """Merwe sigma points of ``(x, P)`` into ``X (2n + 1, n)`` (ukf.sigma_points: Cholesky of (n + λ)P, or the
-    symmetric square root when it fails)."""
-    for a in range(n):
-        for b in range(n):
-            M[a, b] = (n + lam) * P[a, b]
-    if not cholesky_lower(ptr(M), n, ptr(L)):
-        eigh_jacobi(ptr(M), n, ptr(w), ptr(V), ptr(work))
+    symmetric square root when it fails); all pointers, matrices row-major."""
+    for a in range(n * n):
+        M[a] = (n + lam) * P[a]
+    if not cholesky_lower(M, n, L):
+        eigh_jacobi(M, n, w, V, work)
         for a in range(n):
             for b in range(n):
-                L[a, b] = V[a, b] * math.sqrt(max(w[b], 0.0))
+                L[a * n + b] = V[a * n + b] * math.sqrt(max(w[b], 0.0))
     for a in range(n):
-        X[0, a] = x[a]
+        X[a] = x[a]
         for j in range(n):
-            X[1 + j, a] = x[a] + L[a, j]
-            X[n + 1 + j, a] = x[a] - L[a, j]
+            X[(1 + j) * n + a] = x[a] + L[a * n + j]
+            X[(n + 1 + j) * n + a] = x[a] - L[a * n + j]
 
 
 @kernel
@@ -297,6 +305,10 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
     work = np.empty((n, n))
     scratch = np.empty(WORK_SIZE)
     imp, fmp, Hp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(H), ptr(B), ptr(F), ptr(scratch)
+    xp, Pp, Xp, Lp, Mp, Qp, Vp, wp, workp = ptr(x), ptr(P), ptr(X), ptr(L), ptr(M), ptr(Q), ptr(V), ptr(w), ptr(work)
+    nzp, walkp, Qop, optp = ptr(nz), ptr(walk), ptr(Qo), ptr(opt)
+    outfp, outbp, xsp, pdp = ptr(outf), ptr(outb), ptr(xs), ptr(pd)
+    R_all = outf.shape[1]
     for r in range(r0, r1):
         load_run(x0, P0, r, n, x, P)
         consecutive = np.int64(0)
@@ -304,7 +316,7 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             ik = cur[r, k]
             tk = temp[r, k]
             # ---------------------------------------------------------------- update
-            sigma_points(x, P, n, lam, X, L, M, w, V, work)
+            sigma_points(xp, Pp, n, lam, Xp, Lp, Mp, wp, Vp, workp)
             D0 = 0.0
             st = 0
             for s in range(ns):
@@ -317,7 +329,7 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             if st != 0:
                 status[r] = st
                 break
-            Rk = measurement_var(nz, D0)
+            Rk = measurement_var(nzp, D0)
             yhat = 0.0
             for s in range(ns):
                 yhat += Y[s] * Wm[s]
@@ -339,7 +351,7 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             for a in range(n):
                 for b in range(n):
                     P[a, b] = P[a, b] - S * (K[a] * K[b])
-            clamped, bad, repaired = settle(x, P, n, nis, opt, w, V, work)
+            clamped, bad, repaired = settle(xp, Pp, n, nis, optp, wp, Vp, workp)
             if repaired:
                 repairs[r] += 1
             if bad:
@@ -349,11 +361,12 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                 break
             for a in range(n):
                 w[a] = P[a, a]
-            record(outf, outb, xs, pd, store, r, k, x[0], math.sqrt(P[0, 0]), yhat, e, S, clamped, gated, x, w, n)
+            record(outfp, outbp, xsp, pdp, store, R_all, T, r, k, x[0], math.sqrt(P[0, 0]), yhat, e, S, clamped,
+                   gated, xp, wp, n)
             if k + 1 == T:
                 break
             # ---------------------------------------------------------------- predict
-            sigma_points(x, P, n, lam, X, L, M, w, V, work)
+            sigma_points(xp, Pp, n, lam, Xp, Lp, Mp, wp, Vp, workp)
             for s in range(ns):
                 st = model_step(imp, fmp, ptr_at(X, s * n), ik, dts[k], tk, has_temp, needs_B and s == 0,
                                 ptr_at(Xf, s * n), Fp, Bp, sp)
@@ -362,7 +375,7 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             if st != 0:
                 status[r] = st
                 break
-            process_cov(nz, walk, Qo, B, n, dts[k], nz[IN_VAR], Q)
+            process_cov(nzp, walkp, Qop, Bp, n, dts[k], nz[IN_VAR], Qp)
             for a in range(n):
                 s_ = 0.0
                 for s in range(ns):
@@ -374,11 +387,10 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                     for s in range(ns):
                         s_ += (Xf[s, a] - x[a]) * Wc[s] * (Xf[s, b] - x[b])
                     P[a, b] = s_ + Q[a, b]
-            Pp = ptr(P)
             symmetrise(Pp, n)
-            if repair_psd(Pp, n, opt[PSD_ABS], opt[PSD_REL], ptr(w), ptr(V), ptr(work)):
+            if repair_psd(Pp, n, opt[PSD_ABS], opt[PSD_REL], wp, Vp, workp):
                 repairs[r] += 1
-            if diverged_cov(x, n, Pp, 0.0, np.inf, np.inf):
+            if diverged_cov(xp, n, Pp, 0.0, np.inf, np.inf):
                 failed[r] = True
                 failed_at[r] = k + 1
                 freeze(outf, outb, xs, pd, store, r, k + 1, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
@@ -405,6 +417,10 @@ def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo
     M = np.empty((n, n))
     scratch = np.empty(WORK_SIZE)
     imp, fmp, xp, xnp, Hp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(x), ptr(xn), ptr(H), ptr(B), ptr(F), ptr(scratch)
+    Pp, Qp, Mp, wp = ptr(P), ptr(Q), ptr(M), ptr(w)
+    nzp, walkp, Qop = ptr(nz), ptr(walk), ptr(Qo)
+    outfp, outbp, xsp, pdp = ptr(outf), ptr(outb), ptr(xs), ptr(pd)
+    R_all = outf.shape[1]
     for r in range(r0, r1):
         load_run(x0, P0, r, n, x, P)
         drift = 0.0
@@ -415,7 +431,7 @@ def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo
             if st != 0:
                 status[r] = st
                 break
-            Rk = measurement_var(nz, D)
+            Rk = measurement_var(nzp, D)
             S = 0.0
             for a in range(n):
                 s = 0.0
@@ -424,16 +440,17 @@ def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo
                 S += H[a] * s
             S = S + Rk
             e = volt[r, k] - y
-            clamped = clamp_soc(x)
+            clamped = clamp_soc(xp)
             var_z = P[0, 0] + nz[BIAS_VAR] * (drift * drift)
-            if diverged_var(x, n, var_z, 0.0, np.inf, np.inf):
+            if diverged_var(xp, n, var_z, 0.0, np.inf, np.inf):
                 failed[r] = True
                 failed_at[r] = k
                 freeze(outf, outb, xs, pd, store, r, k, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
                 break
             for a in range(n):
                 w[a] = P[a, a]
-            record(outf, outb, xs, pd, store, r, k, x[0], math.sqrt(var_z), y, e, S, clamped, never, x, w, n)
+            record(outfp, outbp, xsp, pdp, store, R_all, T, r, k, x[0], math.sqrt(var_z), y, e, S, clamped, never, xp,
+                   wp, n)
             if k + 1 == T:
                 break
             z = x[0]
@@ -446,6 +463,6 @@ def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo
                 x[a] = xn[a]
             x[0] = z + (xn[0] - z) * ratio
             drift -= B[0]
-            process_cov(nz, walk, Qo, B, n, dts[k], nz[CUR_VAR], Q)
-            propagate(F, P, Q, n, M)
-            symmetrise(ptr(P), n)
+            process_cov(nzp, walkp, Qop, Bp, n, dts[k], nz[CUR_VAR], Qp)
+            propagate(Fp, Pp, Qp, n, Mp)
+            symmetrise(Pp, n)

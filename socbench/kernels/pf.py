@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from ..estimators import draws as D
-from .evaluate import WORK_SIZE, model_output, model_step, ptr, ptr_at
+from .evaluate import WORK_SIZE, model_output, model_step, ptr, ptr_off
 from .filters import DT0, freeze, measurement_var, record
 from .jit import kernel
 from .linalg import diverged_var, eigh_jacobi, gate
@@ -73,6 +73,8 @@ def normals_into(pre, out, count):
 
 
 # ================================================================================================ PF pieces
+# Every helper takes pointers (evaluate.ptr; particle clouds row-major N × n): array arguments would be
+# reference-counted on every call.
 @kernel
 def exp_weights(lw, ll, phi, N, e):
     """``a = lw + φ·ll``: ``e_p = exp(a_p − max a)`` into ``e``; returns ``(max a, Σe, Σe²)``.
@@ -126,39 +128,39 @@ def systematic(w, u, N, cum, idx):
         idx[i] = j if j < N else N - 1
 
 
-@kernel(inline=True)
+@kernel
 def weighted_mean_root(X, w, N, n, mean, root, Vm, ev, U, work):
     """pf.weighted_mean_root: weighted mean and the symmetric square root of the weighted covariance."""
     for a in range(n):
         s = 0.0
         for p in range(N):
-            s += w[p] * X[p, a]
+            s += w[p] * X[p * n + a]
         mean[a] = s
     for a in range(n):
         for b in range(n):
             s = 0.0
             for p in range(N):
-                s += w[p] * (X[p, a] - mean[a]) * (X[p, b] - mean[b])
-            Vm[a, b] = s
+                s += w[p] * (X[p * n + a] - mean[a]) * (X[p * n + b] - mean[b])
+            Vm[a * n + b] = s
     for a in range(n):
         for b in range(a, n):
-            v = 0.5 * (Vm[a, b] + Vm[b, a])
-            Vm[a, b] = v
-            Vm[b, a] = v
-    eigh_jacobi(ptr(Vm), n, ptr(ev), ptr(U), ptr(work))
+            v = 0.5 * (Vm[a * n + b] + Vm[b * n + a])
+            Vm[a * n + b] = v
+            Vm[b * n + a] = v
+    eigh_jacobi(Vm, n, ev, U, work)
     for a in range(n):
         for b in range(n):
             s = 0.0
             for k in range(n):
-                s += U[a, k] * math.sqrt(max(ev[k], 0.0)) * U[b, k]
-            root[a, b] = s
+                s += U[a * n + k] * math.sqrt(max(ev[k], 0.0)) * U[b * n + k]
+            root[a * n + b] = s
 
 
 @kernel(inline=True)
 def resample_into(X, idx, N, n, Xr):
     for i in range(N):
         for a in range(n):
-            Xr[i, a] = X[idx[i], a]
+            Xr[i * n + a] = X[idx[i] * n + a]
 
 
 @kernel(inline=True)
@@ -170,28 +172,28 @@ def shrink_with(Xr, mean, root, h, pre, N, n, X, E):
         for a in range(n):
             s = 0.0
             for d in range(n):
-                s += root[a, d] * E[p * n + d]
-            X[p, a] = a_ * Xr[p, a] + (1.0 - a_) * mean[a] + h * s
+                s += root[a * n + d] * E[p * n + d]
+            X[p * n + a] = a_ * Xr[p * n + a] + (1.0 - a_) * mean[a] + h * s
 
 
 @kernel(inline=True)
-def clamp_particles(X, N):
+def clamp_particles(X, N, n):
     out = False
     for p in range(N):
-        if X[p, 0] < 0.0:
-            X[p, 0] = 0.0
+        if X[p * n] < 0.0:
+            X[p * n] = 0.0
             out = True
-        elif X[p, 0] > 1.0:
-            X[p, 0] = 1.0
+        elif X[p * n] > 1.0:
+            X[p * n] = 1.0
             out = True
     return out
 
 
-@kernel(inline=True)
+@kernel
 def likelihoods(imp, fmp, X, v, i, temp, has_temp, needs_D, nz, N, n, Y, Rk, ll, Hp, sp):
     """``Y, R`` and ``log N(v; Y, R)`` (up to the constant) of every particle; returns the model status."""
     for p in range(N):
-        y, d, st = model_output(imp, fmp, ptr_at(X, p * n), i, temp, has_temp, needs_D, Hp, sp)
+        y, d, st = model_output(imp, fmp, ptr_off(X, p * n), i, temp, has_temp, needs_D, Hp, sp)
         if st != 0:
             return st
         Y[p] = y
@@ -250,15 +252,22 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
     work = np.empty((n, n))
     scratch = np.empty(WORK_SIZE)
     imp, fmp, Hp, xnp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(H), ptr(xn), ptr(Bv), ptr(F), ptr(scratch)
+    Xp, Xrp, wp, lwp, llp, tmpp, Yp, Rkp, cump, idxp = (ptr(X), ptr(Xr), ptr(w), ptr(lw), ptr(ll), ptr(tmp), ptr(Y),
+                                                       ptr(Rk), ptr(cum), ptr(idx))
+    meanp, varp, mean_rp, evp, rootp, Vmp, Up, workp = (ptr(mean), ptr(var), ptr(mean_r), ptr(ev), ptr(root), ptr(Vm),
+                                                        ptr(U), ptr(work))
+    Ep, Eip, nzp = ptr(E), ptr(Ei), ptr(nz)
+    outfp, outbp, xsp, pdp = ptr(outf), ptr(outb), ptr(xs), ptr(pd)
+    R_all = outf.shape[1]
     for r in range(r0, r1):
-        normals_into(prefix(seed, stream_initial, stream_initial, r), E, N * n)  # stream 0, sample 0
+        normals_into(prefix(seed, stream_initial, stream_initial, r), Ep, N * n)  # stream 0, sample 0
         for p in range(N):
             for a in range(n):
                 s = 0.0
                 for d in range(n):
                     s += L0[r, a, d] * E[p * n + d]
                 X[p, a] = x0[r, a] + s
-        pending_clamp = clamp_particles(X, N)
+        pending_clamp = clamp_particles(Xp, N, n)
         for p in range(N):
             w[p] = 1.0 / N
             lw[p] = math.log(w[p])  # the log-weights are carried from sample to sample (numpy takes log(w) anew)
@@ -268,7 +277,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
             tk = temp[r, k]
             vk = volt[r, k]
             # ---------------------------------------------------------------- update
-            st = likelihoods(imp, fmp, X, vk, ik, tk, has_temp, needs_D, nz, N, n, Y, Rk, ll, Hp, sp)
+            st = likelihoods(imp, fmp, Xp, vk, ik, tk, has_temp, needs_D, nzp, N, n, Yp, Rkp, llp, Hp, sp)
             if st != 0:
                 status[r] = st
                 break
@@ -293,10 +302,10 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                 if not left > 0.0:
                     break
                 phi = left
-                m, s1, s2 = exp_weights(lw, ll, phi, N, tmp)
+                m, s1, s2 = exp_weights(lwp, llp, phi, N, tmpp)
                 if s_ != max_stages - 1 and s1 * s1 / s2 < accept:  # the whole likelihood would collapse the cloud
-                    phi = temper_bisect(lw, ll, left, target, N, tmp)
-                    m, s1, s2 = exp_weights(lw, ll, phi, N, tmp)
+                    phi = temper_bisect(lwp, llp, left, target, N, tmpp)
+                    m, s1, s2 = exp_weights(lwp, llp, phi, N, tmpp)
                 ls = math.log(s1)
                 for p in range(N):
                     lw[p] = ((lw[p] + phi * ll[p]) - m) - ls
@@ -305,15 +314,15 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                 if left > 0.0:
                     for p in range(N):
                         w[p] = math.exp(lw[p])
-                    weighted_mean_root(X, w, N, n, mean_r, root, Vm, ev, U, work)
-                    systematic(w, uniform0(prefix(seed, D.STAGE + 2 * s_, k, r)), N, cum, idx)
-                    resample_into(X, idx, N, n, Xr)
-                    shrink_with(Xr, mean_r, root, pfopt[TEMPER_H], prefix(seed, D.STAGE + 2 * s_ + 1, k, r), N, n, X,
-                                E)
-                    clamp_particles(X, N)
+                    weighted_mean_root(Xp, wp, N, n, mean_rp, rootp, Vmp, evp, Up, workp)
+                    systematic(wp, uniform0(prefix(seed, D.STAGE + 2 * s_, k, r)), N, cump, idxp)
+                    resample_into(Xp, idxp, N, n, Xrp)
+                    shrink_with(Xrp, mean_rp, rootp, pfopt[TEMPER_H], prefix(seed, D.STAGE + 2 * s_ + 1, k, r), N, n,
+                                Xp, Ep)
+                    clamp_particles(Xp, N, n)
                     for p in range(N):
                         lw[p] = -math.log(N)
-                    st = likelihoods(imp, fmp, X, vk, ik, tk, has_temp, needs_D, nz, N, n, Y, Rk, ll, Hp, sp)
+                    st = likelihoods(imp, fmp, Xp, vk, ik, tk, has_temp, needs_D, nzp, N, n, Yp, Rkp, llp, Hp, sp)
                     if st != 0:
                         break
             if st != 0:
@@ -335,13 +344,13 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                     d_ = X[p, a] - mean[a]
                     s += w[p] * (d_ * d_)
                 var[a] = s
-            if diverged_var(mean, n, var[0], nis, opt[2], opt[3]):
+            if diverged_var(meanp, n, var[0], nis, opt[2], opt[3]):
                 failed[r] = True
                 failed_at[r] = k
                 freeze(outf, outb, xs, pd, store, r, k, T, n, x0[r, 0], std0[r], volt[r, 0])
                 break
-            record(outf, outb, xs, pd, store, r, k, mean[0], math.sqrt(var[0]), yhat, e, S, pending_clamp, gated,
-                   mean, var, n)
+            record(outfp, outbp, xsp, pdp, store, R_all, T, r, k, mean[0], math.sqrt(var[0]), yhat, e, S,
+                   pending_clamp, gated, meanp, varp, n)
             if k + 1 == T:
                 break
             # ---------------------------------------------------------------- resample
@@ -350,16 +359,16 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                 sw += w[p] * w[p]
             if 1.0 / sw < threshold:
                 if h > 0.0:
-                    weighted_mean_root(X, w, N, n, mean_r, root, Vm, ev, U, work)
-                systematic(w, uniform0(prefix(seed, stream_resample, k, r)), N, cum, idx)
-                resample_into(X, idx, N, n, Xr)
+                    weighted_mean_root(Xp, wp, N, n, mean_rp, rootp, Vmp, evp, Up, workp)
+                systematic(wp, uniform0(prefix(seed, stream_resample, k, r)), N, cump, idxp)
+                resample_into(Xp, idxp, N, n, Xrp)
                 for p in range(N):
                     w[p] = 1.0 / N
                     lw[p] = math.log(w[p])
                 counts[r, 0] += 1
                 pre = prefix(seed, stream_roughen, k, r)
                 if h > 0.0:
-                    shrink_with(Xr, mean_r, root, h, pre, N, n, X, E)
+                    shrink_with(Xrp, mean_rp, rootp, h, pre, N, n, Xp, Ep)
                 else:
                     if K_rough > 0.0:
                         for a in range(n):  # roughening_sd: K (max − min) N^(−1/d), on the resampled cloud
@@ -369,7 +378,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                                 lo = min(lo, Xr[p, a])
                                 hi = max(hi, Xr[p, a])
                             ev[a] = K_rough * (hi - lo) * pfopt[ROUGH_C]
-                        normals_into(pre, E, N * n)
+                        normals_into(pre, Ep, N * n)
                         for p in range(N):
                             for a in range(n):
                                 Xr[p, a] += ev[a] * E[p * n + a]
@@ -379,12 +388,12 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
             # ---------------------------------------------------------------- predict
             dt = dts[k]
             if sd_i > 0.0:
-                normals_into(prefix(seed, stream_current, k, r), Ei, N)
+                normals_into(prefix(seed, stream_current, k, r), Eip, N)
             if additive != ADD_NONE:
-                normals_into(prefix(seed, stream_additive, k, r), E, N * n)
+                normals_into(prefix(seed, stream_additive, k, r), Ep, N * n)
             for p in range(N):
                 i_p = ik + sd_i * Ei[p] if sd_i > 0.0 else ik
-                st = model_step(imp, fmp, ptr_at(X, p * n), i_p, dt, tk, has_temp, jac, xnp, Fp, Bp, sp)
+                st = model_step(imp, fmp, ptr_off(Xp, p * n), i_p, dt, tk, has_temp, jac, xnp, Fp, Bp, sp)
                 if st != 0:
                     break
                 for a in range(n):
@@ -401,7 +410,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
             if st != 0:
                 status[r] = st
                 break
-            pending_clamp = clamp_particles(X, N)
+            pending_clamp = clamp_particles(Xp, N, n)
             bad = False
             for p in range(N):
                 for a in range(n):
