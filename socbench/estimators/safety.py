@@ -16,6 +16,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy import stats
 
@@ -86,6 +88,7 @@ def clamp_soc(x: np.ndarray) -> np.ndarray:
     return out
 
 
+@functools.lru_cache(maxsize=64)
 def gate_threshold(alpha: float | None) -> float:
     """NIS threshold of a χ²(1) gate with tail probability ``alpha`` (None: no gate)."""
     if alpha is None:
