@@ -4,10 +4,21 @@ The interpolant is built once with :class:`scipy.interpolate.PchipInterpolator` 
 derivative per segment). Evaluation is done here from the cached piecewise-cubic coefficients, because a filter calls it
 once per time step on a whole batch and scipy's per-call overhead would dominate.
 
-Outside the rest points the curve is extended linearly with the end slopes; :meth:`OCVCurve.excursion` tells how far a
-SOC lies outside (the spec asks to flag ``|Δz| > 0.05``).
+Outside the rest points ``[z_lo, z_hi]`` the curve is extended linearly with its end slopes for an excursion of up to
+``EXCURSION_FLAG`` = 0.05 (ECM_SPEC §3.3/§7.3: extrapolate linearly, flag ``|Δz| > 0.05``), and held at the value it
+reached there beyond::
 
-Inverse ``z = U_oc⁻¹(v)`` is exact on the monotone interpolant (bisection on the segment, then Newton polish).
+    U_oc(z) = U(z_lo) + U'(z_lo)·max(z − z_lo, −0.05)     z < z_lo      dU_oc/dz = U'(z_lo) within 0.05, else 0
+    U_oc(z) = U(z_hi) + U'(z_hi)·min(z − z_hi, +0.05)     z > z_hi      dU_oc/dz = U'(z_hi) within 0.05, else 0
+
+so an SOC driven far outside the curve (a model counting through a battery swap, a filter before its clamp) meets a
+bounded voltage instead of an unbounded line (kilovolts after a few units of SOC). The derivative is the exact one of
+this piecewise curve (0 on the held parts), so Jacobians stay consistent with finite differences away from the two
+kinks. :meth:`OCVCurve.excursion` tells how far a SOC lies outside the rest points; ``socbench.domain`` counts the
+samples where that is > 0 (extrapolated) and > 0.05 (held).
+
+Inverse ``z = U_oc⁻¹(v)`` is found by bisection on the monotone curve (to 1e-12 in SOC); outside the curve it inverts
+the linear extension and stops at the held ends (``z_lo − 0.05``, ``z_hi + 0.05``).
 
 Temperature. Every curve takes the cell temperature ``temp`` [°C] (``None``: the reference temperature
 :data:`T_REF_C`); an :class:`OCVCurve` ignores it. :class:`TemperatureOCV` holds one curve per measured temperature, on
@@ -93,7 +104,7 @@ class OCVCurve:
         return ()
 
     def value_and_slope(self, z, temp=None) -> tuple[np.ndarray, np.ndarray]:
-        """``(U_oc(z), dU_oc/dz)`` with linear extension outside the rest points (``temp`` is ignored)."""
+        """``(U_oc(z), dU_oc/dz)``, extended outside the rest points as the module says (``temp`` is ignored)."""
         z = np.asarray(z, dtype=float)
         j, s = self._segment(z)
         c = np.take(self._coef, j, axis=0)  # (…, 4); np.take is much faster than fancy indexing here
@@ -102,9 +113,19 @@ class OCVCurve:
         dv = (3.0 * c0 * s + 2.0 * c1) * s + c2
         lo, hi = z < self.soc[0], z > self.soc[-1]
         if lo.any() or hi.any():
-            v = np.where(lo, self.voltage[0] + self._slope_lo * (z - self.soc[0]), v)
-            v = np.where(hi, self.voltage[-1] + self._slope_hi * (z - self.soc[-1]), v)
-            dv = np.where(lo, self._slope_lo, np.where(hi, self._slope_hi, dv))
+            v, dv = self._extend(z, lo, hi, v, dv)
+        return v, dv
+
+    def _extend(self, z, lo, hi, v, dv=None):
+        """``(v, dv)`` with the ends replaced by the clamped linear extension (module docstring)."""
+        z_lo, z_hi = self.soc[0], self.soc[-1]
+        d_lo = np.maximum(z - z_lo, -EXCURSION_FLAG)
+        d_hi = np.minimum(z - z_hi, EXCURSION_FLAG)
+        v = np.where(lo, self.voltage[0] + self._slope_lo * d_lo, v)
+        v = np.where(hi, self.voltage[-1] + self._slope_hi * d_hi, v)
+        if dv is not None:
+            held = (z < z_lo - EXCURSION_FLAG) | (z > z_hi + EXCURSION_FLAG)
+            dv = np.where(held, 0.0, np.where(lo, self._slope_lo, np.where(hi, self._slope_hi, dv)))
         return v, dv
 
     def value(self, z, temp=None) -> np.ndarray:
@@ -115,8 +136,7 @@ class OCVCurve:
         v = ((c[..., 0] * s + c[..., 1]) * s + c[..., 2]) * s + c[..., 3]
         lo, hi = z < self.soc[0], z > self.soc[-1]
         if lo.any() or hi.any():
-            v = np.where(lo, self.voltage[0] + self._slope_lo * (z - self.soc[0]), v)
-            v = np.where(hi, self.voltage[-1] + self._slope_hi * (z - self.soc[-1]), v)
+            v = self._extend(z, lo, hi, v)[0]
         return v
 
     def __call__(self, z, temp=None) -> np.ndarray:
@@ -131,10 +151,10 @@ class OCVCurve:
         return np.maximum(self.soc[0] - z, 0.0) + np.maximum(z - self.soc[-1], 0.0)
 
     def inverse(self, v, tol: float = 1e-12, temp=None) -> np.ndarray:
-        """SOC whose OCV is ``v``; outside the curve the linear extension is inverted (flat ends clipped)."""
+        """SOC whose OCV is ``v``; outside the curve the linear extension is inverted, up to the held ends."""
         v = np.asarray(v, dtype=float)
-        lo = self.soc[0] - 0.2
-        hi = self.soc[-1] + 0.2
+        lo = self.soc[0] - EXCURSION_FLAG
+        hi = self.soc[-1] + EXCURSION_FLAG
         shape = np.broadcast_shapes(v.shape, np.shape(temp)) if temp is not None else v.shape
         a = np.full(shape, lo)
         b = np.full(shape, hi)

@@ -14,7 +14,9 @@ import numpy as np  # noqa: E402
 
 
 def figure(nrows: int = 1, ncols: int = 1, width: float = 7.0, height: float = 4.0, **kw):
-    """A new figure and its axes (always an array)."""
+    """A new figure and its axes (always an array), laid out by matplotlib's constrained layout (panels, colour bars
+    and their labels never overlap; ``layout=...`` overrides)."""
+    kw.setdefault("layout", "constrained")
     fig, axes = plt.subplots(nrows, ncols, figsize=(width, height), squeeze=False, **kw)
     return fig, axes
 
@@ -33,7 +35,12 @@ def heatmap(ax, values, row_labels, col_labels, title: str, unit: str, fmt: str 
     ax.set_xticks(range(len(col_labels)), labels=col_labels)
     ax.set_yticks(range(len(row_labels)), labels=row_labels)
     ax.set_title(title, fontsize=10)
-    ax.figure.colorbar(im, ax=ax, label=unit, shrink=0.85)
+    cb = ax.figure.colorbar(im, ax=ax, label=unit, shrink=0.85)
+    if norm is not None:  # log scale: plain numbers at 1, 2, 5 × 10^k, no minor labels (they crowd the bar's label)
+        ticker = matplotlib.ticker
+        cb.ax.yaxis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+        cb.ax.yaxis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+        cb.ax.yaxis.set_minor_formatter(ticker.NullFormatter())
     small = len(row_labels) * len(col_labels) <= 96
     for i in range(arr.shape[0]):
         for j in range(arr.shape[1]):
@@ -43,6 +50,14 @@ def heatmap(ax, values, row_labels, col_labels, title: str, unit: str, fmt: str 
                 shade = float(im.norm(arr[i, j])) if finite.size > 1 else 0.0
                 ax.text(j, i, fmt.format(arr[i, j]), ha="center", va="center", fontsize=7,
                         color="white" if shade > 0.55 else "black")
+
+
+def heatmap_figure(panels, row_labels, col_labels):
+    """Heat maps side by side, one per ``(values, title, unit)`` in ``panels``, sized for the number of rows."""
+    fig, axes = figure(1, len(panels), width=5.5 * len(panels), height=max(3.0, 0.35 * len(row_labels) + 1.5))
+    for ax, (values, title, unit) in zip(axes[0], panels):
+        heatmap(ax, values, row_labels, col_labels, title, unit)
+    return fig
 
 
 def soc_error_band(ax, trace: dict, label: str, color=None) -> None:

@@ -53,6 +53,18 @@ def _fmt(x, scale=1.0, digits=2) -> str:
     return "—" if x is None else f"{scale * x:.{digits}f}"
 
 
+_NOISE_TEXT = {"model": "the noise recipe (socbench.estimators.model_error: the fitted model's measured voltage error "
+                        "as coloured states and R; the coulomb counter keeps the sensor noise)",
+               "sensor": "the sensor noise only"}
+
+
+def nis_text(nis, band) -> str:
+    """``"1.02 [0.98, 1.03]"``: the NIS mean and its 95 % χ² band (band omitted when unknown)."""
+    if nis is None:
+        return "—"
+    return f"{nis:.2f}" + (f" [{band[0]:.2f}, {band[1]:.2f}]" if band else "")
+
+
 def markdown(result, figures: list[str]) -> str:
     cfg = result.config
     lines = [
@@ -60,7 +72,8 @@ def markdown(result, figures: list[str]) -> str:
         "",
         f"{_n(len(cfg.models), 'model')} × {_n(len(cfg.estimators), 'estimator')} × "
         f"{_n(len(cfg.scenarios), 'scenario')} × {_n(len(cfg.seeds), 'seed')} (seeds {cfg.seeds[0]}–{cfg.seeds[-1]}); "
-        f"models fitted on each scenario's own characterisation test (mode '{cfg.fit_mode}'). "
+        f"models fitted on each scenario's own characterisation test (mode '{cfg.fit_mode}'); filter noise: "
+        f"{_NOISE_TEXT.get(getattr(cfg, 'noise', 'model'), '?')}. "
         f"Backend {result.backend} ({_n(result.jobs, 'job')}), "
         f"{len(result.computed)} cells computed and {len(result.reused)} reused from the store in "
         f"{result.seconds:.1f} s." + (f" **{len(result.stale)} stored fits/cells were computed by other code** "
@@ -68,23 +81,25 @@ def markdown(result, figures: list[str]) -> str:
         "",
         "SOC errors in % of capacity, voltage errors (measured − the filter's predicted voltage before its update) in "
         "mV, pooled over the runs that did not fail. Ranked by failed runs, then SOC RMSE, then voltage RMSE. "
-        "\"—\": nothing to average (every run failed, or the estimator defines no such quantity).",
+        "\"—\": nothing to average (every run failed, or the estimator defines no such quantity). Consistency beside "
+        "every SOC error: the NIS mean with its two-sided 95 % χ² band (a consistent filter's NIS mean lies in it) "
+        "and the share of samples whose SOC error lies within the filter's own ±3σ.",
         "",
         "## Best combination per scenario",
         "",
     ]
     lines += [f"- {best_sentence(result, s)}" for s in cfg.scenarios]
-    head = ("| rank | model | estimator | SOC RMSE % | SOC max % | V RMSE mV | V mean mV | V SD mV | V max mV | NIS | "
-            "NEES | within 3σ % | µs/step | failed/runs |")
+    head = ("| rank | model | estimator | SOC RMSE % | SOC max % | within 3σ % | NIS [95 % band] | NEES | V RMSE mV "
+            "| V mean mV | V SD mV | V max mV | µs/step | failed/runs |")
     for scen in cfg.scenarios:
         lines += ["", f"## {scen}", "", head, "|" + "---|" * 14]
         for k, rec in enumerate(ranked(result, scen), 1):
             r = rec["row"]
             lines.append(
                 f"| {k} | {r['model']} | {r['estimator']} | {_fmt(r['soc_rmse'], 100)} | {_fmt(r['soc_max_abs'], 100)} "
-                f"| {_fmt(r['v_rmse'], 1000, 1)} | {_fmt(r['v_mean'], 1000, 1)} | {_fmt(r['v_sd'], 1000, 1)} "
-                f"| {_fmt(r['v_max'], 1000, 1)} | {_fmt(r['nis_mean'])} | {_fmt(r['nees_mean'])} "
-                f"| {_fmt(r['frac_within_3sigma'], 100, 1)} | {_fmt(r['us_per_step'], 1, 1)} "
+                f"| {_fmt(r['frac_within_3sigma'], 100, 1)} | {nis_text(r['nis_mean'], rec.get('nis_band'))} "
+                f"| {_fmt(r['nees_mean'])} | {_fmt(r['v_rmse'], 1000, 1)} | {_fmt(r['v_mean'], 1000, 1)} "
+                f"| {_fmt(r['v_sd'], 1000, 1)} | {_fmt(r['v_max'], 1000, 1)} | {_fmt(r['us_per_step'], 1, 1)} "
                 f"| {r['failed_runs']}/{r['n_runs']} |")
     fit_rows = []
     for (scen, model), fit in result.fits.items():
@@ -112,12 +127,12 @@ def write_figures(result, out: Path) -> list[str]:
     names = []
     for scen in cfg.scenarios:
         by = {(r["row"]["model"], r["row"]["estimator"]): r for r in result.cells if r["row"]["scenario"] == scen}
-        fig, axes = plots.figure(1, 2, width=11, height=max(3.0, 0.35 * len(cfg.models) + 1.5))
-        for ax, col, scale, unit in ((axes[0, 0], "soc_rmse", 100, "SOC RMSE [%]"),
-                                     (axes[0, 1], "v_rmse", 1000, "voltage RMSE [mV]")):
+        panels = []
+        for col, scale, unit in (("soc_rmse", 100, "SOC RMSE [%]"), ("v_rmse", 1000, "voltage RMSE [mV]")):
             vals = [[None if by[(m, e)]["row"][col] is None else scale * by[(m, e)]["row"][col]
                      for e in cfg.estimators] for m in cfg.models]
-            plots.heatmap(ax, vals, list(cfg.models), list(cfg.estimators), f"{unit.split(' [')[0]} on {scen}", unit)
+            panels.append((vals, f"{unit.split(' [')[0]} on {scen}", unit))
+        fig = plots.heatmap_figure(panels, list(cfg.models), list(cfg.estimators))
         name = f"heatmap_{_slug(scen)}.png"
         plots.save(fig, out / name)
         names.append(name)

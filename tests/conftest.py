@@ -7,6 +7,12 @@ from pathlib import Path
 
 import pytest
 
+# One BLAS thread per test process (inherited by the xdist workers, which start after this file is read): the fits
+# factorise small matrices, where threads only add overhead, and on a shared 2-core machine several test processes
+# each running a thread pool slow one another down by orders of magnitude.
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
 
 @pytest.fixture(scope="session")
 def data_dir() -> Path:

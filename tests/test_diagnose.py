@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from socbench.cli import main
-from socbench.diagnose import bin_average, diagnose, make_split
+from socbench.diagnose import bin_average, diagnose, make_folds
 from socbench.diagnose.search import rest_current
 from socbench.diagnose.signatures import Trajectory, signatures
 from socbench.diagnose.synthetic import cell, hidden_case
@@ -40,14 +40,20 @@ def test_bin_average_keeps_the_charge_and_the_mean_voltage():
     assert bin_average(b, 1.0) is b
 
 
-def test_split_by_time_and_by_profile():
-    t = np.arange(1000.0)
-    p = Profile(t, np.ones(1000), voltage_v=np.full(1000, 3.7))
-    s = make_split([p], 0.4)
-    assert s.method == "by_time" and s.train.n == 400 and s.held[0][1] == 400 and s.held[0][0] is p
-    q = p.with_(current_a=np.full(1000, 2.0))
-    s2 = make_split([p, q])
-    assert s2.method == "by_profile" and s2.train is p and s2.held == [(q, 0)]
+def test_blocked_folds_score_every_sample_once_in_contiguous_blocks_of_equal_duration():
+    t = np.r_[np.arange(0.0, 600.0), 600.0 + 10.0 * np.arange(240)]  # 1 s, then 10 s samples
+    p = Profile(t, np.ones(t.size), voltage_v=np.full(t.size, 3.7))
+    q = Profile(np.arange(0.0, 999.0), np.ones(999), voltage_v=np.full(999, 3.7))
+    f = make_folds([p, q], 4)
+    for prof, b in zip(f.records, f.blocks):
+        assert b.min() == 0 and b.max() == 3 and np.all(np.diff(b) >= 0)  # contiguous, in time order
+        starts = [prof.time_s[np.argmax(b == j)] - prof.time_s[0] for j in range(4)]
+        np.testing.assert_allclose(starts, np.arange(4) * prof.duration_s / 4, atol=10.0)
+    for j in range(4):  # fold j trains on everything but block j of every record
+        for r in range(2):
+            assert np.array_equal(f.train_mask(r, j), f.blocks[r] != j)
+    d = f.describe()
+    assert d["method"] == "blocked_cv" and d["folds"] == 4 and [x["n"] for x in d["records"]] == [840, 999]
 
 
 def test_rest_current_reads_the_sensor_offset():
@@ -144,7 +150,7 @@ def test_cli_writes_the_design_keys_and_reports_soc(tmp_path):
     assert d["after"]["rmse_v"] < d["before"]["rmse_v"]
     # the data carry a true SOC: the EKF's held-out SOC error on the original and on the augmented model
     assert d["before"]["soc_rmse"] >= 0 and d["after"]["soc_rmse"] >= 0
-    assert d["split"]["method"] == "by_time"
+    assert d["split"]["method"] == "blocked_cv" and d["before"]["soc"]["ukf"]["soc_rmse"] >= 0
     md = (out / "diagnosis.md").read_text()
     assert "butler_volmer" in md and "held-out" in md
     assert (out / "voltage.png").stat().st_size > 0 and list(out.glob("signature_1_butler_volmer.png"))

@@ -18,6 +18,7 @@ from socbench.estimators.safety import repair_psd
 from socbench.kernels import jit
 from socbench.kernels.lowering import NotLowerable, lower
 from socbench.models import Constant, Lookup, Polynomial, make_model, model_names, paper_params
+from socbench.models.effects import ModelError as ModelErrorEffect
 from socbench.models.effects import ResistanceOffset, augment
 from socbench.profile import Profile, ProfileMeta
 
@@ -122,6 +123,32 @@ def test_parameter_batches_lower_to_one_variant_per_point(name):
     assert lower(m).n_variants == V
     x, i, dt, temp = _points(m, V, 5)
     _assert_points_equal(m, x, i, dt, temp)
+
+
+def _model_error(seed=0, n_temps=3, n_soc=6):
+    """The noise recipe's ModelError effect with random scale grids (temperatures × SOC, uneven nodes)."""
+    rng = np.random.default_rng(seed)
+    temps = np.sort(rng.choice(np.arange(-20.0, 45.0, 5.0), n_temps, replace=False))
+    soc = np.array([0.5]) if n_soc == 1 else np.sort(np.concatenate([[0.0, 1.0], rng.uniform(0.05, 0.95, n_soc - 2)]))
+    grid = lambda scale: scale * rng.uniform(0.2, 2.0, (n_temps, n_soc))  # noqa: E731
+    return ModelErrorEffect(temps=tuple(temps), soc=tuple(soc), sd_slow=grid(0.01), sd_fast=grid(0.003),
+                            sd_r=grid(0.005), tau_slow=rng.uniform(100, 2000), tau_fast=rng.uniform(1, 20),
+                            tau_r=rng.uniform(100, 2000))
+
+
+@pytest.mark.parametrize("grid", [(3, 6), (1, 2), (2, 1)])
+@pytest.mark.parametrize("base", ["dp", "esc", "nernst"])
+def test_the_model_error_effect_compiled_equals_numpy(base, grid):
+    """The noise recipe's ModelError effect (not in the effect registry: no physical effect) on several bases, with
+    temperature × SOC grids of several shapes (one temperature, one SOC node: held scales), SOC beyond its grid."""
+    seed = sum(map(ord, base)) + 7 * grid[0] + grid[1]
+    m = augment(make_model(base, paper_params(base)), [_model_error(seed, *grid)])
+    x, i, dt, temp = _points(m, 400, 9, wide=True)
+    _assert_points_equal(m, x, i, dt, temp)
+    _assert_points_equal(m, x, i, dt, None)
+    mt = augment(make_model(base, temperature_params(base)), [EFFECTS["current_bias"](), _model_error(4, *grid)])
+    x, i, dt, temp = _points(mt, 400, 10, wide=True)
+    _assert_points_equal(mt, x, i, dt, temp)
 
 
 @pytest.mark.parametrize("case", sorted(CASES) + ["dp+r0_offset+bias"])
@@ -298,7 +325,7 @@ def _compare(a, b):
             assert rb is None, f
             continue
         assert np.all(np.abs(ra - rb) <= TOL * (1.0 + np.abs(ra))), f"{f}: max |diff| {np.max(np.abs(ra - rb)):.3g}"
-    for f in ("gated", "clamped", "failed", "failed_at"):
+    for f in ("gated", "clamped", "failed", "failed_at", "failed_reason"):
         np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
     for key in ("psd_repairs", "resampled", "tempered"):
         if key in a.info:
@@ -376,6 +403,28 @@ def test_noise_forms_compiled(name):
         a = make_estimator(name, model, noise, engine="numpy", **o).run(p, soc0=0.6, seed=2)
         b = make_estimator(name, model, noise, engine="compiled", **o).run(p, soc0=0.6, seed=2)
         _compare(a, b)
+
+
+@pytest.mark.parametrize("name", estimator_names())
+def test_the_noise_recipe_runs_compiled_like_numpy(name):
+    """What `socbench estimate` runs by default: the model with the ModelError states and a SensorNoise whose walk_sd
+    drives them (estimators.model_error.apply), on a record with a temperature column."""
+    eff = _model_error(21)
+    model = augment(make_model("dp", temperature_params("dp")), [eff])
+    p = _record(model, T=200, temp=True)
+    walk = np.zeros(model.n_states)
+    walk[-3:] = np.sqrt(eff.walk_var(1.0))
+    noise = SensorNoise(voltage_sd=0.01, current_sd=0.2, walk_sd=tuple(walk))
+    o = {**_options(name), "store_states": True}
+    try:
+        a = make_estimator(name, model, noise, engine="numpy", **o).run(p, soc0=0.55, seed=4)
+    except ConfigError as exc:
+        pytest.skip(f"{name} refuses this model: {exc}")
+    est = make_estimator(name, model, noise, **o)
+    b = est.run(p, soc0=0.55, seed=4)
+    _compare(a, b)
+    if name in ("ekf", "ukf", "pf", "coulomb"):
+        assert b.info["engine"] == "compiled", b.info.get("engine_note")
 
 
 def test_engine_option():

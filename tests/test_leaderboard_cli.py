@@ -23,7 +23,7 @@ from socbench.cli import main
 GRID = ["--models", "rint,shepherd", "--estimators", "coulomb,ekf,ukf", "--scenarios", "flight-10kg", "--seeds", "2"]
 N_CELLS = 6
 COLUMNS = ["model", "estimator", "scenario", "n_runs", "soc_rmse", "soc_max_abs", "v_mean", "v_rmse", "v_sd", "v_max",
-           "nis_mean", "nees_mean", "frac_within_3sigma", "us_per_step", "failed_runs"]
+           "nis_mean", "nees_mean", "frac_within_3sigma", "us_per_step", "failed_runs", "out_of_domain"]
 REPO = Path(__file__).resolve().parents[1]
 
 

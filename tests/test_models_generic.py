@@ -68,6 +68,24 @@ def test_jacobians_match_finite_differences(name):
     _assert_rel(D[:, None], D_fd[:, None], f"{name} D", (8 * eps * np.abs(y) / (2 * di))[:, None])
 
 
+@pytest.mark.parametrize("name", MODELS)
+def test_jacobians_match_finite_differences_outside_the_soc_range(name):
+    """Where a filter's sigma points and particles go before the clamp: SOC within the OCV's linear extension
+    (0.05 beyond the rest points) and far beyond it, where the curve is held (socbench.ocv). The analytic H must
+    still be the derivative of h (finite differences taken away from the kinks at the rest points and band edges)."""
+    m = _model(name)
+    rng = np.random.default_rng(4321)
+    x, i, dt, temp = random_points(m, 200, rng)
+    lo, hi = m.ocv.soc[0], m.ocv.soc[-1]
+    x[:, 0] = np.concatenate([rng.uniform(lo - 0.045, lo - 0.005, 50), rng.uniform(hi + 0.005, hi + 0.045, 50),
+                              rng.uniform(lo - 3.0, lo - 0.06, 50), rng.uniform(hi + 0.06, hi + 3.0, 50)])
+    y, H, D = m.output(x, i, temp, jac=True)
+    assert np.all(np.isfinite(y)) and np.all(np.isfinite(H))
+    h = _steps(x)
+    H_fd = _fd_state_jac(lambda xx: m.h(xx, i, temp), x, h)
+    _assert_rel(H, H_fd, f"{name} H outside [0, 1]", 8 * np.finfo(float).eps * np.abs(y)[:, None] / (2 * h))
+
+
 def _rk4(m, x, i, dt, temp, z_params, n):
     h = dt / n
     for _ in range(n):

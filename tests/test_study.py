@@ -166,7 +166,7 @@ import pytest  # noqa: E402
 from socbench.errors import ConfigError  # noqa: E402
 from socbench.metrics import voltage_error_stats  # noqa: E402
 from socbench.report import write_report  # noqa: E402
-from socbench.study import LEADERBOARD_COLUMNS, Store, StudyConfig, parse_names, run_study  # noqa: E402
+from socbench.study import LEADERBOARD_COLUMNS, METRIC_COLUMNS, Store, StudyConfig, parse_names, run_study  # noqa: E402
 
 SEEDS = (0, 1, 2)
 
@@ -283,9 +283,14 @@ def test_failed_runs_are_counted_and_no_aggregate_is_nan(tmp_path):
     cfg = small_config(estimators=("count", "halfbad", "explode"), scenarios=("s-light",))
     res = run_study(cfg, tmp_path / "store", toolkit=StandinToolkit(fail_fit=("rint",)), progress=False)
     frame = res.frame().set_index(["model", "estimator"])
-    metrics = [c for c in LEADERBOARD_COLUMNS if c not in ("model", "estimator", "scenario", "n_runs", "failed_runs")]
+    metrics = list(METRIC_COLUMNS)
     # thevenin: halfbad loses run 0 (it turns NaN half-way); the aggregates come from runs 1, 2 and are finite
     assert frame.loc[("thevenin", "halfbad"), "failed_runs"] == 1
+    # ... and the cell record says where and with what state (the stand-in gives no reason: "diverged")
+    half = next(r for r in res.cells if r["row"]["model"] == "thevenin" and r["row"]["estimator"] == "halfbad")
+    (f,) = half["failures"]
+    assert (f["run"], f["seed"], f["step"], f["reason"]) == (0, SEEDS[0], T // 2, "diverged")
+    assert f["time_s"] == (T // 2) * DT and np.isfinite(f["soc"]) and np.isfinite(f["current_a"])
     assert np.isfinite(frame.loc[("thevenin", "halfbad"), metrics].astype(float)).all()
     assert frame.loc[("thevenin", "halfbad"), "soc_rmse"] == pytest.approx(0.05, abs=1e-6)
     # explode throws: every run failed, metrics empty

@@ -27,8 +27,9 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     from ..bench import ESTIMATORS, SCALED, run_bench, sizes_for
-    from ..io import atomic_write_text
+    from ..io import atomic_write_text, output_file
 
+    output_file(args.json, "--json")
     if args.repeats is not None and args.repeats < 3:
         raise ConfigError(f"--repeats must be at least 3 (medians of repeated runs), got {args.repeats}")
     names = ESTIMATORS if not args.estimators else tuple(s.strip() for s in args.estimators.split(",") if s.strip())

@@ -1,26 +1,48 @@
-"""``socbench estimate --data PATH --params PARAMS.json --estimator NAME [--soc0 Z] --out DIR`` (NAME: any registered
-estimator, ``socbench.estimators.ESTIMATORS``: coulomb, ekf, ukf, pf, aekf, ckf, srukf, hinf, dual).
+"""``socbench estimate --data PATH --params PARAMS.json --estimator NAME [--soc0 Z] [--noise model|sensor] --out DIR``
+(NAME: any registered estimator, ``socbench.estimators.ESTIMATORS``: coulomb, ekf, ukf, pf, aekf, ckf, srukf, hinf,
+dual).
 
 Writes ``DIR/estimate.csv`` (``time_s, soc, soc_std, v_pred, innovation``, plus ``innovation_var``) and
 ``DIR/metrics.json`` (``soc_rmse, soc_max_abs, rmse_v, nis_mean`` and, when the data carries a reference SOC,
-``nees_mean, frac_within_3sigma``; the SOC keys are null without one). An estimator that tracks parameters (``dual``)
-adds each final estimate and its 3σ half-width: ``capacity_ah, capacity_ah_3sigma, r0_ohm, r0_ohm_3sigma`` (one number
-per run: a float for a single record, else a list), and a ``parameters`` list naming them. ``--data builtin:hppc`` and
-``--params paper:MODEL`` name the embedded profile and Table 3 sets.
+``nees_mean, frac_within_3sigma``; the SOC keys are null without one; ``nis_band`` is the two-sided 95 % χ² band of
+the NIS mean). An estimator that tracks parameters (``dual``) adds each final estimate and its 3σ half-width:
+``capacity_ah, capacity_ah_3sigma, r0_ohm, r0_ohm_3sigma`` (one number per run: a float for a single record, else a
+list), and a ``parameters`` list naming them. ``--data builtin:hppc`` and ``--params paper:MODEL`` name the embedded
+profile and Table 3 sets.
+
+Noise (``--noise``): ``model`` (default) builds the filter covariances from the parameter file's ``model_error`` block
+(:mod:`socbench.estimators.model_error`: the fitted model's voltage error measured by ``socbench fit``), so that the
+±3σ band covers the model's error too; ``sensor`` uses the sensor noise alone. A file without that block (files
+from older versions) falls back to ``sensor`` with a warning; a ``paper:`` set (no identification data) silently
+(``metrics.json`` says which was used, ``noise.mode``). The coulomb counter never reads the voltage:
+it always uses the sensor noise.
+
+SOC axis: the SOC written, scored and given as ``--soc0`` follows the data's own definition when its loader counted the
+reference with a capacity (Panasonic, CALCE: :mod:`socbench.socaxis`); the filter runs on the model's axis.
+
+A record of several discharges (battery swaps, recharges) is filtered segment by segment, each restarting the filter
+as at the record's start (:mod:`socbench.segments`); ``--no-segments`` filters it as one piece. ``metrics.json``
+also holds ``failed_reason`` (why each failed run diverged), ``segments``, ``domain``
+(:func:`socbench.domain.estimate_domain`) and ``guard_fractions``; a warning line is printed when ≥ 1 % of the
+samples lie outside the model's domain.
 """
 
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 from ..checks import check_temperature_range
 from ..datasets import load
-from ..errors import ConfigError, DataError
+from ..domain import guard_fractions, warn_outside
+from ..errors import ConfigError, DataError, SocbenchWarning
 from ..estimators import SensorNoise, estimator_class, estimator_names, make_estimator
+from ..estimators import model_error as recipe
 from ..estimators.scoring import score
-from ..io import atomic_write_frame, atomic_write_text
+from ..io import atomic_write_frame, atomic_write_text, output_dir
 from ..models import make_model
+from ..socaxis import run_on_data_axis, soc_axis
 from .simulate import resolve_params
 
 
@@ -30,13 +52,37 @@ def add_arguments(parser) -> None:
     parser.add_argument("--estimator", required=True, help=", ".join(estimator_names()))
     parser.add_argument("--format", default="auto", help="data format (default auto)")
     parser.add_argument("--soc0", type=float, default=None,
-                        help="initial SOC guess in [0, 1] (default: OCV inverse of the first voltage)")
+                        help="initial SOC guess in [0, 1] on the data's SOC axis (default: OCV inverse of the first "
+                             "voltage)")
     parser.add_argument("--soc0-sd", type=float, default=0.1, help="standard deviation of the initial SOC guess")
     parser.add_argument("--voltage-sd", type=float, default=0.01, help="voltage sensor noise SD [V] (default 0.01)")
     parser.add_argument("--current-sd", type=float, default=0.1, help="current sensor noise SD [A] (default 0.1)")
+    parser.add_argument("--noise", default="model", choices=recipe.NOISE_MODES,
+                        help="model: covariances from the parameter file's measured model error (default); "
+                             "sensor: the sensor noise alone")
     parser.add_argument("--particles", type=int, default=500, help="particles of the pf (default 500)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the pf (default 0)")
     parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument("--no-segments", action="store_true",
+                        help="filter the record as one piece, through its gaps (default: restart each segment)")
+
+
+def model_error_of(spec: str):
+    """The ``model_error`` block of a PARAMS.json file as :class:`~socbench.estimators.model_error.ModelErrorStats`,
+    or None (a ``paper:`` set, or a file without one)."""
+    if spec.startswith("paper:"):
+        return None
+    try:
+        d = json.loads(Path(spec).read_text())
+    except (OSError, json.JSONDecodeError):
+        return None  # resolve_params has already reported an unreadable file
+    block = d.get("model_error") if isinstance(d, dict) else None
+    if block is None:
+        return None
+    try:
+        return recipe.ModelErrorStats.from_dict(block)
+    except ConfigError as exc:
+        raise ConfigError(f"{spec}: {exc}") from None
 
 
 def run(args) -> int:
@@ -45,20 +91,38 @@ def run(args) -> int:
         raise DataError(f"--soc0 must be in [0, 1], got {args.soc0}")
     if not args.soc0_sd > 0:
         raise ConfigError(f"--soc0-sd must be > 0, got {args.soc0_sd}")
-    noise = SensorNoise(voltage_sd=args.voltage_sd, current_sd=args.current_sd)
+    out = output_dir(args.out, "--out")
+    sensor = SensorNoise(voltage_sd=args.voltage_sd, current_sd=args.current_sd)
     profile = load(args.data, args.format)
     profile.require("voltage_v")
     name, params = resolve_params(args.params)
     temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set")
     model = make_model(name, params)
-    options = {"soc0_sd": args.soc0_sd}
+    noise_mode = args.noise if args.estimator != "coulomb" else "sensor"
+    stats = model_error_of(args.params) if noise_mode == "model" else None
+    if noise_mode == "model" and stats is None:
+        if not args.params.startswith("paper:"):  # a reference set has no identification data to measure it on
+            warnings.warn(f"{args.params} has no measured model error (fit it with `socbench fit` to get one): the "
+                          "filter uses the sensor noise alone", SocbenchWarning, stacklevel=2)
+        noise_mode = "sensor"
+    run_model, noise = recipe.apply(model, sensor, stats, profile, noise=noise_mode)
+    options = {"soc0_sd": args.soc0_sd, "store_states": True}  # states: the domain report counts guards along them
     if args.estimator == "pf":
         options["n_particles"] = args.particles
-    est = make_estimator(args.estimator, model, noise, **options).run(profile, soc0=args.soc0, seed=args.seed)
+    axis = soc_axis(params, profile)
+    est = run_on_data_axis(make_estimator(args.estimator, run_model, noise, **options), profile, axis,
+                           soc0=args.soc0, soc0_sd=args.soc0_sd, seed=args.seed,
+                           segments=False if args.no_segments else None)
     s = score(est, profile)
     metrics = {k: v for k, v in s.items() if k != "runs"}
     metrics.update({"estimator": args.estimator, "model": name, "data": str(args.data),
-                    "noise": {"voltage_sd": args.voltage_sd, "current_sd": args.current_sd}})
+                    "noise": {"mode": noise_mode, "voltage_sd": args.voltage_sd, "current_sd": args.current_sd,
+                              "filter_voltage_sd": noise.voltage_sd,
+                              "model_error": stats.to_dict() if stats is not None else None},
+                    "soc_axis": axis.to_dict(),
+                    "failed_reason": est.failure_reasons(), "segments": est.segments.to_dict(),
+                    "domain": {k: v for k, v in est.domain.items() if k != "seconds"},
+                    "guard_fractions": guard_fractions(est.domain)})
     if profile.soc_ref is None:
         metrics.update({"nees_mean": None, "frac_within_3sigma": None})
     if temperature:
@@ -68,7 +132,6 @@ def run(args) -> int:
         for k in (key, f"{key}_3sigma"):
             v = [float(a) for a in est.info[k]]
             metrics[k] = v[0] if len(v) == 1 else v
-    out = Path(args.out)
     frame = est.to_frame(0)[["time_s", "soc", "soc_std", "v_pred", "innovation", "innovation_var"]]
     if est.n_runs > 1:
         import pandas as pd
@@ -77,12 +140,18 @@ def run(args) -> int:
     atomic_write_frame(out / "estimate.csv", frame)
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2, default=_jsonable))
     soc_part = (f"SOC RMSE {_fmt(s['soc_rmse'], 100)} %  max {_fmt(s['soc_max_abs'], 100)} %  "
-                f"NEES {_fmt(s['nees_mean'])}  " if profile.soc_ref is not None else "no reference SOC  ")
-    params = "".join(f"  {k} {float(est.info[k][0]):.4g} ± {float(est.info[k + '_3sigma'][0]):.2g} (3σ)"
-                     for k in est.info.get("parameters", ()))
-    print(f"{args.estimator} on {name}, {profile.name}: n={profile.n}  {soc_part}"
-          f"V RMSE {_fmt(s['rmse_v'], 1000, 1)} mV  NIS {_fmt(s['nis_mean'])}{params}  "
-          f"failed runs {s['failed_runs']}  -> {out}")
+                f"within 3σ {_fmt(s['frac_within_3sigma'], 100, 1)} %  NEES {_fmt(s['nees_mean'])}  "
+                if profile.soc_ref is not None else "no reference SOC  ")
+    band = s.get("nis_band")
+    nis_band = f" [{band[0]:.2f}, {band[1]:.2f}]" if band else ""
+    params_text = "".join(f"  {k} {float(est.info[k][0]):.4g} ± {float(est.info[k + '_3sigma'][0]):.2g} (3σ)"
+                          for k in est.info.get("parameters", ()))
+    segs = f"  {est.segments.count} segments" if est.segments.count > 1 else ""
+    print(f"{args.estimator} on {name}, {profile.name}: n={profile.n}{segs}  {soc_part}"
+          f"V RMSE {_fmt(s['rmse_v'], 1000, 1)} mV  NIS {_fmt(s['nis_mean'])}{nis_band}{params_text}  "
+          f"noise {noise_mode}  failed runs {s['failed_runs']}  out of domain "
+          f"{100 * est.domain['outside_fraction']:.1f} %  -> {out}")
+    warn_outside(est.domain, f"{args.estimator} on {name}, {profile.name}")
     return 0
 
 

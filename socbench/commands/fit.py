@@ -1,9 +1,22 @@
-"""``socbench fit --data PATH --model NAME --out PARAMS.json [--format F] [--mode paper|constant|lookup]``.
+"""``socbench fit --data PATH [PATH …] --model NAME --out PARAMS.json [--validation PATH …] [--mode …]``.
 
-Fits a registered model to a record (normally an HPPC test) with :func:`socbench.identify.fit_model` and writes a
-self-contained parameter file (model, capacity, OCV curve, parameter functions) with a ``"fit"`` block (mode, RMSE,
-standard errors, warnings, seconds) that ``socbench simulate --params`` reads back. Without ``--ocv`` the OCV curve
-comes from the record's HPPC rest points.
+Fits a registered model to an identification record (normally an HPPC test) with
+:func:`socbench.identify.fit_model` and writes a self-contained parameter file (model, capacity, OCV curve, parameter
+functions) with a ``"fit"`` block (mode, RMSE, standard errors, warnings, seconds, and for a single record ``domain``:
+:func:`socbench.domain.domain_report` of the fitted model along the fitted record, with its segment count) that
+``socbench simulate --params`` reads back. Without ``--ocv`` the OCV curve comes from the record's HPPC rest points. A
+record of several discharges (battery swaps, recharges) is fitted segment by segment (:mod:`socbench.segments`;
+``--no-segments`` fits it as one piece).
+
+Several ``--data`` records (one per temperature: Panasonic HPPCs at 25, 10, 0, −10, −20 °C) are fitted each and
+assembled into one temperature-aware set (:func:`socbench.identify.temperature.fit_temperatures`): parameter tables over
+SOC × temperature, an OCV per temperature on one SOC axis, and the capacity per temperature
+(``capacity_by_temperature``). Each record's temperature is the median of its temperature column (else the ambient
+temperature of its file name); the command says which.
+
+The noise recipe (:mod:`socbench.estimators.model_error`) measures the fitted model's voltage error on the
+``--validation`` records (other drive cycles of the same cell, never one you will score), else on the identification
+records, and stores it as ``"model_error"``; ``socbench estimate`` builds the filter covariances from it by default.
 """
 
 from __future__ import annotations
@@ -12,14 +25,19 @@ import json
 from pathlib import Path
 
 from ..datasets import load
+from ..domain import warn_outside
 from ..errors import ConfigError, DataError
+from ..estimators import model_error
 from ..identify import MODES, fit_model
-from ..models import model_class, save_params
+from ..identify.temperature import fit_temperatures
+from ..io import output_file
+from ..models import make_model, model_class, save_params
 from ..ocv import OCVCurve
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--data", required=True, help="identification record (HPPC), or builtin:hppc")
+    parser.add_argument("--data", required=True, nargs="+",
+                        help="identification record(s) (HPPC), or builtin:hppc; several records = one per temperature")
     parser.add_argument("--model", required=True, help="model name (see `socbench models`)")
     parser.add_argument("--out", required=True, help="write the fitted PARAMS.json here")
     parser.add_argument("--format", default="auto", help="data format (default auto)")
@@ -27,11 +45,17 @@ def add_arguments(parser) -> None:
                         help="paper: SOC polynomials for models 1-6, constants otherwise (default); "
                              "constant; lookup: piecewise linear in SOC")
     parser.add_argument("--capacity", type=float, default=None,
-                        help="capacity [Ah] (default: the charge the HPPC discharges from full to empty)")
+                        help="capacity [Ah] of the SOC axis (default: the charge the HPPC discharges from full to "
+                             "empty; with several records the largest of them)")
     parser.add_argument("--soc0", type=float, default=None, help="initial SOC of the record (default: 1 for an HPPC)")
     parser.add_argument("--ocv", default=None,
                         help="OCV curve JSON ({soc, voltage}) or a PARAMS.json whose curve to use "
                              "(default: the record's HPPC rest points)")
+    parser.add_argument("--no-segments", action="store_true",
+                        help="fit the record as one piece, through its gaps (default: restart each segment)")
+    parser.add_argument("--validation", nargs="+", default=(),
+                        help="records (with a reference SOC) on which the noise recipe measures the model error "
+                             "(default: the identification records)")
 
 
 def _read_ocv(path: str) -> OCVCurve:
@@ -52,22 +76,80 @@ def _read_ocv(path: str) -> OCVCurve:
         raise exc.with_file(path) from None
 
 
+def _load_single(path: str, fmt: str):
+    profile = load(path, fmt)
+    if profile.batched:
+        raise DataError("fit needs a single record, not a batch of runs", file=str(path))
+    return profile
+
+
 def run(args) -> int:
     if args.capacity is not None and not args.capacity > 0:
         raise ConfigError(f"--capacity must be positive, got {args.capacity}")
     if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
         raise ConfigError(f"--soc0 must be in [0, 1], got {args.soc0}")
+    several = len(args.data) > 1
+    if several and (args.soc0 is not None or args.ocv):
+        raise ConfigError("--soc0 and --ocv apply to a single record; with several --data records each record's HPPC "
+                          "gives its own start and OCV")
     model_class(args.model)  # an unknown model fails before the data is read
+    output_file(args.out, "--out")
     ocv = _read_ocv(args.ocv) if args.ocv else None
-    profile = load(args.data, args.format)
-    if profile.batched:
-        raise DataError("fit needs a single record, not a batch of runs", file=str(args.data))
-    res = fit_model(args.model, profile, mode=args.mode, ocv=ocv, capacity_ah=args.capacity, soc0=args.soc0)
-    save_params(args.out, args.model, res.params, fit=res.fit_summary())
-    print(f"{args.model} fitted on {profile.name} ({args.mode} mode): RMS {1000 * res.rmse_v:.1f} mV over "
-          f"{res.n_samples} samples in {res.seconds:.1f} s; {len(res.warnings)} warning(s); wrote {args.out}")
-    for w in res.warnings[:5]:
+    records = [_load_single(p, args.format) for p in args.data]
+    validation = [_load_single(p, args.format) for p in args.validation]
+    for v in validation:
+        if v.soc_ref is None:
+            raise DataError("a validation record needs a reference SOC (the model error is measured at the true "
+                            "SOC)", file=v.meta.source or v.name, column="soc_ref")
+    if several:
+        res = fit_temperatures(args.model, records, mode=args.mode, capacity_ah=args.capacity)
+        params, summary = res.params, res.fit_summary()
+        print(f"{args.model} fitted at {len(res.temps)} temperatures ({args.mode} mode) on one SOC axis "
+              f"(Q_ref {res.capacity_ref:.4g} Ah) in {res.seconds:.1f} s:")
+        for t, name, how, q, f in zip(res.temps, res.sources, res.temperature_notes, res.capacities, res.fits):
+            print(f"  {t:6.1f} °C  {name}: RMS {1000 * f.rmse_v:.1f} mV over {f.n_samples} samples, "
+                  f"capacity {q:.4g} Ah; temperature = {how}")
+        for note in res.notes[1:]:
+            print(f"  note: {note}")
+        warnings = res.warnings
+    else:
+        profile = records[0]
+        res = fit_model(args.model, profile, mode=args.mode, ocv=ocv, capacity_ah=args.capacity, soc0=args.soc0,
+                        segments=False if args.no_segments else None)
+        params, summary = res.params, res.fit_summary()
+        print(f"{args.model} fitted on {profile.name} ({args.mode} mode): RMS {1000 * res.rmse_v:.1f} mV over "
+              f"{res.n_samples} samples in {res.seconds:.1f} s")
+        if res.lsq is not None and res.lsq.domain.get("samples"):
+            warn_outside(res.lsq.domain, f"{args.model} fitted on {profile.name}")
+        warnings = res.warnings
+    model = make_model(args.model, params)
+    stats, used = _model_error(model, records, validation)
+    save_params(args.out, args.model, params, fit=summary,
+                **({"model_error": stats.to_dict()} if stats is not None else {}))
+    if stats is not None:
+        sm = stats.summary()
+        print(f"noise recipe on {used}: model error (RMS over SOC) slow {_mv(sm['slow'])} mV "
+              f"(τ {stats.tau_slow_s:.0f} s), fast {_mv(sm['fast'])} mV (τ {stats.tau_fast_s:.1f} s), resistive "
+              f"{_mv(sm['r'])} mΩ (τ {stats.tau_r_s:.0f} s), white {_mv(sm['white'])} mV at "
+              f"{', '.join(f'{t:.1f}' for t in stats.temps)} °C")
+    print(f"{len(warnings)} fit warning(s); wrote {args.out}")
+    for w in warnings[:5]:
         print(f"  warning: {w}")
-    if len(res.warnings) > 5:
-        print(f"  ... {len(res.warnings) - 5} more in {args.out} (fit.warnings)")
+    if len(warnings) > 5:
+        print(f"  ... {len(warnings) - 5} more in {args.out} (fit.warnings)")
     return 0
+
+
+def _mv(values) -> str:
+    return "/".join(f"{1000 * v:.1f}" for v in values)
+
+
+def _model_error(model, records, validation):
+    """The noise recipe's statistics and which records it used (None when no record has a reference SOC)."""
+    if validation:
+        return model_error.estimate(model, validation), f"{len(validation)} validation record(s)"
+    usable = [r for r in records if r.soc_ref is not None]
+    if not usable:
+        print("note: no identification record has a reference SOC: no model_error block (the noise recipe needs one)")
+        return None, ""
+    return model_error.estimate(model, usable), f"the {len(usable)} identification record(s) (no --validation)"

@@ -1,21 +1,31 @@
 """``socbench leaderboard``: every estimator on every model over every scenario's seeds, ranked.
 
     socbench leaderboard [--models a,b] [--estimators a,b] [--scenarios a,b] [--seeds N] [--jobs N]
-                         [--backend serial|process|dask] [--scheduler ADDR] [--out DIR]
+                         [--backend serial|process|dask] [--scheduler ADDR] [--noise model|sensor] [--out DIR]
 
 Defaults: every registered model × coulomb, ekf, ukf, pf × flight-0kg, flight-10kg, dji-m100-replay × 10 seeds
 (seeds 0 … N−1), the ``process`` backend on every core, ``--out leaderboard-out``. Writes ``leaderboard.csv``,
 ``leaderboard.md`` and figures to ``--out``, and keeps every finished fit and cell in ``--out/store``: rerunning the
 same command after an interrupt resumes where it stopped and recomputes nothing that had finished.
+
+``--scenarios`` also takes a catalog group: ``measured`` runs every measured-data scenario (Panasonic, CALCE, DJI
+flights; ``socbench scenarios`` lists them). A scenario whose data is missing (no ``SOCBENCH_DATA_DIR``) is skipped
+with one line; with none left the command says so and exits 0.
+
+``--noise model`` (default) gives every voltage-reading filter the covariances of the noise recipe
+(:mod:`socbench.estimators.model_error`: the fitted model's error measured on the scenario's characterisation, or a
+measured scenario's validation records); ``--noise sensor`` the sensor noise alone.
 """
 
 from __future__ import annotations
 
 import signal
 import sys
-from pathlib import Path
+import warnings
 
-from ..errors import ConfigError
+from ..domain import WARN_FRACTION
+from ..errors import ConfigError, SocbenchWarning
+from ..io import output_dir
 from ..study import (
     BACKENDS,
     DEFAULT_ESTIMATORS,
@@ -44,15 +54,41 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-figures", action="store_true", help="skip the figures (tables only)")
     parser.add_argument("--recompute-stale", action="store_true",
                         help="recompute stored fits and cells that were computed by a different version of the code")
+    parser.add_argument("--noise", default="model", choices=("model", "sensor"),
+                        help="filter covariances: model = the noise recipe (default), sensor = sensor noise only")
 
 
-def build_config(args, toolkit: Toolkit) -> StudyConfig:
+def expand_groups(text: str | None, toolkit: Toolkit) -> str | None:
+    """``--scenarios`` with catalog group names (``measured``) replaced by their scenarios."""
+    if text is None:
+        return None
+    known = set(toolkit.scenario_names())
+    out = []
+    for name in (n.strip() for n in str(text).split(",") if n.strip()):
+        members = [] if name in known else toolkit.scenario_group(name)
+        out.extend(members if members else [name])
+    return ",".join(dict.fromkeys(out))
+
+
+def build_config(args, toolkit: Toolkit, log=print) -> StudyConfig | None:
+    """The study to run; None when every requested scenario is unavailable (said on one line each)."""
     if args.seeds is None or args.seeds < 1:
         raise ConfigError(f"--seeds must be at least 1, got {args.seeds}")
     models = parse_names(args.models, toolkit.model_names(), "model", toolkit.model_names())
     estimators = parse_names(args.estimators, toolkit.estimator_names(), "estimator", DEFAULT_ESTIMATORS)
-    scenarios = parse_names(args.scenarios, toolkit.scenario_names(), "scenario", DEFAULT_SCENARIOS)
-    return StudyConfig(models=models, estimators=estimators, scenarios=scenarios, seeds=tuple(range(args.seeds)))
+    scenarios = parse_names(expand_groups(args.scenarios, toolkit), toolkit.scenario_names(), "scenario",
+                            DEFAULT_SCENARIOS)
+    runnable = []
+    for name in scenarios:
+        why = toolkit.scenario_missing(name)
+        if why is None:
+            runnable.append(name)
+        else:
+            log(f"skipping scenario {name}: unavailable ({why})")
+    if not runnable:
+        return None
+    return StudyConfig(models=models, estimators=estimators, scenarios=tuple(runnable),
+                       seeds=tuple(range(args.seeds)), noise=getattr(args, "noise", "model"))
 
 
 def _terminate(signum, frame):
@@ -68,11 +104,15 @@ def run(args) -> int:
     if args.scheduler and args.backend != "dask":
         raise ConfigError("--scheduler needs --backend dask")
     config = build_config(args, toolkit)
-    out = Path(args.out)
+    if config is None:
+        print("leaderboard: no scenario left to run (the measured-data scenarios need SOCBENCH_DATA_DIR); nothing "
+              "written")
+        return 0
+    out = output_dir(args.out, "--out")
     store = Store(out / "store")
     print(f"leaderboard: {len(config.models)} models × {len(config.estimators)} estimators × "
           f"{len(config.scenarios)} scenarios × {len(config.seeds)} seeds = {config.n_cells} cells "
-          f"({args.backend} backend) → {out}", flush=True)
+          f"({args.backend} backend, noise {config.noise}) → {out}", flush=True)
     previous = signal.signal(signal.SIGTERM, _terminate)  # `kill` stops the study as cleanly as Ctrl-C does
     try:
         result = run_study(config, store, backend=args.backend, jobs=args.jobs, scheduler=args.scheduler,
@@ -89,5 +129,12 @@ def run(args) -> int:
         print(f"  warning: {len(result.stale)} fits/cells come from other code (--recompute-stale refreshes them)")
     for sentence in report["best"]:
         print(f"  {sentence}")
+    outside = sorted((rec["row"] for rec in result.cells if (rec["row"].get("out_of_domain") or 0) >= WARN_FRACTION),
+                     key=lambda r: -r["out_of_domain"])
+    if outside:
+        w = outside[0]
+        warnings.warn(f"{len(outside)} cells spent ≥ {100 * WARN_FRACTION:.0f} % of their samples outside the model's "
+                      f"domain (out_of_domain column; worst {w['model']} + {w['estimator']} on {w['scenario']}: "
+                      f"{100 * w['out_of_domain']:.1f} %)", SocbenchWarning, stacklevel=2)
     print(f"wrote {out / 'leaderboard.csv'}, {out / 'leaderboard.md'} and {len(report['figures'])} figures")
     return 0

@@ -1,6 +1,15 @@
-"""``socbench simulate --data PATH --params PARAMS.json [--out PRED.csv] [--json METRICS.json]``.
+"""``socbench simulate --data PATH --params PARAMS.json [--out PRED.csv] [--json METRICS.json] [--no-segments]``.
 
-``--data builtin:hppc`` and ``--params paper:MODEL`` name the embedded paper-pack profile and Table 3 sets.
+``--data builtin:hppc`` and ``--params paper:MODEL`` name the embedded paper-pack profile and Table 3 sets. The model
+looks its parameters up at the record's measured cell temperature, sample by sample (a temperature-aware set); the
+initial SOC (``--soc0``, default the record's reference at its start) and the SOC written follow the data's SOC
+definition (:mod:`socbench.socaxis`).
+
+A record of several discharges (battery swaps, recharges) is simulated segment by segment, each restarting at its
+reference SOC (:mod:`socbench.segments`); ``--no-segments`` runs it as one piece. The JSON holds the DESIGN.md keys,
+``segments`` (count and the boundaries), ``domain`` (:func:`socbench.domain.domain_report`: samples with SOC outside
+[0, 1], OCV extrapolated, guards, implausible voltage) and ``guard_fractions`` (those counts and the model's guards as
+shares of samples). A warning line is printed when ≥ 1 % of the samples lie outside the model's domain.
 """
 
 from __future__ import annotations
@@ -11,10 +20,12 @@ import pandas as pd
 
 from ..checks import check_temperature_range, check_voltage_level
 from ..datasets import load
+from ..domain import warn_outside
 from ..errors import DataError
-from ..io import atomic_write_frame, atomic_write_text
+from ..io import atomic_write_frame, atomic_write_text, output_file
 from ..metrics import voltage_error_stats
 from ..models import load_params, make_model, paper_params
+from ..socaxis import soc_axis
 
 
 def add_arguments(parser) -> None:
@@ -24,6 +35,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--soc0", type=float, default=None, help="initial SOC (default: from the data)")
     parser.add_argument("--out", help="write the prediction CSV here")
     parser.add_argument("--json", help="write the error metrics JSON here")
+    parser.add_argument("--no-segments", action="store_true",
+                        help="simulate the record as one piece, through its gaps (default: restart each segment)")
 
 
 def resolve_params(spec: str):
@@ -35,6 +48,9 @@ def resolve_params(spec: str):
 
 
 def run(args) -> int:
+    for option, path in (("--out", args.out), ("--json", args.json)):
+        if path:
+            output_file(path, option)
     profile = load(args.data, args.format)
     profile.require("voltage_v")
     name, params = resolve_params(args.params)
@@ -43,18 +59,26 @@ def run(args) -> int:
     check_voltage_level(profile, params, f"the '{args.params}' parameter set")
     temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set")
     model = make_model(name, params)
-    sim = model.simulate(profile, soc0=args.soc0)
+    axis = soc_axis(params, profile)
+    soc0 = args.soc0 if args.soc0 is not None else (float(profile.soc_ref[0]) if profile.soc_ref is not None
+                                                     else None)
+    sim = model.simulate(profile, soc0=None if soc0 is None else float(axis.to_model(soc0)),
+                         segments=False if args.no_segments else None)
     stats = voltage_error_stats(profile.voltage_v, sim.voltage_v)
-    stats.update({"model": name, "data": str(args.data), "guard_fractions": sim.guard_fractions})
+    stats.update({"model": name, "data": str(args.data), "guard_fractions": sim.domain_fractions,
+                  "segments": sim.segments.to_dict(), "domain": sim.domain})
     if temperature:
         stats["temperature_range"] = temperature
+    segs = f"  {sim.segments.count} segments" if sim.segments.count > 1 else ""
     print(
-        f"{name} on {profile.name}: n={stats['n']}  RMS {1000 * stats['rmse_v']:.1f} mV  "
-        f"mean {1000 * stats['mean_v']:.1f} mV  SD {1000 * stats['sd_v']:.1f} mV  max {1000 * stats['max_v']:.1f} mV"
+        f"{name} on {profile.name}: n={stats['n']}{segs}  RMS {1000 * stats['rmse_v']:.1f} mV  "
+        f"mean {1000 * stats['mean_v']:.1f} mV  SD {1000 * stats['sd_v']:.1f} mV  max {1000 * stats['max_v']:.1f} mV  "
+        f"out of domain {100 * sim.domain['outside_fraction']:.1f} %"
     )
+    warn_outside(sim.domain, f"{name} on {profile.name}")
     if args.out:
         frame = pd.DataFrame({"time_s": profile.time_s, "current_a": profile.current_a,
-                              "voltage_v": profile.voltage_v, "v_model": sim.voltage_v, "soc": sim.soc})
+                              "voltage_v": profile.voltage_v, "v_model": sim.voltage_v, "soc": axis.to_data(sim.soc)})
         atomic_write_frame(args.out, frame)
     if args.json:
         atomic_write_text(args.json, json.dumps(stats, indent=2))

@@ -134,7 +134,9 @@ def load_calce(path) -> Profile:
     test = _test_name(path, layout)
     extra = {"test": test, "layout": layout, "ambient_temperature_c": 20.0, "duplicate_stamps_dropped": dropped,
              "dataset": "CALCE A123 LiFePO4 (University of Maryland), third-party CSV export",
-             "nominal_capacity_ah": NOMINAL_CAPACITY_AH, **info}
+             "nominal_capacity_ah": NOMINAL_CAPACITY_AH, **info,
+             # the reference SOC is counted from full with this capacity (socbench.socaxis)
+             **({"soc_ref_capacity_ah": float(cap)} if soc is not None else {})}
     meta = ProfileMeta(name=path.stem, source=src, capacity_ah=cap, n_series=1, chemistry=CHEMISTRY, extra=extra)
     # the chamber temperature is nominal (file names), not measured: no temperature column
     return Profile(t - t[0], current, v, None, soc, meta)

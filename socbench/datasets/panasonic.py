@@ -265,6 +265,8 @@ def load_panasonic(path) -> Profile:
         "ambient_temperature_c": _tag_celsius(tag) if tag else None,
         "capacity_source": cap_note,
         "duplicate_stamps_dropped": dropped,
+        # the reference SOC is 1 − Ah/C counted from full with this C (socbench.socaxis converts to a model's axis)
+        **({"soc_ref_capacity_ah": float(capacity)} if soc is not None else {}),
         "dataset": "Panasonic 18650PF (Kollmeyer 2018, doi:10.17632/wykht8y7tg.1)",
         "nominal_capacity_ah": NOMINAL_CAPACITY_AH,
     }

@@ -1,16 +1,25 @@
 """``diagnose``: fit a model on the fit data, find what its residual on the evaluation data lacks, add it, refit.
 
-1. **Fit** the base model on the fit data with :func:`socbench.identify.fit_model`. A fit record that moves most of
-   its charge below C/10 is a slow OCV test: it gives the OCV curve (:func:`~socbench.identify.ocv_from_slow_test`:
-   the mean of the charge and discharge branches when both are there, or with ``slow_ocv="discharge"`` the discharge
-   branch, the paper's convention of rest points taken after discharge steps) and the capacity, and the model is
-   fitted on the other record with that curve. Nothing is read from names or metadata but the declared capacity.
-2. **Prepare** the evaluation data (:mod:`socbench.diagnose.data`): bins of ≥ ``dt`` s — coarser where a record
-   would keep more than ``max_samples`` samples, which bounds the cost of every fit — and the train / held-out split.
-3. **Search** (:mod:`socbench.diagnose.search`): signatures, bounded fits on the training part, held-out scores, the
-   forward steps while the held-out RMSE falls by ≥ 10 %.
-4. **SOC** (where the data carry a reference SOC): the EKF on the original and on the augmented model, scored on the
-   held-out part with :func:`socbench.estimators.scoring.score`.
+1. **Prepare** the evaluation data (:mod:`socbench.diagnose.data`): charge-preserving bins of ≥ ``dt`` s, coarser
+   where a record would keep more than ``max_samples`` bins (which bounds the cost of every fit).
+2. **Fit** the base model on the fit data (:func:`fit_base`). A fit record that moves most of its charge below C/10 is
+   a slow OCV test: it gives the OCV curve (:func:`~socbench.identify.ocv_from_slow_test`: the mean of the charge and
+   discharge branches when both are there, or with ``slow_ocv="discharge"`` the discharge branch, the paper's
+   convention of rest points taken after discharge steps) and the capacity. The fit setting is chosen by validation
+   on the evaluation records (:func:`~socbench.identify.select_fit`: constant mode with each sample weighting, then
+   the winner in lookup mode), so that the effects are not spent on base-fit error. Nothing is read from names or
+   metadata but the declared capacity.
+3. **Search** (:mod:`socbench.diagnose.search`): blocked cross-validation over every evaluation record
+   (:func:`~socbench.diagnose.data.make_folds`), signatures, one bounded fit per fold, held-out scores, the forward
+   steps while the held-out RMSE falls by ≥ 10 %.
+4. **SOC** (where the data carry a reference SOC): the EKF and the UKF on the base model and on the augmented model of
+   every fold, block ``j`` scored with fold ``j``'s run (:func:`soc_errors`); the filters' voltage noise is the
+   white-noise equivalent of each fold model's correlated training residual (:func:`filter_voltage_sd`), an added
+   state's initial SD the spread of its fitted initial value over the folds (:func:`fold_spread_sd`).
+
+``before`` is the base model's error on every averaged sample (no parameter of it was fitted there); ``after`` the
+cross-validated error of the final set (every block scored by parameters fitted without it). The returned final model
+holds the all-data fit.
 """
 
 from __future__ import annotations
@@ -21,15 +30,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import DataError
-from ..identify import fit_model, ocv_from_slow_test
+from ..identify import FIT_CANDIDATES, fit_model, ocv_from_slow_test, select_fit, validation_rmse
 from ..models import make_model
 from ..models.base import T_REF_C
+from ..models.effects import EFFECTS
 from ..profile import Profile
-from .data import Split, bin_average, make_split
-from .search import Search, held_out, initial_soc
+from .cv import cv_residual
+from .data import Folds, bin_average, make_folds
+from .search import BASE_REFIT, Search, initial_soc, residual_noise, rest_current
 
 #: a fit record whose |I| never exceeds this C-rate is a slow OCV test
 SLOW_TEST_C_RATE = 0.1
+#: bins of a slow OCV test before its branches are read [s]
+SLOW_TEST_BIN_S = 60.0
 
 
 @dataclass
@@ -43,14 +56,18 @@ class Diagnosis:
     rounds: list
     before: dict
     after: dict
-    split: Split
+    split: Folds
     fit: dict
     seconds: dict = field(default_factory=dict)
     soc: dict = field(default_factory=dict)
+    domain: dict = field(default_factory=dict)  # {"before", "after"}: socbench.domain reports on the evaluation data
+    #: measured − model on every sample of the (averaged) evaluation records, each block by its fold's model
+    held_out_residual: dict = field(default_factory=dict, repr=False)
+    search: object = field(default=None, repr=False)
 
     @property
     def effects_added(self) -> list:
-        return [s.effect for s in self.steps]
+        return [s.effect for s in self.steps if s.effect != BASE_REFIT]
 
     def to_dict(self) -> dict:
         first = self.rounds[0]["candidates"] if self.rounds else []
@@ -60,12 +77,14 @@ class Diagnosis:
             "before": self.before,
             "after": self.after,
             "candidates": [c.to_dict() for c in first],
-            "steps": [{"effect": s.effect, "rmse_v_before": s.rmse_before, "rmse_v_after": s.rmse_after,
-                       "params": s.params, "score": s.score, "evidence": s.evidence} for s in self.steps],
+            "steps": [{"effect": s.effect, "kind": "base" if s.effect == BASE_REFIT else "effect",
+                       "rmse_v_before": s.rmse_before, "rmse_v_after": s.rmse_after, "params": s.params,
+                       "score": s.score, "evidence": s.evidence} for s in self.steps],
             "split": self.split.describe(),
             "rounds": [[c.to_dict() for c in r["candidates"]] for r in self.rounds],
             "fit": self.fit,
             "soc": self.soc,
+            "domain": self.domain,
             "seconds": self.seconds,
         }
 
@@ -86,8 +105,13 @@ def is_slow_test(profile: Profile) -> bool:
     return bool(moved.sum() > 0 and moved[slow].sum() >= 0.8 * moved.sum())
 
 
-def fit_base(name: str, fit_profiles, mode: str = "constant", slow_ocv: str = "mean"):
-    """``(model, info)``: the base model fitted on the fit data (see the module docstring)."""
+def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean", validation=None):
+    """``(model, info)``: the base model fitted on the fit data (see the module docstring).
+
+    ``mode="auto"`` chooses the fit by validation on ``validation`` (the evaluation records): every setting of
+    :data:`~socbench.identify.FIT_CANDIDATES` in constant mode (:func:`~socbench.identify.select_fit`), then the
+    winning setting in lookup mode (SOC-dependent parameters); the fit with the lowest mean validation RMSE is kept.
+    Any other ``mode`` is fitted as asked, with the first setting."""
     fit_profiles = list(fit_profiles)
     slow = [p for p in fit_profiles if is_slow_test(p)]
     dynamic = [p for p in fit_profiles if not is_slow_test(p)]
@@ -98,10 +122,21 @@ def fit_base(name: str, fit_profiles, mode: str = "constant", slow_ocv: str = "m
     ocv = capacity = None
     info = {"records": [p.name for p in fit_profiles]}
     if slow:
-        cur = np.abs(slow[0].current_a)
+        # a slow test moves 0.1 % of its charge a minute: one-minute bins lose nothing of its OCV and average a noisy
+        # current sensor down, so that a noise spike does not cut a branch into pieces
+        test = bin_average(slow[0], SLOW_TEST_BIN_S)
+        # over tens of hours a current-sensor offset counts as much charge as the test moves in hours: the rests
+        # measure it (their true current is zero), and it is taken off before the charge is counted
+        cur = np.abs(test.current_a)
         moving = cur[cur > 1e-3 * float(cur.max())]
+        rest = rest_current(test, _capacity(slow[0]) or float(np.ptp(test.amp_hours())) or 1.0,
+                            quiet_a=0.25 * float(np.median(moving)))
+        if rest is not None:
+            test = test.with_(current_a=test.current_a - rest[0])
+            info["slow_test_current_offset_a"] = rest[0]
+            cur = np.abs(test.current_a)
         # the branches are the runs at the test's typical (median) current, whatever a CV top-off did before
-        s = ocv_from_slow_test(slow[0], capacity_ah=_capacity(slow[0]), i_min=0.5 * float(np.median(moving)))
+        s = ocv_from_slow_test(test, capacity_ah=_capacity(slow[0]), i_min=0.5 * float(np.median(moving)))
         use_mean = slow_ocv == "mean" and s.mean is not None
         ocv = s.mean if use_mean else s.discharge
         capacity = s.capacity_ah
@@ -113,77 +148,243 @@ def fit_base(name: str, fit_profiles, mode: str = "constant", slow_ocv: str = "m
         info["ocv_branch"] = -1.0
     prof = dynamic[0]
     capacity = capacity or _capacity(prof)
-    res = fit_model(name, prof, mode=mode, ocv=ocv, capacity_ah=capacity)
-    info.update({"fitted_on": prof.name, "mode": mode, "rmse_v": res.rmse_v, "seconds": res.seconds,
+    validation = list(validation or [])
+    if mode == "auto" and validation:
+        sel = select_fit(name, prof, validation, mode="constant", ocv=ocv, capacity_ah=capacity)
+        fits, scores = dict(sel.fits), {k: float(np.mean(v)) for k, v in sel.scores.items()}
+        lookup = f"lookup, {sel.chosen}"
+        fits[lookup] = fit_model(name, prof, mode="lookup", ocv=ocv, capacity_ah=capacity, knots=LOOKUP_KNOTS,
+                                 **FIT_CANDIDATES[sel.chosen])
+        scores[lookup] = float(np.mean([validation_rmse(fits[lookup], r) for r in validation]))
+        chosen = min(scores, key=scores.get)
+        res = fits[chosen]
+        info["selection"] = {"chosen": chosen if chosen == lookup else f"constant, {chosen}",
+                             "validation_rmse_v": {(k if k == lookup else f"constant, {k}"): v
+                                                   for k, v in scores.items()},
+                             "note": "each setting fitted on the fit record; mean open-loop RMSE on the evaluation "
+                                     "records (no parameter fitted on them)"}
+    else:
+        mode = "constant" if mode == "auto" else mode
+        res = fit_model(name, prof, mode=mode, ocv=ocv, capacity_ah=capacity)
+    info.update({"fitted_on": prof.name, "mode": res.mode, "rmse_v": res.rmse_v, "seconds": res.seconds,
                  "capacity_ah": res.params.capacity_ah, "values": res.values, "warnings": list(res.warnings)})
     t_fit = prof.temperature_c
     info["t_ref_c"] = float(np.mean(t_fit)) if t_fit is not None else T_REF_C
     return make_model(name, res.params), info
 
 
-def soc_errors(model, split: Split, voltage_sd: float) -> dict | None:
-    """Held-out SOC RMSE of the EKF on ``model`` (None without a reference SOC or without the estimators)."""
-    if any(p.soc_ref is None for p, _ in split.held):
+#: SOC knots of the lookup-mode base fit: denser towards empty, where resistances rise (few knots keep the fit cheap)
+LOOKUP_KNOTS = np.array([0.0, 0.1, 0.2, 0.4, 0.7, 1.0])
+#: the largest lag-1 autocorrelation of a model's residual the filters' voltage noise accounts for (×√1999 at most)
+MAX_RHO = 0.999
+#: samples per record for the SOC filters (their cost is per sample)
+SOC_MAX_SAMPLES = 1500
+#: filters run for the SOC before/after comparison
+SOC_ESTIMATORS = ("ekf", "ukf")
+#: the current-sensor noise the filters assume [fraction of the capacity, A per A·h]
+SOC_CURRENT_SD = 0.01
+
+
+def _batched(profile: Profile, runs: int, offsets=None, record: int = 0) -> Profile:
+    """``profile`` carried ``runs`` times (one filter run per fold), the voltage less each run's offset."""
+    v = np.broadcast_to(profile.voltage_v, (runs, profile.n))
+    if offsets is not None:
+        v = v - np.broadcast_to(offsets, (runs, np.shape(offsets)[-1]))[:, record:record + 1]
+    return profile.with_(current_a=np.broadcast_to(profile.current_a, (runs, profile.n)).copy(), voltage_v=v.copy())
+
+
+def filter_voltage_sd(residual, folds: Folds, j: int) -> float:
+    """The voltage noise a filter should assume for fold ``j``'s model: the white-noise equivalent of its training
+    residual (measured − model on the samples outside block ``j``), ``σ·√((1 + ρ)/(1 − ρ))``.
+
+    A model's error is not white: it is correlated over many samples (lag-1 autocorrelation ρ, pooled over the
+    records). The SOC a filter infers from the voltage is a slow quantity, and what it sees of an AR(1) error is its
+    power at low frequency, ``σ²(1 + ρ)/(1 − ρ)``; the RMSE alone would make it trust a correlated error as if it
+    averaged out — the more so, the better the model (what made a better voltage model a worse SOC estimator)."""
+    num = den = 0.0
+    k, sq, n = 0, 0.0, 0
+    for p, b in zip(folds.records, folds.blocks):
+        e = residual[k:k + p.n]
+        k += p.n
+        m = b != j
+        sq += float(e[m] @ e[m])
+        n += int(m.sum())
+        ec = np.where(m, e - e[m].mean() if m.any() else 0.0, 0.0)
+        both = m[1:] & m[:-1]
+        num += float(ec[1:][both] @ ec[:-1][both])
+        den += float(ec[m] @ ec[m])
+    sigma = np.sqrt(sq / max(n, 1))
+    rho = min(max(num / den if den > 0 else 0.0, 0.0), MAX_RHO)
+    return float(sigma * np.sqrt((1.0 + rho) / (1.0 - rho)))
+
+
+def fold_spread_sd(step, base) -> dict:
+    """``{effect: initial SD per state}`` for the filters: where a state's initial value is a fitted parameter
+    (:attr:`~socbench.models.effects.Effect.initial_params`), the jackknife spread of its fold estimates
+    ``√((k − 1)/k · Σ (θ_j − θ̄)²)``, at least a tenth of the effect's declared SD; other states keep the declaration."""
+    out, j = {}, 0
+    rows = step.fit.folds()
+    k = rows.shape[0]
+    for name, params in step.layout:
+        if name in EFFECTS and EFFECTS[name].initial_params:
+            eff = EFFECTS[name]()
+            declared = eff.initial_sd(base)
+            sd = []
+            for state, dec in zip(eff.state_names, declared):
+                p = eff.initial_params.get(state)
+                if p is None:
+                    sd.append(dec)
+                    continue
+                col = rows[:, j + params.index(p)]
+                spread = float(np.sqrt((k - 1) / k * np.sum((col - col.mean()) ** 2)))
+                sd.append(max(spread, 0.1 * dec))
+            out[name] = tuple(sd)
+        j += len(params)
+    return out
+
+
+def soc_errors(model_for, folds: Folds, soc0s, voltage_sd, estimators=SOC_ESTIMATORS) -> dict | None:
+    """Held-out SOC RMSE of each filter: every record filtered from its start once per fold (``k`` runs of one
+    batched run), block ``j`` scored with run ``j``. ``model_for(layout)`` gives ``(model, per-record voltage
+    offsets (k, records) or None)`` with one variant per fold on a leading batch axis of shape ``layout`` — ``(k,)``
+    for the EKF, ``(k, 1)`` for the UKF, which evaluates the model on ``(runs, sigma points)`` — or one model for every
+    fold. ``voltage_sd (k,)`` is each fold's filter voltage noise. None without a reference SOC."""
+    if any(p.soc_ref is None for p in folds.records):
         return None
-    try:
-        from ..estimators import SensorNoise, make_estimator
-        from ..estimators.scoring import score
-    except ImportError:  # pragma: no cover - the estimators package is part of socbench
-        return None
-    noise = SensorNoise(voltage_sd=max(voltage_sd, 1e-3), current_sd=0.01 * model.capacity_ah)
-    sq, n = 0.0, 0
-    for prof, k in split.held:
-        est = make_estimator("ekf", model, noise).run(prof, soc0=float(prof.soc_ref[0]))
-        s = score(est, prof, skip_s=float(prof.time_s[k] - prof.time_s[0]))
-        if s.get("soc_rmse") is None:
-            return None
-        sq += s["soc_rmse"] ** 2 * s["n"]
-        n += s["n"]
-    return {"soc_rmse": float(np.sqrt(sq / n))}
+    from ..estimators import SensorNoise, make_estimator
+
+    k = folds.k
+    vsd = np.maximum(np.asarray(voltage_sd, dtype=float), 1e-3)
+    out = {}
+    for name in estimators:
+        model = model_for((k, 1) if name == "ukf" else (k,))[0]
+        run_model, offsets = model_for((k,))  # its initial states and voltage offsets, one row per fold
+        noise = SensorNoise(voltage_sd=float(vsd.max()), current_sd=SOC_CURRENT_SD * model.capacity_ah)
+
+        def r_of(D, noise=noise):  # each fold's own voltage noise (one run per fold)
+            return vsd**2 + noise.input_var * np.asarray(D) ** 2
+
+        sq, n, failed = 0.0, 0, 0
+        for r, (p, b, z0) in enumerate(zip(folds.records, folds.blocks, soc0s)):
+            x0 = run_model.x0(np.full(k, z0), (k,))
+            est = make_estimator(name, model, noise, R=r_of).run(_batched(p, k, offsets, r), x0=x0)
+            e = est.soc[b, np.arange(p.n)] - p.soc_ref
+            sq += float(e @ e)
+            n += p.n
+            failed += int(est.failed.sum())
+        out[name] = {"soc_rmse": float(np.sqrt(sq / n)), "failed_runs": failed}
+    return out
 
 
 def _coarse(profile: Profile, dt: float, max_samples: int) -> Profile:
     """``profile`` on bins of ``dt`` s, coarser if that leaves more than ``max_samples`` samples (fit cost)."""
     p = bin_average(profile, dt)
     if p.n > max_samples:
-        p = bin_average(profile, dt * p.n / max_samples)
+        p = bin_average(profile, profile.duration_s / (max_samples - 1))
     return p
 
 
-def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "constant", dt: float = 1.0,
-             train_fraction: float = 0.5, candidates=None, min_gain: float = 0.10, max_steps: int = 3,
-             max_nfev: int = 15, max_fits: int = 3, max_samples: int = 1500, slow_ocv: str = "mean",
-             soc: bool = True) -> Diagnosis:
+def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto", dt: float = 1.0, folds: int = 4,
+             candidates=None, min_gain: float = 0.10, max_steps: int = 3, max_nfev: int = 15, max_fits: int = 3,
+             max_samples: int = 4000, slow_ocv: str = "mean", soc: bool = True,
+             base_refit: bool = True) -> Diagnosis:
     """Run the whole diagnosis (module docstring). Profiles are :class:`~socbench.profile.Profile` objects."""
     t0 = _time.perf_counter()
-    base, fit_info = fit_base(model_name, fit_profiles, mode, slow_ocv)
-    t_fit = _time.perf_counter()
     evals = [_coarse(p, dt, max_samples) for p in eval_profiles]
     for p in evals:
         p.require("voltage_v")
-    split = make_split(evals, train_fraction)
-    search = Search(base, split, fit_info["t_ref_c"], candidates, min_gain=min_gain, max_nfev=max_nfev,
-                    max_steps=max_steps, max_fits=max_fits, h_ref=fit_info["ocv_branch"])
-    final, steps, rounds, _ = search.run()
-    fit_info["voltage_noise_sd"] = search.noise_sd
-    before = held_out(base, split)[0]  # the search scores on every held-out sample: these are its numbers
+    base, fit_info = fit_base(model_name, fit_profiles, mode, slow_ocv, validation=evals)
+    t_fit = _time.perf_counter()
+    cv = make_folds(evals, folds)
+    # the voltage noise of the averaged records: the sensor's (measured on the records as recorded) over √(samples
+    # averaged per bin), pooled over the records
+    sigma = residual_noise(base, eval_profiles)
+    per_bin = [p.n / max(e.n, 1) for p, e in zip(eval_profiles, evals)]
+    noise_bin = sigma * float(np.sqrt(np.average([1.0 / m for m in per_bin], weights=[e.n for e in evals])))
+    search = Search(base, cv, fit_info["t_ref_c"], candidates, min_gain=min_gain, max_nfev=max_nfev,
+                    max_steps=max_steps, max_fits=max_fits, h_ref=fit_info["ocv_branch"], noise_sd=noise_bin,
+                    raw=eval_profiles, base_refit=base_refit)
+    final, steps, rounds, before = search.run()
+    residuals = {"before": cv_residual(base, cv, search.soc0s)[0],
+                 "after": steps[-1].held_residual if steps else None}
+    residuals["after"] = residuals["before"] if residuals["after"] is None else residuals["after"]
+    fit_info["voltage_noise_sd"] = sigma
+    fit_info["voltage_noise_sd_binned"] = noise_bin
     after = steps[-1].rmse_after if steps else before
     t_search = _time.perf_counter()
     soc_info = {}
     before_d, after_d = {"rmse_v": before}, {"rmse_v": after}
     if soc:
-        train_rmse = {}
-        for key, m in (("before", base), ("after", final)):
-            sim = m.simulate(split.train, soc0=initial_soc(m, split.train))
-            train_rmse[key] = float(np.sqrt(np.mean((split.train.voltage_v - sim.voltage_v) ** 2)))
-        sb = soc_errors(base, split, train_rmse["before"])
-        sa = soc_errors(final, split, train_rmse["after"])
-        if sb is not None and sa is not None:
-            before_d["soc_rmse"], after_d["soc_rmse"] = sb["soc_rmse"], sa["soc_rmse"]
-            soc_info = {"estimator": "ekf", "voltage_sd": train_rmse, "note": "EKF voltage noise = the model's "
-                        "training-part RMSE; current noise 1 % of C; SOC scored on the held-out part"}
+        # the filters run on coarser bins than the fits (their cost is per sample, the SOC error is slow): the same
+        # equal-duration blocks, so fold j's filter is scored on block j
+        soc_records = [_coarse(p, dt, SOC_MAX_SAMPLES) for p in eval_profiles]
+        soc_folds = make_folds(soc_records, folds)
+        soc0s = [initial_soc(base, p) for p in soc_records]
+
+        def train_rmse(model_or_build, thetas=None):
+            """Each fold's filter voltage noise (:func:`filter_voltage_sd`) on the filters' records."""
+            out = np.zeros(soc_folds.k)
+            for j in range(soc_folds.k):
+                r = cv_residual(model_or_build, soc_folds, soc0s, None if thetas is None
+                                else np.repeat(thetas[j:j + 1], soc_folds.k, axis=0))[0]
+                out[j] = filter_voltage_sd(r, soc_folds, j)
+            return out
+
+        vsd_b = train_rmse(base)
+        sb = soc_errors(lambda layout: (base, None), soc_folds, soc0s, vsd_b)
+        if steps:
+            last = steps[-1]
+            isd = fold_spread_sd(last, base)
+            vsd_a = train_rmse(search.builder([n for n, _ in last.layout])[0], last.fit.folds())
+            sa = soc_errors(lambda layout: search.fold_models(last, layout, isd), soc_folds, soc0s, vsd_a)
         else:
-            soc_info = {"note": "no reference SOC in the held-out data: SOC error not reported"}
+            vsd_a, sa, isd = vsd_b, sb, {}
+        if sb is not None and sa is not None:
+            before_d["soc_rmse"], after_d["soc_rmse"] = sb["ekf"]["soc_rmse"], sa["ekf"]["soc_rmse"]
+            before_d["soc"], after_d["soc"] = sb, sa
+            soc_info = {"estimators": list(SOC_ESTIMATORS), "voltage_sd": {"before": vsd_b.tolist(),
+                                                                            "after": vsd_a.tolist()},
+                        "effect_state_sd": {k: list(v) for k, v in isd.items()},
+                        "note": "EKF and UKF on every record once per fold, block j scored with fold j's model; "
+                                "filter voltage noise = each fold model's training residual as white-noise equivalent "
+                                "σ·√((1+ρ)/(1−ρ)); current "
+                                f"noise {100 * SOC_CURRENT_SD:g} % of C; an added state's initial SD = the spread of "
+                                "its fitted initial value over the folds"}
+        else:
+            refused = [f"{p.name}: {p.soc_ref_error.message}" for p in eval_profiles
+                       if getattr(p, "soc_ref_error", None) is not None]
+            soc_info = {"note": "no reference SOC in the evaluation data: SOC error not reported"
+                        + (f" (refused: {'; '.join(refused)})" if refused else "")}
     t_end = _time.perf_counter()
     seconds = {"fit": t_fit - t0, "search": t_search - t_fit, "soc": t_end - t_search, "total": t_end - t0}
-    return Diagnosis(model_name, base, final, steps, rounds, before_d, after_d, split, fit_info, seconds, soc_info)
+    before_d["rmse_v_per_record"] = _per_record(residuals["before"], cv)
+    after_d["rmse_v_per_record"] = _per_record(residuals["after"], cv)
+    if search.offsets is not None:
+        fit_info["voltage_offsets_v"] = {p.name: float(o) for p, o in zip(cv.records, search.offsets)}
+    domain = {"before": evaluation_domain(base, eval_profiles), "after": evaluation_domain(final, eval_profiles)}
+    return Diagnosis(model_name, base, final, steps, rounds, before_d, after_d, cv, fit_info, seconds, soc_info,
+                     domain, residuals, search)
+
+
+def evaluation_domain(model, profiles) -> dict:
+    """The domain report (:func:`socbench.domain.domain_report`) of ``model`` on the evaluation records, each
+    simulated from its start (segment by segment where a record has several)."""
+    from ..domain import merge
+
+    reports = []
+    for prof in profiles:
+        sim = model.simulate(prof, soc0=initial_soc(model, prof))
+        reports.append({**sim.domain, "segments": sim.domain.get("segments", 1)})
+    out = merge(reports)
+    out["segments"] = sum(r["segments"] for r in reports)
+    return out
+
+
+def _per_record(residual, folds: Folds) -> dict:
+    """``{record name: RMSE}`` of a residual over the concatenated records."""
+    out, k = {}, 0
+    for p in folds.records:
+        e = residual[k:k + p.n]
+        out[p.name] = float(np.sqrt(np.mean(e * e)))
+        k += p.n
+    return out

@@ -6,11 +6,14 @@ counter, hence SOC, stays exact under the zero-order hold), voltage and temperat
 taken at the bin start. A long step (a rest recorded sparsely, a gap) stays one step. For the ohmic term the bin mean
 is exact (``mean(R0·I) = R0·mean(I)``); what is lost is the RC relaxation within one bin (τ ≫ 1 s here).
 
-Split. ``before``/``after`` must be measured on data not used to fit what they score (DESIGN.md):
-
-* two or more evaluation profiles: the effect parameters are fitted on the first, judged on all the others;
-* one profile: fitted on its first ``train_fraction`` of time, judged on the rest (the simulation runs through the
-  whole profile from its start, so the held-out part starts from the state the model reached, nothing re-fitted).
+Folds. ``before``/``after`` must be measured on data not used to fit what they score (DESIGN.md). One cut (fit on the
+first half, judge on the second) wastes half the data on each side and cannot find an effect that shows only in one
+part of the record (hysteresis after the first recharge). So every evaluation record is cut into ``k`` contiguous
+blocks of equal duration (blocked cross-validation): fold ``j`` fits the effect parameters on all samples outside
+block ``j`` of every record and is scored on block ``j``; the held-out error is the sum over the folds, so every
+sample is scored exactly once, by parameters that never saw it. Each record is simulated from its start (block ``j``'s
+current drives the states through it; its voltage is not in the fit), so a held-out block starts from the state the
+model reached, nothing re-fitted.
 """
 
 from __future__ import annotations
@@ -55,37 +58,47 @@ def bin_average(profile: Profile, dt: float = 1.0) -> Profile:
 
 
 @dataclass(frozen=True, eq=False)
-class Split:
-    """What the effect parameters are fitted on (``train``) and what they are judged on (``held``).
+class Folds:
+    """Blocked cross-validation over time (see the module docstring).
 
-    ``held`` is a list of ``(profile, first_index)``: each profile is simulated from its start and scored from
-    ``first_index`` on.
+    ``records`` are the evaluation profiles; ``blocks[r]`` gives each sample of record ``r`` its block ``0 … k − 1``
+    (contiguous, equal durations). Fold ``j`` fits on every sample outside block ``j`` (of every record) and is
+    scored on block ``j``; each record is always simulated from its start.
     """
 
-    train: Profile
-    held: list
-    method: str
-    train_fraction: float | None = None
+    records: list
+    k: int
+    blocks: list
+
+    @property
+    def n(self) -> int:
+        return int(sum(p.n for p in self.records))
+
+    def train_mask(self, r: int, j: int) -> np.ndarray:
+        """Samples of record ``r`` that fold ``j`` fits on (``j = None``: every sample, the all-data fit)."""
+        return np.ones(self.records[r].n, dtype=bool) if j is None else self.blocks[r] != j
+
+    def held(self):
+        """``[(record, block of every sample)]`` (the scoring view)."""
+        return list(zip(self.records, self.blocks))
 
     def describe(self) -> dict:
-        d = {
-            "method": self.method,
-            "train": {"profile": self.train.name, "n": self.train.n, "duration_s": self.train.duration_s},
-            "held_out": [{"profile": p.name, "first_index": int(k), "n": int(p.n - k),
-                          "duration_s": float(p.time_s[-1] - p.time_s[k])} for p, k in self.held],
-        }
-        if self.train_fraction is not None:
-            d["train_fraction"] = self.train_fraction
-        return d
+        recs = []
+        for p, b in zip(self.records, self.blocks):
+            edges = [float(p.time_s[np.flatnonzero(b == j)[0]] - p.time_s[0]) for j in range(self.k) if np.any(b == j)]
+            recs.append({"profile": p.name, "n": int(p.n), "duration_s": float(p.duration_s), "block_starts_s": edges})
+        return {"method": "blocked_cv", "folds": self.k, "records": recs,
+                "note": f"each record cut into {self.k} contiguous blocks of equal duration; fold j fits the effect "
+                        "parameters on every sample outside block j of every record and is scored on block j"}
 
 
-def make_split(profiles, train_fraction: float = 0.5) -> Split:
-    """The split of the evaluation profiles (module docstring)."""
+def make_folds(profiles, k: int = 4) -> Folds:
+    """Blocked folds over the evaluation profiles (module docstring): ``k`` equal-duration blocks per record."""
     profiles = list(profiles)
-    if len(profiles) >= 2:
-        return Split(profiles[0], [(p, 0) for p in profiles[1:]], "by_profile")
-    p = profiles[0]
-    t_cut = p.time_s[0] + train_fraction * p.duration_s
-    k = int(np.searchsorted(p.time_s, t_cut))
-    k = min(max(k, 2), p.n - 2)
-    return Split(p.slice(0, k), [(p, k)], "by_time", train_fraction)
+    if k < 2:
+        raise ValueError("blocked cross-validation needs at least 2 folds")
+    blocks = []
+    for p in profiles:
+        frac = (p.time_s - p.time_s[0]) / max(p.duration_s, 1e-12)
+        blocks.append(np.minimum((frac * k).astype(int), k - 1))
+    return Folds(profiles, int(k), blocks)

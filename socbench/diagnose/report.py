@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 
 from ..io import atomic_write_text
-from .search import initial_soc
 
 
 def _json_default(o):
@@ -41,9 +40,10 @@ def markdown(diag, figures=()) -> str:
                  f"{_mv(diag.fit['rmse_v'])} mV; OCV: {diag.fit.get('ocv', '?')}). "
                  f"Effects added: {', '.join(diag.effects_added) or 'none'}.")
     sp = diag.split.describe()
-    held = ", ".join(f"{h['profile']} from sample {h['first_index']}" for h in sp["held_out"])
-    lines += ["", f"Split ({sp['method']}): effect parameters fitted on {sp['train']['profile']} "
-              f"({sp['train']['n']} samples), judged on {held}.", ""]
+    recs = ", ".join(f"{r['profile']} ({r['n']} samples)" for r in sp["records"])
+    lines += ["", f"Held-out scoring ({sp['method']}, {sp['folds']} folds): every evaluation record ({recs}) is cut "
+              f"into {sp['folds']} blocks of equal duration; the effect parameters are fitted {sp['folds']} times, "
+              "each time without one block, and every block is scored by the fit that did not see it.", ""]
     added = " + ".join(diag.effects_added) or "no change"
     lines += markdown_table(["", "held-out voltage RMSE [mV]", "held-out SOC RMSE (EKF) [%]"],
                             [[label, _mv(d["rmse_v"]), _pct(d.get("soc_rmse"))]
@@ -53,7 +53,8 @@ def markdown(diag, figures=()) -> str:
     if diag.steps:
         lines += ["", "## Steps", ""]
         for k, s in enumerate(diag.steps, 1):
-            lines.append(f"{k}. **{s.effect}** — {_mv(s.rmse_before)} → {_mv(s.rmse_after)} mV held-out; {s.evidence}.")
+            label = "base refit (not an effect)" if s.effect == "base_refit" else s.effect
+            lines.append(f"{k}. **{label}** — {_mv(s.rmse_before)} → {_mv(s.rmse_after)} mV held-out; {s.evidence}.")
     fitted = [(c, np.isfinite(c.score)) for c in (diag.rounds[0]["candidates"] if diag.rounds else [])]
     lines += ["", "## Candidates (first round)", ""]
     lines += markdown_table(["effect", "score", "signature R²", "held-out RMSE after [mV]", "evidence"],
@@ -67,7 +68,8 @@ def markdown(diag, figures=()) -> str:
 
 
 def figures(diag, out_dir, prefix: str = "") -> list:
-    """Residual vs the winning signature (per step) and held-out voltage / error before and after."""
+    """Residual vs the winning signature (per effect step) and, per evaluation record, the measured voltage and the
+    held-out error before and after (every block predicted by the fold that did not see it)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -79,10 +81,10 @@ def figures(diag, out_dir, prefix: str = "") -> list:
     for k, step in enumerate(diag.steps):
         rnd = diag.rounds[k]
         sig = rnd["signatures"].get(step.effect)
-        traj = rnd["trajectory"]
         if sig is None:
             continue
-        r = traj.residual
+        r = np.concatenate([tr.residual for tr in rnd["trajectory"]])
+        t = np.concatenate([tr.profile.time_s - tr.profile.time_s[0] for tr in rnd["trajectory"]]) / 60
         fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
         ax[0].plot(sig.prediction * 1000, (r - r.mean()) * 1000, ".", ms=2, alpha=0.5)
         lim = np.nanmax(np.abs(np.r_[sig.prediction - sig.prediction.mean(), r - r.mean()])) * 1000
@@ -90,10 +92,9 @@ def figures(diag, out_dir, prefix: str = "") -> list:
         ax[0].set_xlabel(f"signature {sig.regressor} (first-order Δy) [mV]")
         ax[0].set_ylabel("residual − mean [mV]")
         ax[0].set_title(f"step {k + 1}: {step.effect} (R² = {sig.r2:.2f})")
-        t = (traj.profile.time_s - traj.profile.time_s[0]) / 60
-        ax[1].plot(t, (r - r.mean()) * 1000, lw=0.8, label="residual")
-        ax[1].plot(t, (sig.prediction - sig.prediction.mean()) * 1000, lw=0.8, label="signature fit")
-        ax[1].set_xlabel("time [min] (training part)")
+        ax[1].plot((r - r.mean()) * 1000, lw=0.8, label="residual")
+        ax[1].plot((sig.prediction - sig.prediction.mean()) * 1000, lw=0.8, label="signature fit")
+        ax[1].set_xlabel(f"sample (records one after another; {t.max():.0f} min the longest)")
         ax[1].set_ylabel("mV")
         ax[1].legend(fontsize=8)
         fig.tight_layout()
@@ -101,21 +102,28 @@ def figures(diag, out_dir, prefix: str = "") -> list:
         fig.savefig(p, dpi=110)
         plt.close(fig)
         paths.append(p)
-    prof, k0 = diag.split.held[0]
-    fig, ax = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
-    t = (prof.time_s - prof.time_s[0]) / 60
-    ax[0].plot(t, prof.voltage_v, "k", lw=0.8, label="measured")
-    for label, m in (("before", diag.base_model), ("after", diag.final_model)):
-        y = m.simulate(prof, soc0=initial_soc(m, prof)).voltage_v
-        ax[0].plot(t, y, lw=0.8, label=f"{label}: {m.name}")
-        ax[1].plot(t, (prof.voltage_v - y) * 1000, lw=0.8, label=label)
-    for a in ax:
-        a.axvspan(t[0], t[k0], color="0.9", lw=0)
-    ax[0].set_ylabel("voltage [V]")
-    ax[0].legend(fontsize=8)
-    ax[1].set_ylabel("error [mV]")
-    ax[1].set_xlabel(f"time [min] — {prof.name} (shaded: training part)")
-    ax[1].legend(fontsize=8)
+    recs = diag.split.records
+    fig, ax = plt.subplots(2, len(recs), figsize=(10 if len(recs) == 1 else 6 * len(recs), 6), sharex="col",
+                           squeeze=False)
+    k0 = 0
+    for c, (prof, blocks) in enumerate(zip(recs, diag.split.blocks)):
+        t = (prof.time_s - prof.time_s[0]) / 60
+        ax[0, c].plot(t, prof.voltage_v, "k", lw=0.8, label="measured")
+        for label, key in (("before", "before"), ("after (held-out)", "after")):
+            e = diag.held_out_residual[key][k0:k0 + prof.n]
+            ax[0, c].plot(t, prof.voltage_v - e, lw=0.8, label=label)
+            ax[1, c].plot(t, e * 1000, lw=0.8, label=label)
+        for j in range(1, diag.split.k):
+            edge = t[np.argmax(blocks >= j)]
+            for a in ax[:, c]:
+                a.axvline(edge, color="0.6", lw=0.6, ls=":")
+        ax[0, c].set_ylabel("voltage [V]")
+        ax[0, c].set_title(prof.name, fontsize=9)
+        ax[1, c].set_ylabel("error [mV]")
+        ax[1, c].set_xlabel("time [min] (dotted: block edges of the folds)")
+        k0 += prof.n
+    ax[0, 0].legend(fontsize=8)
+    ax[1, 0].legend(fontsize=8)
     fig.tight_layout()
     p = out_dir / f"{prefix}voltage.png"
     fig.savefig(p, dpi=110)

@@ -2,10 +2,10 @@
 
 Every signature is the *linearised* effect: what adding the effect to the current model would change in the output,
 to first order, along the simulated trajectory (SOC ``z``, OCV slope ``U'(z)``, over-potential ``η = U(z) − y_model``).
-Each is fitted by ordinary least squares together with a constant (an OCV offset is not an effect), over a small grid
-of its non-linear parameter where it has one, and scored by the share of the residual variance it explains beyond the
-constant: ``R² = 1 − SSE_effect / SSE_constant`` (0 when it explains nothing). The best grid point and the fitted
-coefficients are the starting guess of the bounded non-linear fit (:mod:`socbench.diagnose.search`).
+Each is fitted by ordinary least squares together with one constant per record (an OCV offset is not an effect), over
+a small grid of its non-linear parameter where it has one, and scored by the share of the residual variance it explains
+beyond the constants: ``R² = 1 − SSE_effect / SSE_constant`` (0 when it explains nothing). The best grid point and the
+fitted coefficients are the starting guess of the bounded non-linear fit (:mod:`socbench.diagnose.search`).
 
 ==================== ============================================================== ==========================
 effect               regressor (first order Δy)                                      guess from the coefficient
@@ -77,12 +77,40 @@ class Trajectory:
         return cls(profile, sim.voltage_v, sim.soc, u, du)
 
 
-def _lstsq(r, cols):
-    """``(sse, coef)`` of r on [1, cols...]."""
-    A = np.column_stack([np.ones_like(r)] + list(cols))
-    coef, *_ = np.linalg.lstsq(A, r, rcond=None)
-    e = r - A @ coef
-    return float(e @ e), coef
+class Residuals:
+    """The trajectories of one model on several records, stacked: every regressor is computed record by record
+    (integrals run from each record's start) and concatenated; each record gets its own constant (an OCV or sensor
+    offset between records is not an effect). ``rows`` (a mask over the concatenated samples) keeps only those
+    samples in every regression: the regressors still run over whole records."""
+
+    def __init__(self, trajectories, rows=None):
+        self.trajs = list(trajectories)
+        self.rows = rows
+        self.r = self.cat(lambda tr: tr.residual)
+        sizes = [tr.profile.n for tr in self.trajs]
+        offsets = np.zeros((sum(sizes), len(sizes)))
+        k = 0
+        for j, n in enumerate(sizes):
+            offsets[k:k + n, j] = 1.0
+            k += n
+        offsets = self._pick(offsets)
+        self.offsets = offsets[:, offsets.any(axis=0)]
+
+    def _pick(self, a):
+        return a if self.rows is None else a[self.rows]
+
+    def cat(self, fn) -> np.ndarray:
+        """``fn(trajectory)`` of every record, concatenated along time (the first axis), on the kept rows."""
+        return self._pick(np.concatenate([np.asarray(fn(tr)) for tr in self.trajs], axis=0))
+
+    def lstsq(self, target, cols):
+        """``(sse, coef)`` of ``target`` on [record constants, cols...]; ``coef`` holds the columns' coefficients
+        after one leading entry (so ``coef[1]`` is the first column's, as with a single constant)."""
+        A = np.column_stack([self.offsets] + list(cols))
+        coef, *_ = np.linalg.lstsq(A, target, rcond=None)
+        e = target - A @ coef
+        m = self.offsets.shape[1]
+        return float(e @ e), np.r_[0.0, coef[m:]]
 
 
 def _r2(sse, sse_null):
@@ -96,19 +124,19 @@ def _running_integral(values, dt):
     return out
 
 
-def _linear_one(name, traj, col, sse_null, to_guess, regressor, bounds):
-    sse, coef = _lstsq(traj.residual, [col])
+def _linear_one(name, res, col, sse_null, to_guess, regressor, bounds):
+    sse, coef = res.lstsq(res.r, [col])
     guess = {k: float(np.clip(v, *bounds[k])) for k, v in to_guess(coef[1]).items()}
     return Signature(name, _r2(sse, sse_null), guess, coef[1] * col, regressor, {"coef": float(coef[1])})
 
 
-def _best_on_grid(fits, admissible=None):
+def _best_on_grid(res, fits, admissible=None):
     """The grid point of least SSE: ``fits`` yields ``(key, target, columns)``, each fitted as
-    ``target ≈ [1, columns] β`` by least squares; with ``admissible(β)`` only fits of the physical sign count.
-    Returns ``(sse, β, key)`` or None when no grid point is admissible."""
+    ``target ≈ [constants, columns] β`` by least squares; with ``admissible(β)`` only fits of the physical sign
+    count. Returns ``(sse, β, key)`` or None when no grid point is admissible."""
     best = None
     for key, target, cols in fits:
-        sse, coef = _lstsq(target, cols)
+        sse, coef = res.lstsq(target, cols)
         if (admissible is None or admissible(coef)) and (best is None or sse < best[0]):
             best = (sse, coef, key)
     return best
@@ -124,42 +152,44 @@ def _grid_states(effect, profile, model) -> np.ndarray:
     return effect.record_states(e0, i, profile.dt[:, None], model)
 
 
-def signatures(model, traj: Trajectory, bounds: dict, t_ref: float) -> dict:
-    """``{effect: Signature}`` on the trajectory of ``model`` (``bounds[effect]`` clip the guesses)."""
-    prof = traj.profile
-    r = traj.residual
-    i = prof.current_a
-    dt = prof.dt
+def signatures(model, trajectories, bounds: dict, t_ref: float, rows=None) -> dict:
+    """``{effect: Signature}`` on the trajectories of ``model`` over the records (a :class:`Trajectory` or a list of
+    them; ``bounds[effect]`` clip the guesses); ``rows`` restricts the regressions to those samples (a fold's
+    training samples: its starting guesses never see its held-out block)."""
+    res = Residuals([trajectories] if isinstance(trajectories, Trajectory) else trajectories, rows)
+    r = res.r
+    i = res.cat(lambda tr: tr.profile.current_a)
     q = model.capacity_ah
-    sse_null, _ = _lstsq(r, [])
+    sse_null, _ = res.lstsq(r, [])
     out = {}
-    du = traj.ocv_slope
+    du = res.cat(lambda tr: tr.ocv_slope)
 
     # Ah throughput, elapsed time, charge after charge segments, OCV-weighted time
-    ah = prof.amp_hours()
-    out["capacity"] = _linear_one("capacity", traj, du * ah / q, sse_null, lambda b: {"cap0": 1.0 - b},
+    ah = res.cat(lambda tr: tr.profile.amp_hours())
+    out["capacity"] = _linear_one("capacity", res, du * ah / q, sse_null, lambda b: {"cap0": 1.0 - b},
                                   "U'(z)·Ah/Q", bounds["capacity"])
-    elapsed = prof.time_s - prof.time_s[0]
-    out["current_bias"] = _linear_one("current_bias", traj, du * elapsed / (3600.0 * q), sse_null,
+    elapsed = res.cat(lambda tr: tr.profile.time_s - tr.profile.time_s[0])
+    out["current_bias"] = _linear_one("current_bias", res, du * elapsed / (3600.0 * q), sse_null,
                                       lambda b: {"b0": b}, "U'(z)·t/(3600 Q)", bounds["current_bias"])
-    ah_charge = _running_integral(np.maximum(-i, 0.0), dt) / 3600.0
-    out["coulombic_efficiency"] = _linear_one("coulombic_efficiency", traj, du * ah_charge / q, sse_null,
+    ah_charge = res.cat(lambda tr: _running_integral(np.maximum(-tr.profile.current_a, 0.0), tr.profile.dt) / 3600.0)
+    out["coulombic_efficiency"] = _linear_one("coulombic_efficiency", res, du * ah_charge / q, sse_null,
                                               lambda b: {"eta_c": 1.0 + b}, "U'(z)·Ah_charge/Q",
                                               bounds["coulombic_efficiency"])
     u1 = float(model.ocv(1.0))
-    leak = _running_integral(traj.ocv / u1, dt) / 3600.0
-    out["self_discharge"] = _linear_one("self_discharge", traj, du * leak, sse_null, lambda b: {"rate": -b},
+    leak = res.cat(lambda tr: _running_integral(tr.ocv / u1, tr.profile.dt) / 3600.0)
+    out["self_discharge"] = _linear_one("self_discharge", res, du * leak, sse_null, lambda b: {"rate": -b},
                                         "U'(z)·∫U/U(1)dt", bounds["self_discharge"])
 
     # hysteresis: Plett's h for a grid of (γ, h0) and the sign memory s_k (sgn I_k while moving, else s_{k−1}),
     # with M > 0 (the charge branch lies above the discharge branch)
     gam, h0 = np.meshgrid(GAMMA_GRID, H0_GRID, indexing="ij")
     gam, h0 = gam.ravel(), h0.ravel()
-    states = _grid_states(Hysteresis(M=0.0, M0=0.0, gamma=gam, h0=h0), prof, model)
+    hyst = Hysteresis(M=0.0, M0=0.0, gamma=gam, h0=h0)
+    states = res.cat(lambda tr: _grid_states(hyst, tr.profile, model))
     hs = states[..., 0]
     moving = np.abs(i) > q / 100.0
     ss = np.where(moving, np.sign(i), states[:, 0, 1])
-    best = _best_on_grid(((g, r, [hs[:, g], ss]) for g in range(gam.size)), lambda coef: coef[1] > 0)
+    best = _best_on_grid(res, ((g, r, [hs[:, g], ss]) for g in range(gam.size)), lambda coef: coef[1] > 0)
     if best is None:
         out["hysteresis"] = Signature("hysteresis", 0.0, {}, np.zeros_like(r), "h_γ(t), s(t)")
     else:
@@ -171,8 +201,9 @@ def signatures(model, traj: Trajectory, bounds: dict, t_ref: float) -> dict:
                                       "h_γ(t), s(t)", {"gamma": float(gam[g]), "h0": float(h0[g])})
 
     # extra RC: unit-R branch voltage (low-pass current) over the τ grid, with R > 0 (the output falls by U_x)
-    lp = _grid_states(ExtraRC(R=1.0, log10_tau=LOG10_TAU_GRID), prof, model)[..., 0]
-    best = _best_on_grid(((g, r, [lp[:, g]]) for g in range(LOG10_TAU_GRID.size)), lambda coef: coef[1] < 0)
+    rc = ExtraRC(R=1.0, log10_tau=LOG10_TAU_GRID)
+    lp = res.cat(lambda tr: _grid_states(rc, tr.profile, model)[..., 0])
+    best = _best_on_grid(res, ((g, r, [lp[:, g]]) for g in range(LOG10_TAU_GRID.size)), lambda coef: coef[1] < 0)
     if best is None:
         out["extra_rc"] = Signature("extra_rc", 0.0, {}, np.zeros_like(r), "LP_τ(I)")
     else:
@@ -183,26 +214,27 @@ def signatures(model, traj: Trajectory, bounds: dict, t_ref: float) -> dict:
                                     coef[1] * lp[:, g], "LP_τ(I)", {"tau_s": float(10 ** LOG10_TAU_GRID[g])})
 
     # Butler–Volmer: fixed physical coefficient on asinh, free linear term; null = constant + linear
-    tk = (prof.temperature_c if prof.temperature_c is not None else np.full(prof.n, 25.0)) + KELVIN
+    has_temp = all(tr.profile.temperature_c is not None for tr in res.trajs)
+    tk = res.cat(lambda tr: tr.profile.temperature_c if has_temp else np.full(tr.profile.n, 25.0)) + KELVIN
     gfac = n_cells(model) * 2.0 * R_GAS * tk / FARADAY
-    sse_lin, _ = _lstsq(r, [i])
+    sse_lin, _ = res.lstsq(r, [i])
     shapes = {i0: -gfac * np.arcsinh(i / (2.0 * i0)) for i0 in I0_OVER_Q_GRID * q}
-    sse, coef, i0 = _best_on_grid((i0, r - shape, [i]) for i0, shape in shapes.items())
+    sse, coef, i0 = _best_on_grid(res, ((i0, r - shape, [i]) for i0, shape in shapes.items()))
     b = bounds["butler_volmer"]
     out["butler_volmer"] = Signature("butler_volmer", _r2(sse, sse_lin),
                                      {"I0": float(np.clip(i0, *b["I0"])), "dR": float(np.clip(coef[1], *b["dR"]))},
                                      shapes[i0] + coef[1] * i, "asinh(I/2I0) curvature", {"I0": float(i0)})
 
     # temperature: Arrhenius-scaled over-potential over the E_a grid, plus the entropic term
-    if prof.temperature_c is not None:
-        eta = traj.ocv - traj.y_model
-        dtemp = prof.temperature_c - t_ref
+    if has_temp:
+        eta = res.cat(lambda tr: tr.ocv - tr.y_model)
+        temp = tk - KELVIN
+        dtemp = temp - t_ref
         shapes = {ea: -(np.exp(ea / R_GAS * (1.0 / tk - 1.0 / (t_ref + KELVIN))) - 1.0) * eta for ea in EA_GRID}
-        sse, coef, ea = _best_on_grid((ea, r - shape, [dtemp]) for ea, shape in shapes.items())
+        sse, coef, ea = _best_on_grid(res, ((ea, r - shape, [dtemp]) for ea, shape in shapes.items()))
         b = bounds["temperature"]
         out["temperature"] = Signature("temperature", _r2(sse, sse_null),
                                        {"Ea": float(ea), "dUdT": float(np.clip(coef[1], *b["dUdT"]))},
                                        shapes[ea] + coef[1] * dtemp, "−(k(T)−1)·η, T−T_ref",
-                                       {"Ea": float(ea), "temp_range_c": [float(prof.temperature_c.min()),
-                                                                          float(prof.temperature_c.max())]})
+                                       {"Ea": float(ea), "temp_range_c": [float(temp.min()), float(temp.max())]})
     return out

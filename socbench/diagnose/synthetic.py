@@ -1,4 +1,5 @@
-"""Synthetic cases with one effect hidden in the data: the undeclared-effect tests and the benchmark use them.
+"""Synthetic cases with one effect hidden in the data: the undeclared-effect unit tests use them (the randomised
+benchmark has a generator of its own, :mod:`socbench.diagnose.randomized`).
 
 A "truth" cell is a base model with constant parameters (so that a constant-mode fit of the same structure can match
 it exactly) plus, optionally, one hidden effect. Two records are generated from it:

@@ -8,7 +8,8 @@ specific to one filter:
 * :class:`Inputs`   the profile as ``(R, T)`` arrays (current, voltage, temperature), the step lengths;
 * initial state     ``x0 = model.x0(soc0)``; ``soc0`` scalar or ``(R,)`` (default: OCV inverse of the first voltage);
                     ``P0`` scalar (SOC variance), ``(n,)`` diagonal, ``(n, n)`` or ``(R, n, n)``; by default
-                    ``diag(soc0_sd², state0_sd², …)`` or the model's ``initial_sd`` if it declares one;
+                    ``diag(model.initial_sd(soc0_sd, state0_sd)²)`` (``soc0_sd²``, ``state0_sd²``, …; an augmented
+                    model's effect states declare their own);
 * :class:`Recorder` preallocated outputs, with the freeze of failed runs (outputs repeat their last finite values).
 
 Options common to all filters (all keyword): ``Q``, ``R`` (overrides, see :class:`~.noise.NoiseModel`),
@@ -25,7 +26,8 @@ under ``auto`` (e.g. a strict-mode model). Both give the same numbers to 1e-9 (t
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -63,6 +65,7 @@ class Inputs:
     voltage: np.ndarray
     temp: np.ndarray | None
     name: str
+    capacity_ah: float | None = None  # the record's declared capacity (the coulomb counter's default)
 
     @property
     def n_runs(self) -> int:
@@ -87,7 +90,15 @@ class Inputs:
             return None if a is None else np.ascontiguousarray(np.broadcast_to(a, (R, T)), dtype=float)
 
         return cls(profile.time_s, profile.dt, full(profile.current_a), full(profile.voltage_v),
-                   full(profile.temperature_c), profile.name)
+                   full(profile.temperature_c), profile.name, profile.meta.capacity_ah)
+
+    def slice(self, start: int, stop: int) -> Inputs:
+        """Samples ``start:stop`` (a segment of the record)."""
+        def cut(a):
+            return None if a is None else np.ascontiguousarray(a[:, start:stop])
+
+        return Inputs(self.time_s[start:stop], self.dt[start:max(stop - 1, start)], cut(self.current),
+                      cut(self.voltage), cut(self.temp), self.name, self.capacity_ah)
 
 
 class Estimator:
@@ -108,7 +119,8 @@ class Estimator:
         self.model = model
         self.options = {**known, **options}
         self.n = int(model.n_states)
-        self.noise = NoiseModel(noise, self.n, self.options["Q"], self.options["R"])
+        walk = model.walk_var() if hasattr(model, "walk_var") else None
+        self.noise = NoiseModel(noise, self.n, self.options["Q"], self.options["R"], walk)
         for key in ("var_max", "nis_max", "soc0_sd", "state0_sd"):
             if not self.options[key] > 0:
                 raise ConfigError(f"{self.name}: option {key} must be > 0, got {self.options[key]!r}")
@@ -122,12 +134,39 @@ class Estimator:
         return f"{type(self).__name__}(model={getattr(self.model, 'name', '?')!r})"
 
     # ------------------------------------------------------------------ the one verb
-    def run(self, profile: Profile, soc0=None, P0=None, seed=None) -> Estimate:
-        """Estimate SOC over every run of ``profile`` (see the module docstring for ``soc0`` and ``P0``)."""
+    def run(self, profile: Profile, soc0=None, P0=None, seed=None, segments=None, x0=None) -> Estimate:
+        """Estimate SOC over every run of ``profile`` (see the module docstring for ``soc0`` and ``P0``).
+
+        A record of several discharges (battery swaps, recharges: :mod:`socbench.segments`) is filtered segment by
+        segment: ``segments=None`` finds them, ``False`` filters the record as one piece, or pass a
+        :class:`~socbench.segments.Segments`. ``soc0`` (or ``x0``, a full initial state ``(R, n)`` that replaces
+        ``model.x0(soc0)``) starts the first segment; every later one restarts the
+        filter as at a record's start — SOC from the OCV inverse of its first voltage (an estimator never reads
+        the reference it is scored against), the other states at rest, covariance ``P0`` — and the current across
+        a boundary is never used. ``Estimate.domain`` is :func:`socbench.domain.estimate_domain` of the result.
+        """
+        from ..domain import estimate_domain
+        from ..segments import resolve
+
         inputs = Inputs.from_profile(profile)
-        x0 = self.initial_state(inputs, soc0)
+        segs = resolve(segments, profile, self.model.ocv, self.model.capacity_ah)
         P0 = self.initial_cov(inputs.n_runs, P0)
-        return self._run_engine(inputs, x0, P0, seed)
+        if x0 is not None:
+            x0 = np.ascontiguousarray(np.broadcast_to(np.asarray(x0, dtype=float), (inputs.n_runs, self.n)))
+        if segs.count == 1:
+            est = self._run_engine(inputs, self.initial_state(inputs, soc0) if x0 is None else x0, P0, seed)
+        else:
+            parts = []
+            for s, (a, b) in enumerate(segs.spans()):
+                part = inputs.slice(a, b)
+                first = self.initial_state(part, soc0 if s == 0 else None) if s or x0 is None else x0
+                parts.append(self._run_engine(part, first, P0, segment_seed(seed, s)))
+            est = Estimate.join(parts, inputs.time_s, segs)
+        t0 = time.perf_counter()
+        domain = estimate_domain(self.model, est, profile)
+        domain["segments"] = segs.count
+        domain["seconds"] = time.perf_counter() - t0  # not filter time: timings of the filter subtract it
+        return replace(est, domain=domain, segments=segs)
 
     def _run(self, inputs: Inputs, x0: np.ndarray, P0: np.ndarray, seed) -> Estimate:  # pragma: no cover
         raise NotImplementedError
@@ -190,8 +229,9 @@ class Estimator:
         return self.model.x0(np.broadcast_to(soc0, (R,)), (R,))
 
     def initial_cov(self, R: int, P0) -> np.ndarray:
-        sd = getattr(self.model, "initial_sd", None)
-        if sd is None:
+        if hasattr(self.model, "initial_sd"):
+            sd = np.asarray(self.model.initial_sd(self.options["soc0_sd"], self.options["state0_sd"]), dtype=float)
+        else:
             sd = np.full(self.n, self.options["state0_sd"])
             sd[0] = self.options["soc0_sd"]
         return initial_cov(R, P0, self.n, sd)
@@ -220,6 +260,14 @@ def initial_cov(R: int, P0, n: int, default_sd) -> np.ndarray:
     return np.ascontiguousarray(np.broadcast_to(P, (R, n, n)))
 
 
+def segment_seed(seed, s: int):
+    """The random seed of segment ``s``: ``seed`` itself for the first (a record in one piece is unchanged), an
+    independent stream derived from ``(seed, s)`` for the others; None stays None (fresh entropy)."""
+    if seed is None or s == 0:
+        return seed
+    return int(np.random.SeedSequence([int(seed), int(s)]).generate_state(1, np.uint64)[0] >> np.uint64(1))
+
+
 class Recorder:
     """Preallocated ``(R, T)`` outputs; rows of failed runs repeat their last recorded values from failure on."""
 
@@ -237,16 +285,22 @@ class Recorder:
         self.P_diag = np.empty((R, T, n_states)) if store_states else None
         self.failed = np.zeros(R, dtype=bool)
         self.failed_at = np.full(R, -1)
+        self.failed_reason = np.zeros(R, dtype=np.int8)  # safety.DIVERGENCE_REASONS
         self.psd_repairs = np.zeros(R, dtype=int)  # updates whose covariance needed the PSD repair, per run
         self._soc0 = np.asarray(soc0, dtype=float)
         self._std0 = np.asarray(std0, dtype=float)
         self._x0 = None
 
     def fail(self, k: int, bad: np.ndarray) -> np.ndarray:
-        """Mark runs ``bad`` failed at sample ``k``; returns the (R,) mask of all failed runs."""
-        new = bad & ~self.failed
+        """Mark runs ``bad`` failed at sample ``k``; returns the (R,) mask of all failed runs.
+
+        ``bad`` is a reason code per run (:func:`~.safety.diverged`, nonzero = failed) or a bool mask (reason 1,
+        non-finite state)."""
+        bad = np.asarray(bad)
+        new = (bad != 0) & ~self.failed
         if new.any():
             self.failed_at[new] = k
+            self.failed_reason[new] = bad[new] if bad.dtype != bool else 1
             self.failed |= new
         return self.failed
 
@@ -293,6 +347,7 @@ class Recorder:
             failed_at=self.failed_at.copy(), clamped=self.clamped, gated=self.gated, x=self.x, P_diag=self.P_diag,
             estimator=estimator, model=getattr(model, "name", type(model).__name__),
             state_names=tuple(model.state_names), info={"psd_repairs": self.psd_repairs.copy(), **(info or {})},
+            failed_reason=self.failed_reason.copy(),
         )
 
 

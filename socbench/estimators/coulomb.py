@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from .base import Estimator, Inputs, restore
+from .base import Estimator, restore
 from .estimate import Estimate
 from .safety import clamp_soc, diverged, symmetrise
 
@@ -41,20 +41,14 @@ class CoulombCounter(Estimator):
             raise ConfigError(f"coulomb: capacity must be > 0 Ah, got {cap!r}")
         return cap
 
-    def run(self, profile, soc0=None, P0=None, seed=None) -> Estimate:
-        inputs = Inputs.from_profile(profile)
-        x0 = self.initial_state(inputs, soc0)
-        P0 = self.initial_cov(inputs.n_runs, P0)
-        return self._run_engine(inputs, x0, P0, seed, capacity_ah=self.declared_capacity(profile.meta.capacity_ah))
+    def _run(self, inputs, x0, P0, seed=None) -> Estimate:
+        return self._count(inputs, x0, P0, self.declared_capacity(inputs.capacity_ah))
 
-    def _run(self, inputs, x0, P0, seed=None, capacity_ah=None) -> Estimate:
-        return self._count(inputs, x0, P0, self.declared_capacity() if capacity_ah is None else capacity_ah)
-
-    def _run_compiled(self, job, seed=None, capacity_ah=None):
+    def _run_compiled(self, job, seed=None):
         from ..kernels.engine import parallel_runs
         from ..kernels.filters import coulomb
 
-        cap = self.declared_capacity() if capacity_ah is None else capacity_ah
+        cap = self.declared_capacity(job.inputs.capacity_ah)
         parallel_runs(coulomb, job.R, *job.model_args, *job.noise_args, self.model.capacity_ah / cap, *job.out_args)
         return job.finish({"capacity_ah": cap})
 

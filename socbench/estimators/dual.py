@@ -82,8 +82,9 @@ class JointParameters:
         n, nb = self.n, self.base.n_states
         if P0 is not None and np.ndim(P0) >= 1 and np.shape(P0)[-1] == n:
             return Estimator.initial_cov(self, R, P0)
-        sd = getattr(self.base, "initial_sd", None)
-        if sd is None:
+        if hasattr(self.base, "initial_sd"):
+            sd = np.asarray(self.base.initial_sd(self.options["soc0_sd"], self.options["state0_sd"]), dtype=float)
+        else:
             sd = np.full(nb, self.options["state0_sd"])
             sd[0] = self.options["soc0_sd"]
         Pb = initial_cov(R, P0, nb, sd)

@@ -17,7 +17,9 @@ entry (one noise source). Two approximations, said out loud:
 * a constant offset is not white: here it only widens Q and R like extra white noise. The coulomb counter carries its
   exact growth ``(σ_b · Σ η dt / 3600 Q)²``; filters that must track a real offset need the ``current_bias`` effect.
 
-``soc_walk_sd`` / ``state_walk_sd`` are optional allowances for model error (per sample period ``dt``).
+``soc_walk_sd`` / ``state_walk_sd`` are optional allowances for model error (per sample period ``dt``);
+``walk_sd`` gives one walk SD per state instead (e.g. the coloured model-error state of
+:class:`~socbench.models.effects.ModelError`, whose walk the recipe of :mod:`socbench.estimators.model_error` sets).
 """
 
 from __future__ import annotations
@@ -39,6 +41,9 @@ class SensorNoise:
     current_bias_sd  A, standard deviation of a constant current offset
     soc_walk_sd      SOC random walk per ``dt`` for model error (fraction; 0 = none)
     state_walk_sd    random walk per ``dt`` on every other state (model units; 0 = none)
+    walk_sd          one random-walk SD per ``dt`` for the model's states, in state order (replaces the two above
+                     when given); states beyond it (an estimator's own parameter states, appended after the model's,
+                     which carry their own walk) get none
     """
 
     voltage_sd: float
@@ -47,12 +52,17 @@ class SensorNoise:
     current_bias_sd: float = 0.0
     soc_walk_sd: float = 0.0
     state_walk_sd: float = 0.0
+    walk_sd: tuple = ()
 
     def __post_init__(self):
         for name in ("voltage_sd", "current_sd", "current_bias_sd", "soc_walk_sd", "state_walk_sd"):
             v = getattr(self, name)
             if not np.isfinite(v) or v < 0:
                 raise ConfigError(f"SensorNoise.{name} must be a finite number >= 0, got {v!r}")
+        walk = tuple(float(v) for v in np.ravel(self.walk_sd))
+        if not all(np.isfinite(v) and v >= 0 for v in walk):
+            raise ConfigError(f"SensorNoise.walk_sd must hold finite numbers >= 0, got {walk!r}")
+        object.__setattr__(self, "walk_sd", walk)
         if not np.isfinite(self.dt) or self.dt <= 0:
             raise ConfigError(f"SensorNoise.dt must be > 0, got {self.dt!r}")
         if self.voltage_sd == 0 and self.current_sd == 0:
@@ -66,12 +76,19 @@ class SensorNoise:
 
     @property
     def has_walk(self) -> bool:
-        return self.soc_walk_sd > 0 or self.state_walk_sd > 0
+        return self.soc_walk_sd > 0 or self.state_walk_sd > 0 or any(v > 0 for v in self.walk_sd)
 
     def walk_var(self, n_states: int, dt) -> np.ndarray:
         """Diagonal random-walk allowance ``(…, n)`` for steps ``dt``."""
-        sd = np.full(n_states, self.state_walk_sd)
-        sd[0] = self.soc_walk_sd
+        if self.walk_sd:
+            if len(self.walk_sd) > n_states:
+                raise ConfigError(f"SensorNoise.walk_sd has {len(self.walk_sd)} entries for a model with {n_states} "
+                                  "states")
+            sd = np.zeros(n_states)
+            sd[: len(self.walk_sd)] = self.walk_sd
+        else:
+            sd = np.full(n_states, self.state_walk_sd)
+            sd[0] = self.soc_walk_sd
         return sd**2 * (np.asarray(dt, dtype=float)[..., None] / self.dt)
 
     def process_cov(self, B, dt, input_var: float | None = None) -> np.ndarray:
@@ -96,13 +113,14 @@ DEFAULT_NOISE = SensorNoise(voltage_sd=0.01, current_sd=0.1)
 
 
 class NoiseModel:
-    """Q and R for one estimator: derived from a :class:`SensorNoise`, or overridden.
+    """Q and R for one estimator: derived from a :class:`SensorNoise` (plus the model's own random walks,
+    ``walk_var`` per second, e.g. an effect state declared to drift), or overridden.
 
     ``Q`` override: an ``(n, n)`` array (per step, constant) or a callable ``Q(B, dt) -> (…, n, n)``.
     ``R`` override: a scalar variance [V²] or a callable ``R(D) -> (…)``.
     """
 
-    def __init__(self, noise: SensorNoise | None, n_states: int, Q=None, R=None):
+    def __init__(self, noise: SensorNoise | None, n_states: int, Q=None, R=None, walk_var=None):
         self.sensor = noise if noise is not None else DEFAULT_NOISE
         if not isinstance(self.sensor, SensorNoise):
             raise ConfigError(f"noise must be a SensorNoise, got {type(noise).__name__}")
@@ -119,6 +137,8 @@ class NoiseModel:
                 raise ConfigError(f"R must be a variance > 0 [V²], got {R!r}")
         self.Q_override = Q
         self.R_override = R
+        w = None if walk_var is None else np.asarray(walk_var, dtype=float)
+        self.walk = w if w is not None and np.any(w > 0) else None
 
     @property
     def needs_B(self) -> bool:
@@ -130,7 +150,11 @@ class NoiseModel:
 
     def Q(self, B, dt) -> np.ndarray:
         if self.Q_override is None:
-            return self.sensor.process_cov(B, dt)
+            Q = self.sensor.process_cov(B, dt)
+            if self.walk is not None:  # the model's own random walks (an effect state that may drift)
+                idx = np.arange(self.n)
+                Q[..., idx, idx] += self.walk * np.asarray(dt, dtype=float)[..., None]
+            return Q
         if callable(self.Q_override):
             return np.asarray(self.Q_override(B, dt), dtype=float)
         return self.Q_override

@@ -268,7 +268,7 @@ class ParticleFilter(Estimator):
 
     def _run_compiled(self, job, seed=None):
         from ..kernels import pf as kpf
-        from ..kernels.engine import parallel_runs
+        from ..kernels.engine import parallel_runs, sensor_walk
 
         o, N, n = self.options, self.n_particles, self.n
         sd_i, additive = self.process_noise()
@@ -286,8 +286,8 @@ class ParticleFilter(Estimator):
         std0 = np.sqrt(job.P0[:, 0, 0])
         counts = np.zeros((job.R, 2), dtype=np.int64)
         parallel_runs(kpf.pf, job.R, job.im, job.fm, job.x0, L0, std0, job.cur, job.volt, job.temp, job.has_temp,
-                      job.dts, *job.noise_args[:2], Qroot, job.opt, pfopt, seed_u64(draws.seed), *job.out_args, counts,
-                      min_runs=1)
+                      job.dts, job.nz, sensor_walk(self.noise.sensor, n), Qroot, job.opt, pfopt, seed_u64(draws.seed),
+                      *job.out_args, counts, min_runs=1)  # the particles' walk: the sensor's (process_noise)
         return job.finish({"gate_threshold": job.threshold, "n_particles": N, "resampled": counts[:, 0].copy(),
                            "tempered": counts[:, 1].copy(), "seed": draws.seed})
 

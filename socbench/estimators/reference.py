@@ -46,7 +46,7 @@ from .ukf import UKF, merwe_weights
 def _one_run(inputs: Inputs, r: int) -> Inputs:
     s = slice(r, r + 1)
     return Inputs(inputs.time_s, inputs.dt, inputs.current[s], inputs.voltage[s],
-                  None if inputs.temp is None else inputs.temp[s], inputs.name)
+                  None if inputs.temp is None else inputs.temp[s], inputs.name, inputs.capacity_ah)
 
 
 def _stack(parts: list[Estimate], info: dict) -> Estimate:
@@ -57,7 +57,7 @@ def _stack(parts: list[Estimate], info: dict) -> Estimate:
     p0 = parts[0]
     return Estimate(p0.time_s, cat("soc"), cat("soc_std"), cat("v_pred"), cat("innovation"), cat("innovation_var"),
                     cat("failed"), cat("failed_at"), cat("clamped"), cat("gated"), cat("x"), cat("P_diag"),
-                    p0.estimator, p0.model, p0.state_names, info)
+                    p0.estimator, p0.model, p0.state_names, info, failed_reason=cat("failed_reason"))
 
 
 class _KalmanReference(Estimator):

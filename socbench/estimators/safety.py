@@ -11,7 +11,8 @@
                   next update is taken anyway, so a filter that started far off is never locked out for good;
 * divergence      a run whose state, covariance or NIS is not finite, whose SOC variance exceeds ``var_max`` or whose
                   NIS exceeds ``nis_max`` is marked failed; its internal state is reset to the last good (finite)
-                  values so the batch keeps computing, and its outputs are frozen by the recorder.
+                  values so the batch keeps computing, and its outputs are frozen by the recorder. :func:`diverged`
+                  returns *why* (a code of :data:`DIVERGENCE_REASONS`, 0 = fine), which the recorder keeps per run.
 """
 
 from __future__ import annotations
@@ -113,16 +114,35 @@ class Gate:
         return gated
 
 
+#: why a run diverged: code -> text (codes in ``Estimate.failed_reason``; 0 = did not fail)
+DIVERGENCE_REASONS = {
+    0: "",
+    1: "non-finite state",
+    2: "non-finite covariance",
+    3: "SOC variance above var_max",
+    4: "non-finite NIS",
+    5: "NIS above nis_max",
+}
+
+
 def diverged(x, P_or_var, nis, var_max: float, nis_max: float) -> np.ndarray:
-    """(R,) bool: non-finite state/covariance/NIS, SOC variance above ``var_max`` or NIS above ``nis_max``."""
-    bad = ~np.all(np.isfinite(x), axis=-1)
+    """(R,) int8 reason code, nonzero where the run diverged (use it as a mask): non-finite state (1) or covariance
+    (2), SOC variance above ``var_max`` (3), non-finite NIS (4) or NIS above ``nis_max`` (5); the first that applies,
+    in that order (:data:`DIVERGENCE_REASONS`)."""
+    code = np.zeros(x.shape[:-1], dtype=np.int8)
+
+    def mark(bad, c):
+        np.copyto(code, np.int8(c), where=bad & (code == 0))
+
+    mark(~np.all(np.isfinite(x), axis=-1), 1)
     if P_or_var.ndim == x.ndim + 1:  # full covariance (R, n, n)
-        bad |= ~np.all(np.isfinite(P_or_var), axis=(-1, -2))
+        mark(~np.all(np.isfinite(P_or_var), axis=(-1, -2)), 2)
         var = P_or_var[..., 0, 0]
     else:
-        bad |= ~np.isfinite(P_or_var)
+        mark(~np.isfinite(P_or_var), 2)
         var = P_or_var
-    bad |= ~(var <= var_max)
+    mark(~(var <= var_max), 3)
     if nis is not None:
-        bad |= ~(nis <= nis_max)  # NaN compares False: caught here too
-    return bad
+        mark(~np.isfinite(nis), 4)
+        mark(~(nis <= nis_max), 5)
+    return code

@@ -45,6 +45,8 @@ PAPER_POLY_NUMBERS = range(1, 7)
 REL_STDERR_WARN = 1.0
 #: |correlation| above this flags a pair
 CORR_WARN = 0.99
+#: a record whose SOC reaches below this on the fit's axis counts as covering [0, 1] (polynomial nodes on [0, 1])
+DOMAIN_FULL_BELOW = 0.02
 #: compression of the record before fitting (see :func:`~socbench.identify.compress.compress_profile`): kept samples
 #: 0, 1, 5, 21, 85, 341 s after every current change, then every 1200 s at most
 FIT_COMPRESSION = {"first_step_s": 1.0, "growth": 4.0, "max_step_s": 1200.0}
@@ -87,6 +89,7 @@ class FitResult:
             "stderr": {k: num(v) for k, v in self.stderr.items()},
             "warnings": list(self.warnings),
             "success": bool(self.lsq.success) if self.lsq is not None else None,
+            "domain": dict(self.lsq.domain) if self.lsq is not None else {},
         }
 
 
@@ -161,9 +164,12 @@ class FitProblem:
             return profile
         return profile.with_(current_a=profile.current_a - self.current_offset_a)
 
-    def params(self, theta) -> ModelParams:
+    def params(self, theta, clamp: bool = False) -> ModelParams:
+        """The parameter set of ``theta``; ``clamp``: polynomials fitted on part of the SOC axis are stored clamped
+        to it (:meth:`~socbench.identify.specs.PolyForm.clamped`), as a finished fit returns them."""
         theta = np.asarray(theta, dtype=float)
-        values = {s.name: f.function(s, theta[..., sl]) for s, f, sl in zip(self.specs, self.forms, self.slices)}
+        values = {s.name: (f.clamped(s, theta[..., sl]) if clamp and isinstance(f, PolyForm) else
+                           f.function(s, theta[..., sl])) for s, f, sl in zip(self.specs, self.forms, self.slices)}
         return ModelParams(capacity_ah=self.capacity_ah, ocv=self.ocv, values=values, options=self.options,
                            source="socbench fit", notes=self.notes)
 
@@ -171,14 +177,14 @@ class FitProblem:
         return model_class(self.name)(self.params(theta))
 
 
-def _forms_for(name: str, mode: str, n_params: int, knots) -> list:
+def _forms_for(name: str, mode: str, n_params: int, knots, domain=(0.0, 1.0)) -> list:
     if mode == "constant":
         return [ConstantForm() for _ in range(n_params)]
     if mode == "lookup":
         return [LookupForm(knots) for _ in range(n_params)]
     number = getattr(model_class(name), "paper_number", None)
     if number in PAPER_POLY_NUMBERS:
-        return [PolyForm() for _ in range(n_params)]
+        return [PolyForm(domain=domain) for _ in range(n_params)]
     return [ConstantForm() for _ in range(n_params)]
 
 
@@ -219,6 +225,9 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
             notes.append(f"{int(np.count_nonzero(extra))} record gaps: {float(np.sum(extra)):.4g} Ah not in the "
                          "current column added to SOC from the reference")
         level_knots = np.unique(np.clip(np.round(analysis.level_soc, 3), 0.0, 1.0))
+        # the SOC range the record covers on this axis: a cold HPPC counted with a warmer capacity ends above 0
+        z_lo = float(np.clip(np.min(analysis.soc), 0.0, 1.0))
+        domain = (0.0 if z_lo < DOMAIN_FULL_BELOW else round(z_lo, 3), 1.0)
     else:
         if ocv is None:
             raise DataError("the record has no HPPC rest points to build an OCV curve from; pass an OCV curve",
@@ -228,6 +237,7 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
             raise DataError("unknown capacity: pass capacity_ah or give the profile meta.capacity_ah", file=src)
         r_inst = abs(edge_resistance(profile))
         r_pulse, tau, tau_slow, jumps, level_knots = 2.0 * r_inst, 30.0, 300.0, None, np.array([])
+        domain = (0.0, 1.0)
     q = float(capacity_ah) if capacity_ah else float(q)
     zg = np.linspace(0.05, 0.95, 19)
     slope = float(np.mean(ocv.slope(zg)))
@@ -243,7 +253,9 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
     n_br = _rc_branches(pnames)
     units = dict(getattr(model_class(name), "param_units", {}) or {})
     specs = [param_spec(p, guess, n_br, _reference_value(ref, p), units.get(p)) for p in pnames]
-    forms = _forms_for(name, mode, len(specs), knots)
+    forms = _forms_for(name, mode, len(specs), knots, domain)
+    if domain != (0.0, 1.0) and any(isinstance(f, PolyForm) for f in forms):
+        notes.append(f"SOC polynomials fitted on the record's SOC range [{domain[0]:.3f}, 1] and stored clamped to it")
     labels, slices, th0, lo, hi = [], [], [], [], []
     k = 0
     for s, f in zip(specs, forms):
@@ -288,8 +300,11 @@ def _warnings(prob: FitProblem, res: LsqResult, values: dict, stderr: dict) -> l
 def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | None = None,
               capacity_ah: float | None = None, soc0: float | None = None, *, knots=None, options: dict | None = None,
               compress: bool | dict = True, warm_start: bool = True, max_nfev: int | None = None,
-              time_weighted: bool = False, loss: str = "linear") -> FitResult:
-    """Fit model ``name`` to ``profile`` (see the module docstring). Returns a :class:`FitResult`."""
+              time_weighted: bool = False, loss: str = "linear", segments=None) -> FitResult:
+    """Fit model ``name`` to ``profile`` (see the module docstring). Returns a :class:`FitResult`.
+
+    ``segments``: a record of several discharges is fitted segment by segment (None: found in the record; False:
+    one piece; see :func:`~socbench.identify.lsq.fit_parameters` and :mod:`socbench.segments`)."""
     t0 = _time.perf_counter()
     if compress is True:
         compress = dict(FIT_COMPRESSION)
@@ -300,14 +315,14 @@ def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
         const = setup_fit(name, profile, "constant", prob.ocv, prob.capacity_ah, prob.soc0, None, prob.options)
         cres = fit_parameters(const.build, profile, const.theta0, const.lower, const.upper, names=const.labels,
                               soc0=prob.soc0, soc_jumps=prob.soc_jumps, compress=compress, max_nfev=max_nfev,
-                              time_weighted=time_weighted, loss=loss)
+                              time_weighted=time_weighted, loss=loss, segments=segments)
         for sl, ct in zip(prob.slices, cres.theta):  # one constant per parameter, in the same order
             theta0[sl] = ct
         theta0 = np.clip(theta0, prob.lower, prob.upper)
     res = fit_parameters(prob.build, profile, theta0, prob.lower, prob.upper, names=prob.labels, soc0=prob.soc0,
                          soc_jumps=prob.soc_jumps, compress=compress, max_nfev=max_nfev, time_weighted=time_weighted,
-                         loss=loss)
-    params = prob.params(res.theta)
+                         loss=loss, segments=segments)
+    params = prob.params(res.theta, clamp=True)
     values, stderr = {}, {}
     for s, f, sl in zip(prob.specs, prob.forms, prob.slices):
         for lab, th, se in zip(f.labels(s.name), res.theta[sl], res.stderr[sl]):

@@ -34,6 +34,8 @@ from scipy.optimize import least_squares
 
 from ..errors import ConfigError, DataError, ModelError
 from ..profile import Profile
+from ..segments import resolve as resolve_segments
+from ..segments import restart_soc
 from .compress import compress_profile
 
 #: residual substituted for a non-finite model voltage, or for parameters the model rejects (ModelError) [V]: keeps
@@ -66,6 +68,7 @@ class LsqResult:
     at_bounds: tuple = ()
     rmse_start: float = float("nan")  # at theta0 (how much the fit improved on its start)
     profile: Profile | None = field(default=None, repr=False)
+    domain: dict = field(default_factory=dict)  # socbench.domain report of the fitted model on the fitted record
 
     def as_dict(self) -> dict:
         return dict(zip(self.names, self.theta.tolist()))
@@ -86,21 +89,46 @@ def one_blas_thread():
     return threadpool_limits(limits=1, user_api="blas")
 
 
-def simulate_voltage(model, time_s, current, temp=None, x0=None, soc_jumps=None, engine: str = "auto") -> np.ndarray:
+def simulate_voltage(model, time_s, current, temp=None, x0=None, soc_jumps=None, restarts=None,
+                     engine: str = "auto") -> np.ndarray:
     """Open-loop voltage ``(…, T)`` of ``model`` from state ``x0 (…, n)`` (``soc_jumps[k]`` is added to the SOC after
-    the step into sample ``k``): the compiled step loop (:func:`socbench.kernels.openloop.open_loop`, one parameter
-    variant per row) when numba is installed and the model lowers (``engine="auto"``), else
-    :meth:`~socbench.models.base.Model.open_loop`. The two agree to ~1e-15 relative."""
-    if engine != "numpy":
+    the step into sample ``k``). ``restarts`` ``[(k, z), ...]``: the record is simulated in segments, the one starting
+    at sample ``k`` from rest at SOC ``z`` (socbench.segments). See :func:`open_loop_segments` for ``engine``."""
+    return open_loop_segments(model, time_s, current, temp, x0, soc_jumps, restarts, engine=engine, states=False)[1]
+
+
+def _open_loop(model, x0, time_s, current, temp, soc_jumps, guards, engine, states):
+    """One segment: the compiled step loop (:func:`socbench.kernels.openloop.open_loop`, one parameter variant per
+    row) when ``engine`` is not "numpy", numba is installed, the model lowers and no guard log is asked for (the
+    compiled loop does not count guards); else :meth:`~socbench.models.base.Model.open_loop`. The two agree to
+    ~1e-15 relative (tests/test_kernels.py)."""
+    if engine != "numpy" and guards is None:
         from ..kernels import jit
 
         if jit.available():
             from ..kernels.openloop import open_loop
 
-            out = open_loop(model, x0, time_s, current, temp, soc_jumps)
+            out = open_loop(model, x0, time_s, current, temp, soc_jumps, states=states)
             if out is not None:
-                return out[1]
-    return model.open_loop(x0, time_s, current, temp, soc_jumps)[1]
+                return out
+    return model.open_loop(x0, time_s, current, temp, soc_jumps, guards=guards)
+
+
+def open_loop_segments(model, time_s, current, temp=None, x0=None, soc_jumps=None, restarts=None, guards=None,
+                       engine: str = "auto", states: bool = True):
+    """``(states, voltage)`` of the open loop, segment by segment when ``restarts`` (see :func:`simulate_voltage`) is
+    given: no current is integrated across a restart. ``states=False``: the states may come back None (the compiled
+    loop then does not store them)."""
+    if not restarts:
+        return _open_loop(model, x0, time_s, current, temp, soc_jumps, guards, engine, states)
+    bounds = [0] + [int(k) for k, _ in restarts] + [np.size(time_s)]
+    parts = []
+    for s, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
+        xs = x0 if s == 0 else model.x0(np.broadcast_to(float(restarts[s - 1][1]), np.shape(x0)[:-1]))
+        parts.append(_open_loop(model, xs, time_s[a:b], current[..., a:b], None if temp is None else temp[..., a:b],
+                                None if soc_jumps is None else soc_jumps[a:b], guards, engine, states))
+    xs_all = None if any(p[0] is None for p in parts) else np.concatenate([p[0] for p in parts], axis=-2)
+    return xs_all, np.concatenate([p[1] for p in parts], axis=-1)
 
 
 def _initial_soc(model, profile: Profile, soc0):
@@ -144,6 +172,7 @@ def fit_parameters(
     soc0: float | None = None,
     x0=None,
     soc_jumps: np.ndarray | None = None,
+    segments=None,
     weights: np.ndarray | None = None,
     compress: bool | dict = True,
     time_weighted: bool = False,
@@ -171,6 +200,10 @@ def fit_parameters(
         Initial SOC (default: ``soc_ref[0]``, else the OCV inverse of the first voltage) or a full initial state.
     soc_jumps : array (T,) on the *original* samples, optional
         SOC added after the step into a sample (unrecorded charge at gaps; see :func:`simulate_voltage`).
+    segments :
+        A record of several discharges (:mod:`socbench.segments`) is fitted segment by segment, each later segment
+        from rest at its reference SOC (else the OCV inverse of its first voltage): None finds the segments (with
+        the model's OCV and capacity at ``theta0``), False fits the record as one piece, or a ``Segments``.
     weights : array (T,) on the original samples, optional
         Residual weights (e.g. to mask samples with 0).
     time_weighted : bool
@@ -199,14 +232,22 @@ def fit_parameters(
     theta0 = np.clip(theta0, lower + inner, upper - inner)
 
     model0 = build(theta0)
+    segs = resolve_segments(segments, profile, model0.ocv, getattr(model0, "capacity_ah", None))
     # ---- the data the residual is computed on
     if compress:
         opts = dict(compress) if isinstance(compress, dict) else {}
         opts.setdefault("max_ah", MAX_SOC_STEP * float(getattr(model0, "capacity_ah", 0.0) or 0.0) or None)
-        comp = compress_profile(profile, **opts)
-        prof, idx = comp.profile, comp.index
+        if segs.count == 1:
+            comp = compress_profile(profile, **opts)
+            prof, idx = comp.profile, comp.index
+        else:  # each segment on its own: a merged step never spans a boundary
+            comps = [compress_profile(profile.slice(a, b), **opts) for a, b in segs.spans()]
+            idx = np.concatenate([c.index + a for c, (a, _) in zip(comps, segs.spans())])
+            prof = _joined(profile, [c.profile for c in comps])
     else:
         prof, idx = profile, np.arange(profile.n)
+    restarts = [(int(np.searchsorted(idx, a)), float(restart_soc(profile, a, model0.ocv)))
+                for a in segs.starts[1:]] or None
     jumps = None
     if soc_jumps is not None:
         sj = np.asarray(soc_jumps, dtype=float)
@@ -219,6 +260,8 @@ def fit_parameters(
         # fit of the uniformly sampled record would (normalised to a mean weight of 1)
         last = np.median(np.diff(prof.time_s)) if prof.n > 1 else 1.0
         dur = np.diff(prof.time_s, append=prof.time_s[-1] + last)
+        for k, _ in restarts or ():  # the last sample of a segment stands for one step, not for the gap after it
+            dur[k - 1] = last
         tw = np.sqrt(dur / dur.mean())
         w = tw if w is None else w * tw
     v_meas = prof.voltage_v
@@ -241,7 +284,7 @@ def fit_parameters(
     def simulate_one(theta):
         try:
             model = build(theta)
-            return simulate_voltage(model, t, cur, temp, start_state(model, 0), jumps)
+            return simulate_voltage(model, t, cur, temp, start_state(model, 0), jumps, restarts)
         except (ModelError, ConfigError, FloatingPointError):  # parameters outside the model's admissible region
             return np.full(t.size, np.nan)
 
@@ -249,7 +292,7 @@ def fit_parameters(
         if use_batch[0]:
             try:
                 model = build(thetas)
-                return simulate_voltage(model, t, cur, temp, start_state(model, thetas.shape[0]), jumps)
+                return simulate_voltage(model, t, cur, temp, start_state(model, thetas.shape[0]), jumps, restarts)
             except (ModelError, ConfigError, FloatingPointError):
                 pass  # one variant is inadmissible: run them one by one so that only it gets the penalty
         return np.stack([simulate_one(th) for th in thetas])
@@ -321,6 +364,8 @@ def fit_parameters(
             r = fun(res_x)
             J = jac(res_x)
         cov, stderr, corr = covariance(J, r, P)
+    domain = _domain(build, res_x, t, cur, temp, start_state, jumps, restarts)
+    domain["segments"] = segs.count
     rmse = float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
     rel = np.where(np.isfinite(span), 1e-4 * span, 0.0)
     at_bounds = tuple(n for n, th, lo, hi, tol in zip(names, res_x, lower, upper, rel)
@@ -329,4 +374,30 @@ def fit_parameters(
                      residual=r, jac=J, success=success, message=message, nfev=nfev, njev=counts["njev"],
                      nsim=counts["nsim"],
                      n_samples=int(r.size), seconds=_time.perf_counter() - t_start, batched=bool(use_batch[0]),
-                     at_bounds=at_bounds, rmse_start=rmse_start, profile=prof)
+                     at_bounds=at_bounds, rmse_start=rmse_start, profile=prof, domain=domain)
+
+
+def _joined(profile: Profile, parts: list) -> Profile:
+    """The compressed segments of ``profile`` back on one time axis (a plain profile)."""
+    def cat(name):
+        vals = [getattr(p, name) for p in parts]
+        return None if vals[0] is None else np.concatenate(vals, axis=-1)
+
+    return profile.with_(time_s=cat("time_s"), current_a=cat("current_a"), voltage_v=cat("voltage_v"),
+                         temperature_c=cat("temperature_c"), soc_ref=cat("soc_ref"))
+
+
+def _domain(build, theta, t, cur, temp, start_state, jumps, restarts) -> dict:
+    """The domain report (socbench.domain) of the fitted model along the fitted (compressed) record."""
+    from ..domain import domain_report
+    from ..models.blocks import GuardLog
+
+    try:
+        model = build(theta)
+        log = GuardLog()
+        with np.errstate(all="ignore"):
+            states, volts = open_loop_segments(model, t, cur, temp, start_state(model, 0), jumps, restarts, log)
+    except (ModelError, ConfigError, FloatingPointError) as exc:
+        return {"error": str(exc)}
+    log.samples = int(t.size)
+    return domain_report(model, states=states, voltage=volts, guards=log)

@@ -31,10 +31,15 @@ FIT_CANDIDATES: dict = {
 
 
 def validation_rmse(fit: FitResult, record: Profile) -> float:
-    """Open-loop voltage RMSE of ``fit`` on ``record``, from the record's reference SOC at its start (else full)."""
+    """Open-loop voltage RMSE of ``fit`` on ``record``, from the record's reference SOC at its start (else the OCV
+    inverse of its first voltage, as the diagnosis starts its simulations)."""
     record.require("voltage_v")
     model = make_model(fit.name, fit.params)
-    soc0 = float(record.soc_ref[0]) if record.get("soc_ref") is not None else 1.0
+    ref = record.get("soc_ref")
+    if ref is not None:
+        soc0 = float(ref[0])
+    else:
+        soc0 = float(np.clip(model.ocv.inverse(record.voltage_v[0]), 0.0, 1.0))
     e = record.voltage_v - model.simulate(record, soc0=soc0).voltage_v
     return float(np.sqrt(np.mean(e * e))) if np.all(np.isfinite(e)) else float("inf")
 
@@ -54,14 +59,17 @@ class Selection:
 
 def select_fit(name: str, identification: Profile, validation, mode: str = "paper", candidates: dict | None = None,
                **fit_kwargs) -> Selection:
-    """Fit ``name`` on ``identification`` with every candidate setting; keep the best on ``validation`` records."""
+    """Fit ``name`` on ``identification`` with every candidate setting; keep the best on ``validation`` records.
+
+    A candidate is a dict of :func:`~socbench.identify.fit.fit_model` keywords; one that names its own ``mode``
+    overrides ``mode`` (so fit modes can be chosen by validation too)."""
     candidates = dict(FIT_CANDIDATES if candidates is None else candidates)
     validation = list(validation)
     if not candidates or not validation:
         raise ConfigError("select_fit needs at least one candidate setting and one validation record")
     fits, scores = {}, {}
     for label, kw in candidates.items():
-        fits[label] = fit_model(name, identification, mode=mode, **{**fit_kwargs, **kw})
+        fits[label] = fit_model(name, identification, **{"mode": mode, **fit_kwargs, **kw})
         scores[label] = [validation_rmse(fits[label], rec) for rec in validation]
     chosen = min(scores, key=lambda k: float(np.mean(scores[k])))
     return Selection(fit=fits[chosen], chosen=chosen, scores=scores, fits=fits)

@@ -27,7 +27,10 @@ Forms (how a parameter depends on SOC in the fit):
 * ``constant``  one θ;
 * ``poly``      a 6th-degree polynomial represented by its values at 7 Chebyshev nodes on [0, 1] (well conditioned,
                 unlike the monomial coefficients; positivity at the nodes through the log); stored as the monomial
-                :class:`~socbench.models.params.Polynomial` the paper prints;
+                :class:`~socbench.models.params.Polynomial` the paper prints. A record that covers only part of the
+                SOC axis (a cold HPPC counted with the warm capacity: ``[1 − Q_T/Q_ref, 1]``) puts the nodes on that
+                *domain*; such a polynomial would blow up outside it, so it is stored clamped: a
+                :class:`~socbench.models.params.Lookup` sampled every 0.01 on the domain, which holds its end values;
 * ``lookup``    values at SOC knots, linear in between (:class:`~socbench.models.params.Lookup`).
 """
 
@@ -204,13 +207,32 @@ class PolyForm(Form):
     """Values at Chebyshev nodes → monomial coefficients, highest degree first (Table 3 order)."""
 
     kind = "poly"
+    #: SOC spacing of the lookup that stores a polynomial fitted on a partial domain (clamped outside it)
+    CLAMP_STEP = 0.01
 
-    def __init__(self, degree: int = POLY_DEGREE):
+    def __init__(self, degree: int = POLY_DEGREE, domain: tuple = (0.0, 1.0)):
         self.degree = degree
         self.size = degree + 1
-        self.nodes = chebyshev_nodes(self.size)
+        self.domain = (float(domain[0]), float(domain[1]))
+        lo, hi = self.domain
+        self.nodes = lo + (hi - lo) * chebyshev_nodes(self.size)
         vander = np.vander(self.nodes, self.size)  # columns z^d … z^0
         self._to_coeffs = np.linalg.inv(vander)  # coeffs = inv(V) @ values
+
+    @property
+    def partial(self) -> bool:
+        """Whether the nodes cover less than [0, 1] (the stored function is then clamped to the domain)."""
+        return self.domain != (0.0, 1.0)
+
+    def clamped(self, spec, theta):
+        """The fitted function as stored: the polynomial itself on [0, 1], else a lookup on the domain that holds its
+        end values outside (no extrapolation of a 6th-degree polynomial)."""
+        poly = self.function(spec, theta)
+        if not self.partial:
+            return poly
+        lo, hi = self.domain
+        grid = np.unique(np.r_[np.arange(lo, hi, self.CLAMP_STEP), hi])
+        return Lookup(tuple(grid), tuple(poly(grid)))
 
     def labels(self, name):
         return [f"{name}@z={z:.3f}" for z in self.nodes]

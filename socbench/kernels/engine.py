@@ -40,16 +40,25 @@ def parallel_runs(kernel, n_runs: int, *args, min_runs: int = 4) -> None:
 def noise_arrays(noise, n: int):
     """``(nz, walk, Qo)`` of a :class:`~socbench.estimators.noise.NoiseModel`, or a reason string when it has callable
     overrides (the compiled form is ``R = σ_V² + σ_in² D²`` or a scalar, ``Q = σ_in² B Bᵀ + diag(walk) dt/dt0`` or a
-    matrix)."""
+    matrix). ``walk`` holds the sensor's random walks per ``dt0`` plus the model's own (``NoiseModel.walk``, per
+    second, times ``dt0``)."""
     if callable(noise.Q_override) or callable(noise.R_override):
         return "a callable Q or R override (only the sensor-noise form and constant overrides are compiled)"
     s = noise.sensor
+    walk = sensor_walk(s, n)
+    if noise.walk is not None:
+        walk = walk + np.asarray(noise.walk, dtype=float) * s.dt
+    has_walk = s.has_walk or noise.walk is not None
     nz = np.array([s.voltage_sd**2, s.input_var, np.nan if noise.R_override is None else float(noise.R_override),
-                   s.dt, 1.0 if s.has_walk else 0.0, 0.0 if noise.Q_override is None else 1.0, s.current_sd**2,
+                   s.dt, 1.0 if has_walk else 0.0, 0.0 if noise.Q_override is None else 1.0, s.current_sd**2,
                    s.current_bias_sd**2])
-    walk = np.ascontiguousarray(s.walk_var(n, s.dt), dtype=float) if s.has_walk else np.zeros(n)
     Qo = np.zeros((n, n)) if noise.Q_override is None else np.ascontiguousarray(noise.Q_override, dtype=float)
-    return nz, walk, Qo
+    return nz, np.ascontiguousarray(walk, dtype=float), Qo
+
+
+def sensor_walk(sensor, n: int) -> np.ndarray:
+    """The sensor noise's random-walk variances per ``sensor.dt`` ``(n,)`` (zeros without one)."""
+    return np.asarray(sensor.walk_var(n, sensor.dt), dtype=float) if sensor.has_walk else np.zeros(n)
 
 
 def plan(estimator) -> tuple[Lowered | None, str]:
@@ -103,7 +112,7 @@ class Job:
         self.outb = np.zeros((2, R, T), dtype=np.bool_)
         self.xs = np.empty((R, T, n) if self.store else (1, 1, n))
         self.pd = np.empty((R, T, n) if self.store else (1, 1, n))
-        self.failed = np.zeros(R, dtype=np.bool_)
+        self.failed = np.zeros(R, dtype=np.int8)  # the reason code of a failed run (safety.DIVERGENCE_REASONS)
         self.failed_at = np.full(R, -1, dtype=np.int64)
         self.status = np.zeros(R, dtype=np.int64)
         self.repairs = np.zeros(R, dtype=np.int64)
@@ -131,9 +140,9 @@ class Job:
         m = self.estimator.model
         return Estimate(
             time_s=self.inputs.time_s, soc=self.outf[0], soc_std=self.outf[1], v_pred=self.outf[2],
-            innovation=self.outf[3], innovation_var=self.outf[4], failed=self.failed, failed_at=self.failed_at,
+            innovation=self.outf[3], innovation_var=self.outf[4], failed=self.failed != 0, failed_at=self.failed_at,
             clamped=self.outb[0], gated=self.outb[1], x=self.xs if self.store else None,
             P_diag=self.pd if self.store else None, estimator=self.estimator.name,
             model=getattr(m, "name", type(m).__name__), state_names=tuple(m.state_names),
-            info={"psd_repairs": self.repairs.astype(int), **info},
+            info={"psd_repairs": self.repairs.astype(int), **info}, failed_reason=self.failed.copy(),
         )

@@ -344,6 +344,14 @@ def guarded_log1m(z):
 
 
 @kernel(inline=True)
+def floored_log(a):
+    """B6 ``(ln max(a, ε), d/da)``, derivative 0 where floored (blocks.floored_log; NaN is floored, as there)."""
+    if a > EPS_SINGULAR:
+        return math.log(a), 1.0 / a
+    return math.log(EPS_SINGULAR), 0.0
+
+
+@kernel(inline=True)
 def clipped_exp(arg):
     c = arg
     if arg < -EXP_CLIP:
@@ -579,15 +587,13 @@ def _static_term(im, fm, z, work):
         lz, dlz = guarded_log(z)
         l1z, dl1z = guarded_log1m(z)
         return -k0 * lz + k1 * l1z, -work[d + 1] * lz - k0 * dlz + work[d + 2] * l1z + k1 * dl1z
-    if sub == 4:  # fang: −K0 ln(τ1 + z) + K1 ln(τ2 + 1 − z)
+    if sub == 4:  # fang: −K0 ln(τ1 + z) + K1 ln(τ2 + 1 − z), arguments floored at ε
         k0 = work[v + 1]
         k1 = work[v + 2]
-        a = work[v + 3] + z
-        b = work[v + 4] + 1.0 - z
-        la = math.log(a)
-        lb = math.log(b)
+        la, dla = floored_log(work[v + 3] + z)
+        lb, dlb = floored_log(work[v + 4] + 1.0 - z)
         return (-k0 * la + k1 * lb,
-                -work[d + 1] * la - k0 * (work[d + 3] + 1.0) / a + work[d + 2] * lb + k1 * (work[d + 4] - 1.0) / b)
+                -work[d + 1] * la - k0 * (work[d + 3] + 1.0) * dla + work[d + 2] * lb + k1 * (work[d + 4] - 1.0) * dlb)
     if sub == 5:  # tremblay1: −K/z_s + A e^{−B Q (1 − z)}
         k = work[v + 1]
         inv, dinv = guarded_inv(z)
@@ -765,6 +771,44 @@ def _effective_current(im, x, i):
 
 
 @kernel
+def model_error_scale(fm, v, j, z, t):
+    """``(s_j, ds_j/dz)`` of :meth:`~socbench.models.effects.ModelError.scale`: component ``j`` of the model-error
+    effect whose values start at ``fm[v]`` (its ``kernel_values`` layout), bilinear in SOC and temperature, held
+    outside both grids; the SOC derivative 0 outside the SOC grid."""
+    KT = int(fm[v + 3])
+    KZ = int(fm[v + 4])
+    ot = v + 5
+    oz = ot + KT
+    g = oz + KZ + j * KT * KZ
+    kz = _count_le(fm, oz, KZ, z) - 1
+    hi_k = KZ - 2 if KZ > 1 else 0
+    if kz < 0:
+        kz = 0
+    elif kz > hi_k:
+        kz = hi_k
+    width = 1.0
+    wz = 0.0
+    inside = False
+    if KZ > 1:
+        width = fm[oz + kz + 1] - fm[oz + kz]
+        wz = (z - fm[oz + kz]) / width
+        if wz < 0.0:
+            wz = 0.0
+        elif wz > 1.0:
+            wz = 1.0
+        inside = z >= fm[oz] and z <= fm[oz + KZ - 1]
+    kt = 0
+    wt = 0.0
+    if KT > 1:
+        kt, wt = temperature_weight(fm, ot, KT, t)
+    kt1 = min(kt + 1, KT - 1)
+    kz1 = min(kz + 1, KZ - 1)
+    lo = (1.0 - wt) * fm[g + kt * KZ + kz] + wt * fm[g + kt1 * KZ + kz]
+    hi = (1.0 - wt) * fm[g + kt * KZ + kz1] + wt * fm[g + kt1 * KZ + kz1]
+    return (1.0 - wz) * lo + wz * hi, ((hi - lo) / width if inside else 0.0)
+
+
+@kernel
 def model_step(im, fm, x, i, dt, temp, has_temp, jac, xn, F, B, work):
     """``x⁺`` into ``xn`` (and ``F``, ``B`` when ``jac``) of any lowered model; returns the status (0: fine).
 
@@ -844,6 +888,12 @@ def model_step(im, fm, x, i, dt, temp, has_temp, jac, xn, F, B, work):
             if jac:
                 F[s0 * nn + s0] = a
                 B[s0] = b
+        elif code == 10:  # model error: three Gauss–Markov states ε⁺ = e^{−dt/τ} ε [τ_slow, τ_fast, τ_r, …]
+            for c in range(3):
+                phi = math.exp(-dt / fm[v + c])
+                xn[s0 + c] = phi * x[s0 + c]
+                if jac:
+                    F[(s0 + c) * nn + (s0 + c)] = phi
     b = im[H_BIAS]
     if jac and b >= 0:
         for r in range(n):
@@ -903,6 +953,18 @@ def model_output(im, fm, x, i, temp, has_temp, jac, H, work):
             D = D + -x[s0] * 1.0
             if jac:
                 H[s0] += -ie
+        elif code == 10:  # model error: s_slow ε_slow + s_fast ε_fast − s_r ε_r I
+            z = x[0]
+            s1, d1 = model_error_scale(fm, v, 0, z, t)
+            s2, d2 = model_error_scale(fm, v, 1, z, t)
+            s3, d3 = model_error_scale(fm, v, 2, z, t)
+            y = y + (s1 * x[s0] + s2 * x[s0 + 1] - s3 * x[s0 + 2] * ie)
+            D = D + -s3 * x[s0 + 2]
+            if jac:
+                H[s0] += s1
+                H[s0 + 1] += s2
+                H[s0 + 2] += -s3 * ie
+                H[0] += d1 * x[s0] + d2 * x[s0 + 1] - d3 * x[s0 + 2] * ie
         elif code == 6:  # butler_volmer [I0, dR, n_cells]
             tk = (temp if has_temp else T_REF_C) + KELVIN
             g = fm[v + 2] * 2.0 * R_GAS * tk / FARADAY

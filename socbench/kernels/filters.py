@@ -17,8 +17,9 @@ Shared arguments (built by :mod:`socbench.kernels.engine`):
                  ``Qo (n, n)`` a constant Q override (used when ``nz[Q_OVR] = 1``);
 * ``opt``        safety options (:data:`OPTION_FIELDS`);
 * outputs        ``outf (5, R, T)``: soc, soc_std, v_pred, innovation, innovation_var; ``outb (2, R, T)``: clamped,
-                 gated (the bytes of a bool array); ``xs, pd (R, T, n)`` when ``store``; ``failed (R,)``,
-                 ``failed_at (R,)``; ``status (R,)``: 1 where the model met a condition where numpy raises (the caller
+                 gated (the bytes of a bool array); ``xs, pd (R, T, n)`` when ``store``; ``failed (R,)``
+                 (int8: the reason code of a failed run, ``safety.DIVERGENCE_REASONS``), ``failed_at (R,)``;
+                 ``status (R,)``: 1 where the model met a condition where numpy raises (the caller
                  reruns the batch with numpy); ``repairs (R,)``: covariances the PSD repair acted on
                  (``Estimate.info["psd_repairs"]``).
 
@@ -234,7 +235,7 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             if repaired:
                 repairs[r] += 1
             if bad:
-                failed[r] = True
+                failed[r] = bad
                 failed_at[r] = k
                 freeze(outf, outb, xs, pd, store, r, k, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
                 break
@@ -254,8 +255,9 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             process_cov(nzp, walkp, Qop, Bp, n, dts[k], nz[IN_VAR], Qp)
             propagate(Fp, Pp, Qp, n, Mp)
             symmetrise(Pp, n)
-            if diverged_cov(xp, n, Pp, 0.0, np.inf, np.inf):
-                failed[r] = True
+            bad = diverged_cov(xp, n, Pp, 0.0, np.inf, np.inf)
+            if bad:
+                failed[r] = bad
                 failed_at[r] = k + 1
                 freeze(outf, outb, xs, pd, store, r, k + 1, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
                 break
@@ -355,7 +357,7 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             if repaired:
                 repairs[r] += 1
             if bad:
-                failed[r] = True
+                failed[r] = bad
                 failed_at[r] = k
                 freeze(outf, outb, xs, pd, store, r, k, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
                 break
@@ -390,8 +392,9 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             symmetrise(Pp, n)
             if repair_psd(Pp, n, opt[PSD_ABS], opt[PSD_REL], wp, Vp, workp):
                 repairs[r] += 1
-            if diverged_cov(xp, n, Pp, 0.0, np.inf, np.inf):
-                failed[r] = True
+            bad = diverged_cov(xp, n, Pp, 0.0, np.inf, np.inf)
+            if bad:
+                failed[r] = bad
                 failed_at[r] = k + 1
                 freeze(outf, outb, xs, pd, store, r, k + 1, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
                 break
@@ -442,8 +445,9 @@ def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo
             e = volt[r, k] - y
             clamped = clamp_soc(xp)
             var_z = P[0, 0] + nz[BIAS_VAR] * (drift * drift)
-            if diverged_var(xp, n, var_z, 0.0, np.inf, np.inf):
-                failed[r] = True
+            bad = diverged_var(xp, n, var_z, 0.0, np.inf, np.inf)
+            if bad:
+                failed[r] = bad
                 failed_at[r] = k
                 freeze(outf, outb, xs, pd, store, r, k, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
                 break

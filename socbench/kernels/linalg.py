@@ -181,20 +181,35 @@ def gate(nis, threshold, consecutive, release):
 
 
 @kernel(inline=True)
+def _diverged_tail(var, nis, var_max, nis_max):
+    """Codes 3–5 of ``safety.diverged`` (NaN-safe comparisons), 0 when none applies."""
+    if not var <= var_max:
+        return 3
+    if not math.isfinite(nis):
+        return 4
+    if not nis <= nis_max:
+        return 5
+    return 0
+
+
+@kernel(inline=True)
 def diverged_cov(x, n, P, nis, var_max, nis_max):
-    """``safety.diverged`` for one run with its covariance ``P`` (NaN-safe comparisons)."""
+    """``safety.diverged`` for one run with its covariance ``P``: the reason code (0: fine, else
+    ``safety.DIVERGENCE_REASONS``; the first that applies, in its order)."""
     for a in range(n):
         if not math.isfinite(x[a]):
-            return True
+            return 1
     if not all_finite(P, n):
-        return True
-    return not (P[0 * n + 0] <= var_max and nis <= nis_max)
+        return 2
+    return _diverged_tail(P[0 * n + 0], nis, var_max, nis_max)
 
 
 @kernel(inline=True)
 def diverged_var(x, n, var, nis, var_max, nis_max):
-    """``safety.diverged`` for one run with an SOC variance ``var`` only."""
+    """``safety.diverged`` for one run with an SOC variance ``var`` only: the reason code (0: fine)."""
     for a in range(n):
         if not math.isfinite(x[a]):
-            return True
-    return not (math.isfinite(var) and var <= var_max and nis <= nis_max)
+            return 1
+    if not math.isfinite(var):
+        return 2
+    return _diverged_tail(var, nis, var_max, nis_max)

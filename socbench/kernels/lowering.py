@@ -43,7 +43,7 @@ import numpy as np
 FAMILIES = {"rc_network": 1, "improved_rc": 2, "static_terms": 3, "tremblay": 4, "esc": 5}
 #: effects: Effect.name -> code (one compiled hook set each in evaluate.py)
 EFFECT_CODES = {"temperature": 1, "hysteresis": 2, "capacity": 3, "current_bias": 4, "extra_rc": 5,
-                "butler_volmer": 6, "coulombic_efficiency": 7, "self_discharge": 8, "r0_offset": 9}
+                "butler_volmer": 6, "coulombic_efficiency": 7, "self_discharge": 8, "r0_offset": 9, "model_error": 10}
 #: static-term models: sub code of the static_terms family
 STATIC_TERMS = {"shepherd": 1, "unnewehr": 2, "nernst": 3, "fang": 4, "tremblay1": 5, "plett": 6}
 
@@ -152,9 +152,11 @@ def _function(b: _Builder, f) -> int:
 
 
 # ---------------------------------------------------------------------------------------------- OCV curves
-#: how far beyond its rest points an OCVCurve extends linearly (np.inf: without limit); see socbench.ocv
 def _extension_limit(curve) -> float:
-    return float(getattr(type(curve), "EXTENSION_LIMIT", np.inf))
+    """How far beyond its rest points an OCVCurve extends linearly before it is held (socbench.ocv)."""
+    from ..ocv import EXCURSION_FLAG
+
+    return float(EXCURSION_FLAG)
 
 
 def _pchip(b: _Builder, c) -> int:
@@ -206,7 +208,10 @@ def lower(model) -> Lowered:
         values_of = getattr(e, "kernel_values", None)
         if code is None or values_of is None:
             raise NotLowerable(f"effect '{e.name}' has no compiled form")
-        values = tuple(values_of(base))
+        values = values_of(base)
+        if values is None:
+            raise NotLowerable(f"effect '{e.name}' with these settings has no compiled form")
+        values = tuple(values)
         off = b.slots(values) if values else len(b.floats)
         if e.name == "current_bias" and bias < 0:
             bias = start

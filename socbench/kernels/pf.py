@@ -344,8 +344,9 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                     d_ = X[p, a] - mean[a]
                     s += w[p] * (d_ * d_)
                 var[a] = s
-            if diverged_var(meanp, n, var[0], nis, opt[2], opt[3]):
-                failed[r] = True
+            bad = diverged_var(meanp, n, var[0], nis, opt[2], opt[3])
+            if bad:
+                failed[r] = bad
                 failed_at[r] = k
                 freeze(outf, outb, xs, pd, store, r, k, T, n, x0[r, 0], std0[r], volt[r, 0])
                 break
@@ -417,7 +418,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                     if not math.isfinite(X[p, a]):
                         bad = True
             if bad:
-                failed[r] = True
+                failed[r] = 1  # non-finite state
                 failed_at[r] = k + 1
                 freeze(outf, outb, xs, pd, store, r, k + 1, T, n, x0[r, 0], std0[r], volt[r, 0])
                 break

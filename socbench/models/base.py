@@ -43,13 +43,18 @@ __all__ = ["KernelSpec", "Model", "Simulation", "T_REF_C"]
 
 @dataclass(frozen=True, eq=False)
 class Simulation:
-    """Result of :meth:`Model.simulate`: voltage ``(…, T)``, states ``(…, T, n)`` and guard activity."""
+    """Result of :meth:`Model.simulate`: voltage ``(…, T)``, states ``(…, T, n)``, guard activity (share of samples
+    each guard acted on), the segments simulated (:mod:`socbench.segments`) and the domain report
+    (:func:`socbench.domain.domain_report`; ``domain_fractions`` is it as shares of samples, guards included)."""
 
     time_s: np.ndarray
     voltage_v: np.ndarray
     states: np.ndarray
     state_names: tuple
     guard_fractions: dict = field(default_factory=dict)
+    segments: object = None
+    domain: dict = field(default_factory=dict)
+    domain_fractions: dict = field(default_factory=dict)
 
     @property
     def soc(self) -> np.ndarray:
@@ -158,6 +163,17 @@ class Model(ABC):
         x[..., 0] = soc
         return x
 
+    def initial_sd(self, soc0_sd: float, state0_sd: float) -> np.ndarray:
+        """SD of every state's initial value for a filter ``(n,)``: ``soc0_sd`` for the SOC, ``state0_sd`` for the
+        others (a model with states of other kinds overrides this)."""
+        sd = np.full(self.n_states, float(state0_sd))
+        sd[0] = soc0_sd
+        return sd
+
+    def walk_var(self) -> np.ndarray:
+        """Random-walk variance of every state per second ``(n,)`` the filters add to Q (0: none)."""
+        return np.zeros(self.n_states)
+
     def f(self, x, i, dt, temp=None):
         return self.step(x, i, dt, temp)[0]
 
@@ -202,13 +218,25 @@ class Model(ABC):
         return x, [np.broadcast_to(np.asarray(a, dtype=float), batch) if a is not None else None for a in args]
 
     # ------------------------------------------------------------------ simulation
-    def simulate(self, profile: Profile, soc0=None, x0=None, guards: GuardLog | None = None) -> Simulation:
+    def simulate(self, profile: Profile, soc0=None, x0=None, guards: GuardLog | None = None,
+                 segments=None) -> Simulation:
         """Open-loop simulation on a profile's current (and temperature): ``y_k = h(x_k, I_k)``, ``x_{k+1} = f(...)``.
 
         ``soc0`` defaults to the profile's reference SOC at the first sample, else the OCV inverse of the first
         voltage, else 1. Batched profiles simulate all runs in one pass.
+
+        A record of several discharges (battery swaps, recharges: :mod:`socbench.segments`) is simulated segment by
+        segment: ``segments=None`` finds them, ``False`` runs the record as one piece (the zero-order hold then
+        carries the current across every gap), or pass a :class:`~socbench.segments.Segments`. Each segment after
+        the first restarts from rest at the reference SOC of its first sample (else the OCV inverse of its first
+        voltage); no current is integrated across a boundary. ``Simulation.domain`` counts the samples outside the
+        model's domain (:func:`socbench.domain.domain_report`).
         """
+        from ..domain import domain_report, guard_fractions
+        from ..segments import REFERENCE, resolve, restart_soc
+
         i = profile.current_a
+        segs = resolve(segments, profile, self.ocv, self.capacity_ah)
         if x0 is None:
             if soc0 is None:
                 if profile.get("soc_ref") is not None:
@@ -219,9 +247,22 @@ class Model(ABC):
                     soc0 = 1.0
             x0 = self.x0(soc0, i.shape[:-1])
         log = guards if guards is not None else GuardLog()
-        states, volts = self.open_loop(x0, profile.time_s, i, profile.temperature_c, guards=log)
+        temp = profile.temperature_c
+        parts = []
+        for s, (a, b) in enumerate(segs.spans()):
+            xs = x0
+            if s:  # a restart: from rest, at the SOC the segment starts from
+                z = restart_soc(profile, a, self.ocv, REFERENCE)
+                xs = self.x0(np.broadcast_to(z, np.broadcast_shapes(np.shape(z), np.shape(x0)[:-1])))
+            parts.append(self.open_loop(xs, profile.time_s[a:b], i[..., a:b], None if temp is None else temp[..., a:b],
+                                        guards=log))
+        states = parts[0][0] if len(parts) == 1 else np.concatenate([p[0] for p in parts], axis=-2)
+        volts = parts[0][1] if len(parts) == 1 else np.concatenate([p[1] for p in parts], axis=-1)
         log.samples += int(np.prod(volts.shape[:-1], dtype=int)) * profile.n
-        return Simulation(profile.time_s, volts, states, self.state_names, log.fractions())
+        domain = domain_report(self, states=states, temp=temp, voltage=volts, guards=log)
+        domain["segments"] = segs.count
+        return Simulation(profile.time_s, volts, states, self.state_names, log.fractions(), segs, domain,
+                          guard_fractions(domain))
 
     def open_loop(self, x0, time_s, current_a, temp_c=None, soc_jumps=None, guards: GuardLog | None = None):
         """States ``(…, T, n)`` and voltage ``(…, T)``: ``y_k = h(x_k, I_k, T_k)``, ``x_{k+1} = f(x_k, I_k, dt_k, …)``.

@@ -7,7 +7,8 @@ B2  parallel RC branch     U⁺ = a U + b I,  a = e^{−dt/τ}, b = R(1 − a) =
 B3  pure integrator        U0⁺ = U0 + dt·I/C0(z)
 B4  low-pass current       I*⁺ = a_f I* + (1 − a_f) I,  a_f = e^{−dt/t_c}
 B5  coupled two-capacitor  w⁺ = Φ w + Γ I,  Φ = I₂ + φ1 A,  Γ = (dt I₂ + φ2 A) B  (Improved RC; A² = λA)
-B6  singular-term guard    1/z, ln z, ln(1−z) evaluated at z_s = clip(z, ε, 1−ε), derivative 0 when clipped
+B6  singular-term guard    1/z, ln z, ln(1−z) evaluated at z_s = clip(z, ε, 1−ε), derivative 0 when clipped;
+                           a logarithm of any argument a at max(a, ε) (floored_log), derivative 0 when floored
 
 Guards (ECM_SPEC §7.3) act in ``robust`` mode and raise :class:`~socbench.errors.ModelError` in ``strict`` mode; a
 :class:`GuardLog`, passed explicitly by the caller (no hidden state), counts on how many samples each guard acted.
@@ -180,6 +181,17 @@ def guarded_log1m(z, eps: float = EPS_SINGULAR, guards: GuardLog | None = None):
     if guards is not None:
         guards.note("singular_eps", ~inside)
     return np.log1p(-zs), np.where(inside, -1.0 / (1.0 - zs), 0.0)
+
+
+def floored_log(a, eps: float = EPS_SINGULAR, guards: GuardLog | None = None, name: str = "singular_eps"):
+    """``(ln max(a, ε), d/da)`` — derivative 0 where floored. For logarithms whose argument is positive on the
+    model's domain but not beyond it (Fang's ``ln(τ2 + 1 − z)`` at a sigma point or particle above ``1 + τ2``)."""
+    a = np.asarray(a, dtype=float)
+    floored = ~(a > eps)
+    if guards is not None:
+        guards.note(name, floored)
+    a_s = np.where(floored, eps, a)
+    return np.log(a_s), np.where(floored, 0.0, 1.0 / a_s)
 
 
 def clipped_exp(arg):

@@ -26,6 +26,8 @@ Effects (ECM_SPEC §9 numbering in brackets):
 * :class:`ButlerVolmer` [6] — asinh charge-transfer over-potential (no state).
 * :class:`CoulombicEfficiency` [5] — η_c < 1 on charge.
 * :class:`SelfDischarge` [8] — a leak ``ż = −r_sd·U_oc(z)/U_oc(1)/3600``.
+* :class:`ModelError` — not a physical effect: the model's own voltage error as three coloured (Gauss–Markov)
+  states (slow, fast, resistive), for the filters' noise recipe (:mod:`socbench.estimators.model_error`).
 """
 
 from __future__ import annotations
@@ -70,19 +72,33 @@ class Effect:
     defaults: ClassVar[dict] = {}
     #: settings that are not fitted (e.g. the reference temperature)
     settings: ClassVar[dict] = {}
+    #: for a filter, per state: the SD of its initial value (None: the estimator's default for a dynamic state) and
+    #: of its random walk per √hour (a constant's is 0: capacity and a sensor offset do not move within a record)
+    state_sd: ClassVar[tuple] = ()
+    walk_sd: ClassVar[tuple] = ()
+    #: state -> the parameter that is its initial value (a fitted initial value's spread is its filter uncertainty)
+    initial_params: ClassVar[dict] = {}
 
-    def __init__(self, **values):
+    def __init__(self, *, initial_sd=None, **values):
         unknown = sorted(set(values) - set(self.param_names) - set(self.settings))
         if unknown:
             raise ConfigError(f"effect '{self.name}' has no parameter '{unknown[0]}' (have {list(self.param_names)})")
         # a value may carry a leading batch axis (one parameter variant per run): the fits simulate variants together
         self.values = {k: np.asarray(v, dtype=float) for k, v in {**self.defaults, **self.settings, **values}.items()}
+        if initial_sd is not None and len(initial_sd) != self.n_states:
+            raise ConfigError(f"effect '{self.name}': initial_sd needs one entry per state {self.state_names}")
+        self._initial_sd = None if initial_sd is None else tuple(initial_sd)
 
     def __getitem__(self, key):
         return self.values[key]
 
     def with_values(self, **values) -> Effect:
-        return type(self)(**{**self.values, **values})
+        return type(self)(initial_sd=self._initial_sd, **{**self.values, **values})
+
+    def initial_sd(self, base) -> tuple:
+        """SD of each state's initial value for a filter (None: the estimator's default): the one given at
+        construction (e.g. the spread of a fitted initial value), else the class's declaration."""
+        return self._initial_sd if self._initial_sd is not None else self.state_sd
 
     def __repr__(self) -> str:
         vals = ", ".join(f"{k}={np.array2string(v, precision=4)}" for k, v in self.values.items())
@@ -218,6 +234,10 @@ class Hysteresis(Effect):
     param_names = ("M", "M0", "gamma", "h0")
     defaults = {"M": 0.01, "M0": 0.0, "gamma": 50.0, "h0": 0.0}
     settings = {"h_ref": 0.0}
+    #: h ∈ [−1, 1] starts at the fitted h0; the sign memory s is a bookkeeping state (no uncertainty of its own)
+    state_sd = (0.1, 1e-6)
+    walk_sd = (0.0, 0.0)
+    initial_params = {"h": "h0"}
 
     def bounds(self, model):
         n = n_cells(model)
@@ -281,6 +301,9 @@ class Capacity(Effect):
     state_names = ("cap",)
     param_names = ("cap0",)
     defaults = {"cap0": 1.0}
+    state_sd = (0.01,)
+    walk_sd = (0.0,)
+    initial_params = {"cap": "cap0"}
 
     def bounds(self, model):
         return {"cap0": (0.6, 1.6)}
@@ -313,6 +336,12 @@ class CurrentBias(Effect):
     state_names = ("b",)
     param_names = ("b0",)
     defaults = {"b0": 0.0}
+    walk_sd = (0.0,)
+    initial_params = {"b": "b0"}
+
+    def initial_sd(self, base):
+        """0.1 % of 1C unless given (a fitted offset is known to about a sensor's resolution)."""
+        return self._initial_sd if self._initial_sd is not None else (1e-3 * base.capacity_ah,)
 
     def bounds(self, model):
         return {"b0": (-0.05 * model.capacity_ah, 0.05 * model.capacity_ah)}
@@ -381,6 +410,8 @@ class ExtraRC(Effect):
     state_names = ("Ux",)
     param_names = ("R", "log10_tau")
     defaults = {"R": 1e-3, "log10_tau": 2.5}
+    state_sd = (None,)
+    walk_sd = (0.0,)
 
     def bounds(self, model):
         return {"R": (1e-6, resistance_scale(model)), "log10_tau": (0.5, 4.0)}
@@ -504,12 +535,126 @@ class SelfDischarge(Effect):
         return -self._c(base) * base.ocv(z_params)
 
 
+class ModelError(Effect):
+    """The model's voltage error as three coloured-noise states: Gauss–Markov processes of unit variance (slow
+    additive, fast additive, resistive), each scaled by its standard deviation at the SOC and cell temperature.
+
+    For each component ``c``: ``ε_c⁺ = φ_c ε_c + w_c``, ``φ_c = e^{−dt/τ_c}``, ``w_c ~ N(0, 1 − φ_c²)`` (so
+    ``Var ε_c = 1`` in steady state), and::
+
+        y += s_slow(z, T)·ε_slow + s_fast(z, T)·ε_fast − s_r(z, T)·ε_r·I
+
+    ``s_c(z, T)`` bilinear on a grid: piecewise linear in SOC over ``soc`` and in temperature over ``temps`` (both
+    held outside, the rule of every temperature table); a model's error is largest near the ends of the SOC range
+    (the knee, the hysteresis left by a charge), and the scale says so. ``s_r`` is a resistance [Ω]: the part of the
+    error that scales with the current (a resistance the model has wrong), which must not be read as SOC information
+    wherever a parameter varies with SOC. Jacobians: ``∂ε_c⁺/∂ε_c = φ_c``; ``∂y/∂ε_slow = s_slow``,
+    ``∂y/∂ε_fast = s_fast``, ``∂y/∂ε_r = −s_r I``, ``∂y/∂z += s_slow' ε_slow + s_fast' ε_fast − s_r' ε_r I``,
+    ``∂y/∂I += −s_r ε_r``.
+
+    The process noise ``w`` is not part of the effect (a model is deterministic): a filter gets it through its
+    covariance ``Q`` as these states' walk variances :meth:`walk_var` (``(1 − φ_c(dt₀)²)·dt/dt₀``, first order in
+    dt). In open loop (no noise) ε stays at its initial value 0. Settings (not fitted): ``temps`` [°C], ``soc``,
+    ``sd_slow``, ``sd_fast`` [V], ``sd_r`` [Ω] (each ``(len(temps), len(soc))``), ``tau_slow``, ``tau_fast``,
+    ``tau_r`` [s]. Estimated from residuals by :func:`socbench.estimators.model_error.estimate`.
+    """
+
+    name = "model_error"
+    state_names = ("eps_slow", "eps_fast", "eps_r")
+    #: a record may start anywhere: the error starts at its stationary spread; its walk is not declared here (it
+    #: depends on the step: :meth:`walk_var`, which the noise recipe puts in ``SensorNoise.walk_sd``)
+    state_sd = (1.0, 1.0, 1.0)
+    settings = {"temps": (25.0,), "soc": (0.0, 1.0), "sd_slow": ((0.01, 0.01),), "sd_fast": ((0.0, 0.0),),
+                "sd_r": ((0.0, 0.0),), "tau_slow": 600.0, "tau_fast": 5.0, "tau_r": 600.0}
+    KEYS = ("sd_slow", "sd_fast", "sd_r")
+
+    def bounds(self, model):
+        return {}
+
+    def kernel_values(self, base):
+        """``τ_slow, τ_fast, τ_r, K_T, K_z``, the temperatures, the SOC grid, then the three scale grids (row-major
+        ``(K_T, K_z)``) — the layout socbench.kernels.evaluate.model_error_scale reads."""
+        temps = np.atleast_1d(np.asarray(self["temps"], dtype=float))
+        soc = np.atleast_1d(np.asarray(self["soc"], dtype=float))
+        grids = [np.asarray(self[k], dtype=float) for k in self.KEYS]
+        if temps.ndim != 1 or soc.ndim != 1 or any(g.size != temps.size * soc.size for g in grids):
+            return None  # a batch of settings: no compiled form (the lowering says so)
+        return (*self.taus, float(temps.size), float(soc.size), *temps, *soc, *(v for g in grids for v in g.ravel()))
+
+    @property
+    def taus(self) -> np.ndarray:
+        return np.array([float(self["tau_slow"]), float(self["tau_fast"]), float(self["tau_r"])])
+
+    def _phi(self, dt):
+        return np.exp(-np.asarray(dt, dtype=float)[..., None] / self.taus)
+
+    def walk_var(self, dt0: float) -> np.ndarray:
+        """Variances of ``(w_slow, w_fast, w_r)`` per step ``dt0`` (unit stationary variances)."""
+        return 1.0 - np.exp(-2.0 * float(dt0) / self.taus)
+
+    def scale(self, z, temp, shape):
+        """``(s, ds/dz)``, each ``shape + (3,)``: the three scales at SOC ``z`` and temperature ``temp``."""
+        from .params import temperature_weights
+
+        zg = np.atleast_1d(np.asarray(self["soc"], dtype=float))
+        z = np.broadcast_to(np.asarray(z, dtype=float), shape)
+        kz = np.clip(np.searchsorted(zg, z, side="right") - 1, 0, max(zg.size - 2, 0))
+        if zg.size > 1:
+            width = zg[kz + 1] - zg[kz]
+            wz = np.clip((z - zg[kz]) / width, 0.0, 1.0)
+            inside = (z >= zg[0]) & (z <= zg[-1])
+        else:
+            width, wz, inside = np.ones(shape), np.zeros(shape), np.zeros(shape, dtype=bool)
+        temps = np.atleast_1d(np.asarray(self["temps"], dtype=float))
+        kt, wt = temperature_weights(temps, np.full(shape, T_REF_C) if temp is None
+                                     else np.broadcast_to(np.asarray(temp, dtype=float), shape))
+        kt1 = np.minimum(kt + 1, temps.size - 1)
+        kz1 = np.minimum(kz + 1, zg.size - 1)
+        s = np.empty(tuple(shape) + (3,))
+        ds = np.empty(tuple(shape) + (3,))
+        for j, key in enumerate(self.KEYS):
+            g = np.asarray(self[key], dtype=float).reshape(temps.size, zg.size)
+            lo = (1.0 - wt) * g[kt, kz] + wt * g[kt1, kz]
+            hi = (1.0 - wt) * g[kt, kz1] + wt * g[kt1, kz1]
+            s[..., j] = (1.0 - wz) * lo + wz * hi
+            ds[..., j] = np.where(inside, (hi - lo) / width, 0.0)
+        return s, ds
+
+    def advance(self, e, z, i, dt, temp, base, jac):
+        phi = np.broadcast_to(self._phi(dt), e.shape)
+        en = phi * e
+        if not jac:
+            return en, None, None, None
+        Fe = np.zeros(e.shape + (3,))
+        for j in range(3):
+            Fe[..., j, j] = phi[..., j]
+        return en, Fe, np.zeros(e.shape), np.zeros(e.shape)
+
+    def record_states(self, e0, i, dt, base):
+        """``ε_k = φ^k ε_0`` over the record (no noise in open loop), by the affine scan."""
+        phi = np.broadcast_to(self._phi(dt), i.shape + (3,))
+        return np.stack([affine_scan(phi[..., j], np.zeros(i.shape), e0[..., j]) for j in range(3)], axis=-1)
+
+    def rate(self, e, z, i, temp, base):
+        return -e / self.taus
+
+    def output_term(self, e, z, i, temp, base, jac):
+        s, ds = self.scale(z, temp, e.shape[:-1])
+        i = np.broadcast_to(i, e.shape[:-1])
+        dy = s[..., 0] * e[..., 0] + s[..., 1] * e[..., 1] - s[..., 2] * e[..., 2] * i
+        if not jac:
+            return dy, None, None, None
+        He = np.stack([s[..., 0], s[..., 1], -s[..., 2] * i], axis=-1)
+        dz = ds[..., 0] * e[..., 0] + ds[..., 1] * e[..., 1] - ds[..., 2] * e[..., 2] * i
+        return dy, He, dz, -s[..., 2] * e[..., 2]
+
+
 #: effect name -> class
 EFFECTS: dict[str, type] = {
     cls.name: cls
     for cls in (Temperature, Hysteresis, Capacity, CurrentBias, ExtraRC, ButlerVolmer, CoulombicEfficiency,
                 SelfDischarge)
-}
+}  # ModelError is not listed: it is no physical effect a diagnosis could add, only the noise recipe's state
 
 
 def effect_names() -> list[str]:
@@ -564,6 +709,22 @@ class AugmentedModel(Model):
             if e.name == name:
                 return e
         raise KeyError(name)
+
+    def initial_sd(self, soc0_sd: float, state0_sd: float) -> np.ndarray:
+        """SD of every state's initial value for a filter ``(n,)``: the base model's, then each effect's declaration
+        (:meth:`Effect.initial_sd`; None takes ``state0_sd``)."""
+        sd = list(self.base.initial_sd(soc0_sd, state0_sd))
+        for e in self.effects:
+            sd += [state0_sd if v is None else float(v) for v in e.initial_sd(self.base)]
+        return np.asarray(sd, dtype=float)
+
+    def walk_var(self) -> np.ndarray:
+        """Random-walk variance of every state per second ``(n,)``: the base model's, then the effects' declared
+        ``walk_sd`` (per √hour)."""
+        w = list(self.base.walk_var())
+        for e in self.effects:
+            w += [(float(v) ** 2 / 3600.0) if v else 0.0 for v in (e.walk_sd or (0.0,) * e.n_states)]
+        return np.asarray(w, dtype=float)
 
     def x0(self, soc, batch=()):
         xb = self.base.x0(soc, batch)
@@ -650,7 +811,7 @@ class AugmentedModel(Model):
         2. the SOC path ``z_{k+1} = z_k + g_k·Δz_k − leak(z_k) (+ jump_{k+1})``, ``Δz_k`` the base model's B1
            increment on ``i_e``, ``g_k`` the product of the effects' SOC gains (capacity, coulombic efficiency): a
            running sum (:func:`~socbench.models.recurrence.running_sum`); with a leak (self_discharge, which depends
-           on ``U_oc(z_k)``) a loop over the SOC alone;
+           on ``U_oc(z_k)``) running sums iterated to the fixed point (:meth:`_leaky_soc_path`);
         3. the base model's other states given that SOC path and ``i_e`` (its :meth:`Model._states_given_soc`);
         4. the output on every sample in one :meth:`output` call.
 
@@ -672,20 +833,42 @@ class AugmentedModel(Model):
                 gain = gain * g[0]
         inc = gain * soc_step(0.0, ie, dt, self.base.capacity_ah, self.base.eta_charge)[0]
         leaky = [(e, sl) for e, sl in zip(self.effects, self._slices) if type(e).soc_leak is not Effect.soc_leak]
-        if not leaky:
-            xs[..., 0] = running_sum(x[..., 0], inc, jumps)
-        else:
-            z = x[..., 0]
-            for k in range(T):  # the leak depends on U_oc(z_k): only the SOC runs step by step
-                xs[k, ..., 0] = z
-                if k + 1 < T:
-                    z = z + inc[k]
-                    for e, sl in leaky:
-                        z = z - e.soc_leak(xs[k, ..., 0], xs[k, ..., sl], dt[k], self.base)[0]
-                    if jumps is not None:
-                        z = z + jumps[k + 1]
+        xs[..., 0] = running_sum(x[..., 0], inc, jumps)
+        if leaky:
+            xs[..., 0] = self._leaky_soc_path(xs, x[..., 0], inc, dt, jumps, leaky)
         self.base._states_given_soc(xs[..., :nb], x[..., :nb], ie, dt, None if temp_t is None else temp_t[:-1], guards)
         return self._time_first_result(xs, i_t, temp_t, guards)
+
+    #: the leaky SOC path's fixed-point iteration stops when no sample moves by more than this (SOC fraction)
+    LEAK_TOL = 1e-14
+    LEAK_MAX_ITER = 200
+
+    def _leaky_soc_path(self, xs, z0, inc, dt, jumps, leaky):
+        """The SOC path under a leak that depends on ``U_oc(z_k)`` (self-discharge), time first.
+
+        ``z_{k+1} = z_k + inc_k − leak(z_k) (+ jump_{k+1})`` is a Volterra recurrence: its fixed point is found by
+        Picard iteration on the whole path, ``z^{(m+1)} = running_sum(z_0, inc − leak(z^{(m)}))`` from the leak-free
+        path ``xs[..., 0]``. The error after ``m`` sweeps is bounded by ``(L·t)^m/m!`` (``L`` the leak's Lipschitz
+        constant, ``t`` the record length): a day at the largest admissible rate takes about twenty whole-record
+        sweeps instead of a Python step per sample. Should it not settle in ``LEAK_MAX_ITER`` sweeps, the step loop
+        runs."""
+        z = xs[..., 0]
+        for _ in range(self.LEAK_MAX_ITER):
+            leak = sum(e.soc_leak(z[:-1], xs[:-1, ..., sl], dt, self.base)[0] for e, sl in leaky)
+            z_new = running_sum(z0, inc - leak, jumps)
+            done = np.max(np.abs(z_new - z)) <= self.LEAK_TOL
+            z = z_new
+            if done:
+                return z
+        z = np.empty_like(xs[..., 0])
+        zk = z0
+        for k in range(z.shape[0]):
+            z[k] = zk
+            if k + 1 < z.shape[0]:
+                zk = zk + inc[k] - sum(e.soc_leak(z[k], xs[k, ..., sl], dt[k], self.base)[0] for e, sl in leaky)
+                if jumps is not None:
+                    zk = zk + jumps[k + 1]
+        return z
 
     def output(self, x, i, temp=None, jac=False, guards=None):
         x, (i,) = self._broadcast(x, i)

@@ -26,6 +26,12 @@ coulombic efficiency and model options, plus provenance notes::
                 "C1": {"lookup": {"soc": [...], "value": [...]}},
                 "R1": {"by_temperature": {"temps": [-10, 25], "scale": "log", "nodes": [{...}, {...}]}}},
      "options": {"mode": "robust"}, "source": "...", "notes": ["..."]}
+
+A set fitted at several temperatures (``socbench fit --data HPPC1 HPPC2 …``) counts charge on *one* SOC axis: its
+``capacity_ah`` is the reference capacity ``Q_ref`` of that axis (the largest capacity measured), and the charge each
+temperature delivered is kept as data in the optional key ``"capacity_by_temperature": {"temps": [...],
+"capacity_ah": [...], "source": "..."}`` (:class:`CapacityTable`). A set without that key is a single-temperature set,
+read and written exactly as before.
 """
 
 from __future__ import annotations
@@ -64,6 +70,10 @@ class SocFunction:
     def is_constant(self) -> bool:
         return False
 
+    def scaled(self, factor) -> SocFunction:
+        """A copy multiplied by ``factor`` (a number, or a parameter batch of factors on the leading axes)."""
+        raise NotImplementedError(f"{type(self).__name__} cannot be scaled")
+
     def range_on_unit(self, n: int = 2001) -> tuple[float, float]:
         """(min, max) of the function on z ∈ [0, 1]."""
         v = self(np.linspace(0.0, 1.0, n))
@@ -87,6 +97,9 @@ class Constant(SocFunction):
             return value.copy(), np.zeros(z.shape)
         shape = np.broadcast_shapes(z.shape, value.shape)
         return np.broadcast_to(value, shape).copy(), np.zeros(shape)
+
+    def scaled(self, factor):
+        return Constant(np.asarray(self.value, dtype=float) * np.asarray(factor, dtype=float))
 
     def to_dict(self):
         return {"const": float(self.value)}
@@ -134,6 +147,9 @@ class Polynomial(SocFunction):
         d = np.where((z < 0.0) | (z > 1.0), 0.0, d)
         return v, d
 
+    def scaled(self, factor):
+        return Polynomial(np.asarray(self.coeffs, dtype=float) * np.asarray(factor, dtype=float)[..., None])
+
     def to_dict(self):
         if self.batched:
             raise ConfigError("a batched polynomial (parameter batch) cannot be saved")
@@ -176,6 +192,9 @@ class Lookup(SocFunction):
         v = v0 + s * (zc - self.soc[j])
         d = np.where(outside, 0.0, s)
         return v, d
+
+    def scaled(self, factor):
+        return Lookup(self.soc, np.asarray(self.value, dtype=float) * np.asarray(factor, dtype=float)[..., None])
 
     def to_dict(self):
         if self.batched:
@@ -306,8 +325,54 @@ def soc_function(spec) -> SocFunction:
 
 
 @dataclass(frozen=True, eq=False)
+class CapacityTable:
+    """The charge [Ah] the cell delivered at each measured temperature [°C] (data, not a model parameter).
+
+    ``at(temp)`` interpolates linearly between the measured temperatures and holds the end values outside (the rule
+    of :func:`temperature_weights`). A set's own SOC axis is counted with ``ModelParams.capacity_ah``; this table says
+    how much of that axis each temperature reached (:mod:`socbench.socaxis` converts between the two definitions).
+    """
+
+    temps: tuple
+    capacity_ah: tuple
+    source: str = ""
+
+    def __post_init__(self):
+        t = np.asarray(self.temps, dtype=float).ravel()
+        q = np.asarray(self.capacity_ah, dtype=float).ravel()
+        if t.size < 1 or t.size != q.size or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+            raise ConfigError("a capacity table needs >= 1 strictly increasing temperatures and one capacity per "
+                              f"temperature (got temps {t.tolist()} and {q.size} capacities)")
+        if not np.all(np.isfinite(q) & (q > 0)):
+            raise ConfigError(f"a capacity table needs positive capacities, got {q.tolist()}")
+        object.__setattr__(self, "temps", tuple(float(x) for x in t))
+        object.__setattr__(self, "capacity_ah", tuple(float(x) for x in q))
+
+    def at(self, temp=None):
+        """Capacity [Ah] at ``temp`` [°C] (None: :data:`T_REF_C`), linear between nodes, held outside."""
+        if len(self.temps) == 1:
+            return np.full(np.shape(T_REF_C if temp is None else temp), self.capacity_ah[0])[()]
+        k, w = temperature_weights(self.temps, temp)
+        q = np.asarray(self.capacity_ah)
+        return ((1.0 - w) * q[k] + w * q[k + 1])[()]
+
+    def to_dict(self) -> dict:
+        return {"temps": list(self.temps), "capacity_ah": list(self.capacity_ah), "source": self.source}
+
+    @classmethod
+    def from_dict(cls, d) -> CapacityTable:
+        if not isinstance(d, Mapping) or "temps" not in d or "capacity_ah" not in d:
+            raise ConfigError("'capacity_by_temperature' needs keys 'temps' and 'capacity_ah'")
+        return cls(tuple(d["temps"]), tuple(d["capacity_ah"]), str(d.get("source", "")))
+
+
+@dataclass(frozen=True, eq=False)
 class ModelParams:
-    """Everything a model needs besides its structure: capacity, OCV curve, parameter functions, options."""
+    """Everything a model needs besides its structure: capacity, OCV curve, parameter functions, options.
+
+    ``capacity_ah`` is the capacity the model counts charge with (its SOC axis); ``capacity_by_temperature`` (None
+    for a single-temperature set) the charge measured at each temperature, as data (:class:`CapacityTable`).
+    """
 
     capacity_ah: float
     ocv: OCVCurve
@@ -316,6 +381,7 @@ class ModelParams:
     options: Mapping = field(default_factory=dict)
     source: str = ""
     notes: tuple = ()
+    capacity_by_temperature: CapacityTable | None = None
 
     def __post_init__(self):
         if not (np.isfinite(self.capacity_ah) and self.capacity_ah > 0):
@@ -342,6 +408,7 @@ class ModelParams:
             "options": dict(self.options),
             "source": self.source,
             "notes": self.notes,
+            "capacity_by_temperature": self.capacity_by_temperature,
         }
         d.update(changes)
         return ModelParams(**d)
@@ -371,13 +438,16 @@ def params_to_dict(model_name: str, params: ModelParams, **extra) -> dict:
         "options": dict(params.options),
         "source": params.source,
         "notes": list(params.notes),
+        **({"capacity_by_temperature": params.capacity_by_temperature.to_dict()}
+           if params.capacity_by_temperature is not None else {}),
         **extra,
     }
 
 
 def params_from_dict(d: Mapping, *, ocv: OCVCurve | None = None, file: str = "") -> tuple[str, ModelParams]:
     """``(model_name, ModelParams)`` from the JSON form. ``ocv`` fills in a file that carries none."""
-    known = {"model", "capacity_ah", "eta_charge", "ocv", "params", "options", "source", "notes", "fit", "paper"}
+    known = {"model", "capacity_ah", "eta_charge", "ocv", "params", "options", "source", "notes", "fit", "paper",
+             "capacity_by_temperature", "model_error"}
     unknown = sorted(set(d) - known)
     if unknown:
         raise ConfigError(f"{file or 'parameters'}: unknown key '{unknown[0]}'")
@@ -398,6 +468,8 @@ def params_from_dict(d: Mapping, *, ocv: OCVCurve | None = None, file: str = "")
             options=d.get("options", {}),
             source=d.get("source", ""),
             notes=tuple(d.get("notes", ())),
+            capacity_by_temperature=(CapacityTable.from_dict(d["capacity_by_temperature"])
+                                     if d.get("capacity_by_temperature") is not None else None),
         )
     except ConfigError as exc:
         raise ConfigError(f"{file or 'parameters'}: {exc}") from None

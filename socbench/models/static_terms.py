@@ -15,7 +15,7 @@ The terms (``it = Q(1 − z)`` is the extracted charge in Ah, ``Q`` the capacity
     Shepherd   g = −K/z_s
     Unnewehr   g = −K z
     Nernst     g = −K0 ln z_s + K1 ln(1 − z_s)
-    Fang       g = −K0 ln(τ1 + z) + K1 ln(τ2 + 1 − z)
+    Fang       g = −K0 ln(τ1 + z) + K1 ln(τ2 + 1 − z)   (arguments floored at ε: positive on [0, 1] only)
     Tremblay1  g = −K/z_s + A e^{−B·it}             (= Shepherd + the exponential zone term; −K·Q/(Q − it) = −K/z)
     Plett      g = K0 − K1/z_s − K2 z + K3 ln z_s + K4 ln(1 − z_s)
 """
@@ -25,7 +25,17 @@ from __future__ import annotations
 import numpy as np
 
 from .base import KernelSpec, Model
-from .blocks import R_FLOOR, clipped_exp, floor_value, guarded_inv, guarded_log, guarded_log1m, soc_rate, soc_step
+from .blocks import (
+    R_FLOOR,
+    clipped_exp,
+    floor_value,
+    floored_log,
+    guarded_inv,
+    guarded_log,
+    guarded_log1m,
+    soc_rate,
+    soc_step,
+)
 
 
 def exponential_zone(model: Model, z, temp=None, A="A", B="B"):
@@ -160,10 +170,12 @@ class Fang(StaticTermModel):
         k1, dk1 = self.p("K1", z, temp)
         t1, dt1 = self.p("tau1", z, temp)
         t2, dt2 = self.p("tau2", z, temp)
-        a, b = t1 + z, t2 + 1.0 - z
-        la, lb = np.log(a), np.log(b)
+        # both arguments are positive on [0, 1] (τ1, τ2 > 0) but a fit may take τ2 near 0, and a filter's sigma
+        # points or particles reach z > 1 + τ2, where ln(τ2 + 1 − z) is undefined: the B6 floor, counted
+        la, dla = floored_log(t1 + z, guards=guards)
+        lb, dlb = floored_log(t2 + 1.0 - z, guards=guards)
         g = -k0 * la + k1 * lb
-        dg = -dk0 * la - k0 * (dt1 + 1.0) / a + dk1 * lb + k1 * (dt2 - 1.0) / b
+        dg = -dk0 * la - k0 * (dt1 + 1.0) * dla + dk1 * lb + k1 * (dt2 - 1.0) * dlb
         return g, dg
 
 

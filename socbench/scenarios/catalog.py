@@ -4,13 +4,16 @@ A file names its load, truth, schedule and sensors; anything not given keeps the
 "other"`` starts from another catalog scenario (or a path relative to the file) and deep-merges the tables over it::
 
     description = "hexacopter, 10 kg payload, lab instruments"
-    kind = "mission"                       # mission | replay | hppc
+    kind = "mission"                       # mission | replay | hppc | measured
+    group = "measured"                     # optional: a group `socbench leaderboard --scenarios GROUP` runs
     [mission]       payload_kg = 10.0      # socbench.scenarios.mission.Mission
     [vehicle]       ...                    # socbench.scenarios.mission.Vehicle
     [replay]        source = "template"    # socbench.scenarios.scenario.ReplaySpec
     [truth]         ...                    # socbench.scenarios.truth.TruthParams
     [schedule]      ambient_c = 25.0       # socbench.scenarios.schedule.Schedule
     [hppc]          rest_s = 540.0         # socbench.scenarios.scenario.HppcSpec
+    [measured]      dataset = "panasonic_18650pf", record = "...", characterisation = [...]
+                                           # socbench.scenarios.scenario.MeasuredSpec (socbench.scenarios.measured)
     [sensors]       dt = 1.0, soc0_error = 0.05, capacity_mismatch = 0.03
     [sensors.current]  noise_sd = 0.2, offset = 0.1, bits = 12, range = [-200.0, 200.0]
     [[sensors.current.faults]]  kind = "offset", value = 1.0, onset_s = 600.0
@@ -26,7 +29,7 @@ from pathlib import Path
 from ..errors import ConfigError
 from .config import build
 from .mission import Mission, Vehicle
-from .scenario import HppcSpec, ReplaySpec, Scenario, ScenarioSpec
+from .scenario import HppcSpec, MeasuredSpec, ReplaySpec, Scenario, ScenarioSpec
 from .schedule import Schedule
 from .sensors import SensorSpec
 from .truth import TruthParams
@@ -36,10 +39,12 @@ try:  # Python 3.11+
 except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
-TOP_KEYS = ("name", "description", "kind", "extends", "truth", "schedule", "mission", "vehicle", "replay", "hppc",
-            "sensors")
+TOP_KEYS = ("name", "description", "kind", "group", "extends", "truth", "schedule", "mission", "vehicle", "replay",
+            "hppc", "measured", "sensors")
 SECTIONS = {"truth": TruthParams, "schedule": Schedule, "mission": Mission, "vehicle": Vehicle,
-            "replay": ReplaySpec, "hppc": HppcSpec}
+            "replay": ReplaySpec, "hppc": HppcSpec, "measured": MeasuredSpec}
+#: list-valued fields stored as tuples (hashable, frozen specs)
+TUPLE_FIELDS = {"replay": ("segments",), "measured": ("characterisation", "validation")}
 
 
 def _catalog_dir():
@@ -107,7 +112,7 @@ def load_scenario(name_or_path) -> Scenario:
         return name_or_path
     d, label, default_name = _table(name_or_path)
     kw = {}
-    for key in ("name", "description", "kind"):
+    for key in ("name", "description", "kind", "group"):
         if key in d:
             if not isinstance(d[key], str):
                 raise ConfigError(f"{label}: key '{key}': must be a string")
@@ -117,11 +122,22 @@ def load_scenario(name_or_path) -> Scenario:
             if not isinstance(d[key], dict):
                 raise ConfigError(f"{label}: key '{key}': must be a table")
             table = dict(d[key])
-            if key == "replay" and isinstance(table.get("segments"), list):
-                table["segments"] = tuple(table["segments"])
+            for f in TUPLE_FIELDS.get(key, ()):
+                if isinstance(table.get(f), list):
+                    table[f] = tuple(table[f])
             kw[key] = build(cls, table, key, label, skip=("ocv",) if cls is TruthParams else ())
     if "sensors" in d:
         kw["sensors"] = SensorSpec.from_table(d["sensors"], label)
     kw.setdefault("name", default_name)
     kw["file"] = label
-    return Scenario(build(ScenarioSpec, {}, "", label, **kw))
+    spec = build(ScenarioSpec, {}, "", label, **kw)
+    if spec.kind == "measured":
+        from .measured import MeasuredScenario
+
+        return MeasuredScenario(spec)
+    return Scenario(spec)
+
+
+def group_names(group: str) -> list[str]:
+    """Catalog scenarios of a group (``measured``), sorted."""
+    return [n for n in scenario_names() if load_scenario(n).group == group]

@@ -21,13 +21,15 @@ from ..estimators.noise import SensorNoise
 from ..profile import Profile, ProfileMeta
 from .config import require
 from .mission import Mission, Vehicle, fly
-from .schedule import Record, Schedule, lab_schedule, prepare, run_current
+from .schedule import Record, Schedule, lab_schedule, prepare, rest, run_current
 from .sensors import SensorSpec, apply_channel, initial_soc_guess, jitter_offsets
 from .truth import TEMP, TruthCell, TruthParams, Z
 
 #: step of the truth simulation of everything the sensors record [s]
 TRUTH_DT = 1.0
-KINDS = ("mission", "replay", "hppc")
+KINDS = ("mission", "replay", "hppc", "measured")
+#: how a measured scenario's models are fitted (socbench.scenarios.measured.Characterisation)
+FIT_METHODS = ("hppc", "ocv+dynamic", "flights")
 #: smallest white-noise SDs handed to the estimators (an ideal sensor still needs R > 0)
 MIN_VOLTAGE_SD = 1e-3
 MIN_CURRENT_SD = 1e-3
@@ -73,6 +75,38 @@ class HppcSpec:
 
 
 @dataclass(frozen=True)
+class MeasuredSpec:
+    """Which measured record a ``measured`` scenario replays and what its models are fitted on
+    (:mod:`socbench.scenarios.measured`)."""
+
+    dataset: str = ""
+    record: str = ""
+    format: str = "auto"
+    fit: str = "hppc"
+    characterisation: tuple = ()
+    ocv_test: str = ""
+    validation: tuple = ()
+    #: white-noise SDs of the recording instruments, declared for the filters' covariances [V], [A]
+    voltage_sd: float = 1e-3
+    current_sd: float = 0.01
+    reference: str = ""  # how the record's reference SOC is defined, for the docs
+
+    def __post_init__(self):
+        for name in ("characterisation", "validation"):
+            v = getattr(self, name)
+            require(isinstance(v, tuple) and all(isinstance(x, str) for x in v), name,
+                    f"must be a list of record names, got {v!r}")
+        require(bool(self.dataset) and bool(self.record), "record", "a measured scenario needs dataset and record")
+        require(self.fit in FIT_METHODS, "fit", f"must be one of {', '.join(FIT_METHODS)}, got {self.fit!r}")
+        require(len(self.characterisation) > 0, "characterisation", "needs at least one identification record")
+        require(self.record not in self.characterisation, "characterisation",
+                "must not contain the scored record (models are fitted on characterisation tests only)")
+        require(self.record not in self.validation, "validation", "must not contain the scored record")
+        require(self.fit != "ocv+dynamic" or bool(self.ocv_test), "ocv_test", "fit 'ocv+dynamic' needs an ocv_test")
+        require(self.voltage_sd > 0 and self.current_sd > 0, "voltage_sd", "instrument SDs must be > 0")
+
+
+@dataclass(frozen=True)
 class ScenarioSpec:
     name: str
     description: str = ""
@@ -84,12 +118,16 @@ class ScenarioSpec:
     replay: ReplaySpec = field(default_factory=ReplaySpec)
     hppc: HppcSpec = field(default_factory=HppcSpec)
     sensors: SensorSpec = field(default_factory=SensorSpec)
+    measured: MeasuredSpec | None = None
+    group: str = ""
     file: str = ""
 
     def __post_init__(self):
         require(self.kind in KINDS, "kind", f"must be one of {', '.join(KINDS)}, got {self.kind!r}")
+        require((self.kind == "measured") == (self.measured is not None), "measured",
+                "a [measured] table is what a kind = \"measured\" scenario needs, and only it")
         ratio = self.sensors.dt / TRUTH_DT
-        require(abs(ratio - round(ratio)) < 1e-9 and ratio >= 1, "sensors.dt",
+        require(self.kind == "measured" or (abs(ratio - round(ratio)) < 1e-9 and ratio >= 1), "sensors.dt",
                 f"must be a multiple of the truth step {TRUTH_DT:g} s, got {self.sensors.dt}")
 
 
@@ -139,6 +177,18 @@ def _hppc_record(truth: TruthParams, hppc: HppcSpec) -> Record:
     return rec
 
 
+@lru_cache(maxsize=8)
+def _capacity_record(truth: TruthParams, hppc: HppcSpec) -> Record:
+    """The capacity test of the truth cell at the HPPC ambient, 1 s: from full (relaxed, on the charge branch) a 1 C
+    discharge to the under-voltage limit, then a 30 min rest."""
+    cell = TruthCell(truth)
+    x = cell.initial_state(1.0, hppc.ambient_c, hyst=1.0, batch=1)
+    amps = np.full(int(1.05 * 3600.0 / TRUTH_DT), truth.capacity_ah)
+    dis = run_current(cell, x, amps, TRUTH_DT, hppc.ambient_c, stop_uv=True, phases=[("1C", 0.0)])
+    after = rest(cell, dis.last_state, 1800.0, TRUTH_DT, hppc.ambient_c)
+    return Record.concat([dis, after])
+
+
 def _key(name: str) -> int:
     return zlib.crc32(name.encode("utf-8"))
 
@@ -184,6 +234,38 @@ class Scenario:
     @property
     def declared_capacity_ah(self) -> float:
         return self.spec.truth.capacity_ah * (1.0 + self.spec.sensors.capacity_mismatch)
+
+    @property
+    def group(self) -> str:
+        """The catalog group (``measured``: the measured-data scenarios; empty: none)."""
+        return self.spec.group
+
+    def missing(self) -> str | None:
+        """Why the scenario cannot run here (None: it can; a simulated scenario always can)."""
+        return None
+
+    def available(self) -> bool:
+        return self.missing() is None
+
+    def noise_records(self) -> list:
+        """Records with a known SOC on which the noise recipe measures a fitted model's error: the lab tests of the
+        truth cell, never the scenario's load — the characterisation HPPC and the capacity test (:meth:`capacity_test`,
+        a sustained discharge into the knee that the HPPC's short pulses do not show)."""
+        return [self.characterisation(), self.capacity_test()]
+
+    def capacity_test(self, seed: int = 0) -> Profile:
+        """The 1 C capacity test of the same truth cell (to the under-voltage limit, then 30 min rest), measured like
+        :meth:`characterisation`."""
+        rec = _capacity_record(self.spec.truth, self.spec.hppc)
+        sensors = self.spec.sensors.without_faults()
+        key = _key("capacity/" + repr((self.spec.truth, self.spec.hppc, sensors)))
+        return self._measure(rec, sensors, _seeds(seed), key, f"{self.name}/capacity").run(0)
+
+    @property
+    def added_voltage_sd(self) -> float:
+        """White voltage noise on the filtered record that no residual record carries (0: the characterisation
+        test is measured by the same sensors)."""
+        return 0.0
 
     def __repr__(self) -> str:
         return f"Scenario({self.name!r}, kind={self.kind!r})"

@@ -20,6 +20,14 @@ Aggregates of a cell (DESIGN.md leaderboard columns) pool every sample of every 
 A run fails when the estimator flags it (``Estimate.failed``) or when any of its outputs is not finite. A metric with
 nothing to average (every run failed, or the estimator defines no such quantity, e.g. no innovation variance) is
 ``None``: an empty field in ``leaderboard.csv``, never NaN.
+
+Beside the row a cell record keeps, for the reliability report:
+
+* ``failures``: per failed run, why (the estimator's divergence reason, ``Estimate.failed_reason``, or "non-finite
+  output"), the sample and time where it failed, and what the run looked like there (last good SOC and its SD, true
+  SOC, measured current and voltage, predicted voltage, innovation and its variance);
+* ``domain``: the estimate's domain report (:func:`socbench.domain.estimate_domain`), whose ``outside_fraction`` is
+  the ``out_of_domain`` column (share of samples with the estimate outside the model's domain; an extra column).
 """
 
 from __future__ import annotations
@@ -37,7 +45,12 @@ TRACE_POINTS = 400
 #: the metric columns of a leaderboard row, in the DESIGN.md order
 METRIC_COLUMNS = ("soc_rmse", "soc_max_abs", "v_mean", "v_rmse", "v_sd", "v_max", "nis_mean", "nees_mean",
                   "frac_within_3sigma", "us_per_step")
-LEADERBOARD_COLUMNS = ("model", "estimator", "scenario", "n_runs") + METRIC_COLUMNS + ("failed_runs",)
+#: columns beyond the DESIGN.md set (more keys are welcome there)
+EXTRA_COLUMNS = ("out_of_domain",)
+LEADERBOARD_COLUMNS = (("model", "estimator", "scenario", "n_runs") + METRIC_COLUMNS + ("failed_runs",)
+                       + EXTRA_COLUMNS)
+#: failed runs described per cell record (the rest are counted)
+MAX_FAILURES_LISTED = 20
 
 
 class Toolkit:
@@ -69,10 +82,58 @@ class Toolkit:
 
         return load_scenario(name)
 
+    def scenario_group(self, group: str) -> list[str]:
+        """Catalog scenarios of a group (``measured``); empty for an unknown group."""
+        from ..scenarios.catalog import group_names
+
+        return group_names(group)
+
+    def scenario_missing(self, name: str) -> str | None:
+        """Why scenario ``name`` cannot run here (its data is missing), or None."""
+        missing = getattr(self.load_scenario(name), "missing", None)
+        return missing() if missing is not None else None
+
     def fit_model(self, model: str, profile, mode: str):
+        """Fit ``model`` on a characterisation: a test record, or a measured scenario's
+        :class:`~socbench.scenarios.measured.Characterisation` (which knows how it is fitted)."""
+        if hasattr(profile, "fit"):
+            return profile.fit(model, mode)
         from ..identify import fit_model
 
         return fit_model(model, profile, mode=mode)
+
+    def filter_noise(self, estimator: str, model, scenario, profile, noise: str, cache_key=None):
+        """``(model, noise, model-error dict or None)`` the estimator runs with: the noise recipe
+        (:mod:`socbench.estimators.model_error`) measured on the scenario's noise records with this fitted model,
+        unless ``noise == "sensor"``, the estimator is the coulomb counter (it never reads the voltage) or the
+        scenario has no records to measure it on (then its sensor noise alone)."""
+        sensor = scenario.sensor_noise()
+        records = getattr(scenario, "noise_records", None)
+        if noise == "sensor" or estimator == "coulomb" or records is None:
+            return model, sensor, None
+        from ..estimators import model_error
+
+        key = (cache_key, getattr(scenario, "name", None))
+        stats = _MODEL_ERROR.get(key) if cache_key is not None else None
+        if stats is None:
+            stats = model_error.estimate(model, records())
+            if cache_key is not None:
+                if len(_MODEL_ERROR) >= 64:
+                    _MODEL_ERROR.pop(next(iter(_MODEL_ERROR)))
+                _MODEL_ERROR[key] = stats
+        run_model, tuned = model_error.apply(model, sensor, stats, profile,
+                                             extra_voltage_sd=getattr(scenario, "added_voltage_sd", 0.0))
+        return run_model, tuned, stats.to_dict()
+
+    def run_estimator(self, estimator, profile, soc0, params, seed):
+        """Run on the data's SOC axis when the record counts its reference with its own capacity
+        (:func:`socbench.socaxis.run_on_data_axis`), else exactly ``estimator.run(profile, soc0, seed=seed)``."""
+        from ..socaxis import run_on_data_axis, soc_axis
+
+        axis = soc_axis(params, profile)
+        if axis.identity:
+            return estimator.run(profile, soc0, seed=seed)
+        return run_on_data_axis(estimator, profile, axis, soc0=soc0, seed=seed)
 
     def make_model(self, model: str, params):
         from ..models import make_model
@@ -82,7 +143,8 @@ class Toolkit:
     def make_estimator(self, estimator: str, model, noise, **options):
         from ..estimators import make_estimator
 
-        return make_estimator(estimator, model, noise=noise, **options)
+        # the posterior states are kept so that the cell's domain report counts the model's guards along them
+        return make_estimator(estimator, model, noise=noise, **{"store_states": True, **options})
 
     def score(self, estimate, profile) -> dict:
         from ..estimators.scoring import score
@@ -95,6 +157,8 @@ class Toolkit:
 _SCENARIOS: dict = {}
 _REALIZED: dict = {}
 _MAX_REALIZED = 4
+# the model error a fitted model makes on a scenario's noise records: once per (fit, scenario) per process
+_MODEL_ERROR: dict = {}
 
 
 def _scenario(toolkit: Toolkit, name: str):
@@ -149,7 +213,8 @@ def compute_cell(toolkit: Toolkit, job: dict) -> dict:
     seeds = tuple(int(s) for s in job["seeds"])
     n_runs = len(seeds)
     row = _empty_row(job, n_runs)
-    rec = {"row": row, "error": None, "trace": None, "run_soc_rmse": None, "run_failed": [True] * n_runs}
+    rec = {"row": row, "error": None, "trace": None, "run_soc_rmse": None, "run_failed": [True] * n_runs,
+           "failures": [], "domain": None, "model_error": None, "nis_band": None}
     try:
         fit = job["fit"]
         if fit.get("params") is None:
@@ -157,12 +222,20 @@ def compute_cell(toolkit: Toolkit, job: dict) -> dict:
         scen, profile, soc0 = _realized(toolkit, job["scenario"], seeds)
         _, params = params_from_dict(fit["params"])
         model = toolkit.make_model(job["model"], params)
-        est = toolkit.make_estimator(job["estimator"], model, scen.sensor_noise(), **job.get("options", {}))
+        run_model, noise, stats = toolkit.filter_noise(job["estimator"], model, scen, profile,
+                                                       job.get("noise", "model"), job.get("fit_key"))
+        est = toolkit.make_estimator(job["estimator"], run_model, noise, **job.get("options", {}))
         t1 = time.perf_counter()
-        estimate = est.run(profile, soc0, seed=int(job["seed"]))
-        elapsed = time.perf_counter() - t1
+        estimate = toolkit.run_estimator(est, profile, soc0, params, int(job["seed"]))
+        # the filter's time: without the post-hoc domain report computed in run()
+        elapsed = time.perf_counter() - t1 - float((getattr(estimate, "domain", None) or {}).get("seconds", 0.0))
         rec.update(reduce_cell(estimate, profile, elapsed, toolkit.score))
         rec["row"] = {**row, **rec["row"]}
+        for f in rec["failures"]:
+            f["seed"] = seeds[f["run"]]
+            f["model_nonfinite_soc"] = nonfinite_soc(model, f)
+        rec["model_error"] = stats
+        rec["nis_band"] = _nis_band(rec["row"], profile)
     except (KeyboardInterrupt, MemoryError):
         raise
     except Exception as exc:  # the estimator (or model) threw: every run of the batch failed
@@ -171,10 +244,19 @@ def compute_cell(toolkit: Toolkit, job: dict) -> dict:
     return rec
 
 
+def _nis_band(row: dict, profile):
+    """The two-sided 95 % χ² band of the cell's NIS mean (every sample of the runs that did not fail)."""
+    from ..metrics import chi2_band
+
+    ok = row["n_runs"] - row["failed_runs"]
+    return list(chi2_band(1, ok * profile.n)) if ok > 0 and row.get("nis_mean") is not None else None
+
+
 def _empty_row(job: dict, n_runs: int) -> dict:
     row = {"model": job["model"], "estimator": job["estimator"], "scenario": job["scenario"], "n_runs": n_runs}
     row.update({c: None for c in METRIC_COLUMNS})
     row["failed_runs"] = n_runs
+    row.update({c: None for c in EXTRA_COLUMNS})
     return row
 
 
@@ -208,13 +290,20 @@ def reduce_cell(estimate, profile, elapsed_s: float, score=None) -> dict:
     std = _as_runs(estimate.soc_std, R, T)
     vpred = _as_runs(estimate.v_pred, R, T)
 
-    failed = np.broadcast_to(np.asarray(estimate.failed, dtype=bool), (R,)).copy()
+    flagged = np.broadcast_to(np.asarray(estimate.failed, dtype=bool), (R,)).copy()
+    failed = flagged.copy()
+    nonfinite_outputs = 0
     for arr in (soc, std, vpred, _as_runs(estimate.innovation, R, T), _as_runs(estimate.innovation_var, R, T)):
-        failed |= ~np.isfinite(arr).all(axis=1)  # belt and braces: a non-finite output is a failed run
+        bad = ~np.isfinite(arr)
+        nonfinite_outputs += int(bad.sum())
+        failed |= bad.any(axis=1)  # belt and braces: a non-finite output is a failed run
     ok = ~failed
 
-    row = {c: None for c in METRIC_COLUMNS}
+    row = {c: None for c in METRIC_COLUMNS + EXTRA_COLUMNS}
     row["failed_runs"] = int(failed.sum())
+    domain = getattr(estimate, "domain", None) or None
+    if domain:
+        row["out_of_domain"] = domain.get("outside_fraction")
     row["us_per_step"] = 1e6 * elapsed_s / (R * T)
     run_rmse = [None] * R
     trace = None
@@ -231,9 +320,63 @@ def reduce_cell(estimate, profile, elapsed_s: float, score=None) -> dict:
         r0 = int(np.argmax(ok))
         trace = make_trace(profile.time_s, soc[r0] - truth[r0], std[r0], meas[r0], vpred[r0])
         trace["run"] = r0
+    # a metric that came out NaN/inf is stored empty (JSON has no NaN) but named here: the sweep reports them
+    nonfinite_metrics = sorted(k for k, v in row.items() if v is not None and k != "failed_runs"
+                               and not np.isfinite(float(v)))
     row = {k: (v if k == "failed_runs" else _finite_or_none(v)) for k, v in row.items()}
     return {"row": row, "trace": trace, "run_soc_rmse": [_finite_or_none(x) for x in run_rmse],
-            "run_failed": failed.tolist()}
+            "run_failed": failed.tolist(), "failures": describe_failures(estimate, profile, failed, flagged),
+            "domain": domain, "nonfinite": {"outputs": nonfinite_outputs, "metrics": nonfinite_metrics}}
+
+
+def nonfinite_soc(model, failure: dict, sigmas: float = 3.0, points: int = 61):
+    """``[lowest, highest]`` SOC within ``soc ± sigmas·soc_std`` of a failure where the model itself gives a
+    non-finite voltage or next state (other states at rest, the failure's current), or None: tells a model that is
+    undefined where the filter's spread reaches (a sigma point or particle beyond its domain) from a filter that
+    diverged on its own."""
+    z, sd = failure.get("soc"), failure.get("soc_std")
+    if z is None or sd is None:
+        return None
+    zs = z + np.linspace(-sigmas, sigmas, points) * sd
+    i = np.full(points, failure.get("current_a") or 0.0)
+    try:
+        with np.errstate(all="ignore"):
+            x = model.x0(zs, (points,))
+            y = model.output(x, i)[0]
+            xn = model.step(x, i, 1.0)[0]
+        bad = ~np.isfinite(y) | ~np.all(np.isfinite(xn), axis=-1)
+    except Exception as exc:  # a model that raises there (strict mode) is undefined there too
+        return {"error": _error_text(exc)}
+    return [float(zs[bad].min()), float(zs[bad].max())] if bad.any() else None
+
+
+def describe_failures(estimate, profile, failed, flagged, limit: int = MAX_FAILURES_LISTED) -> list[dict]:
+    """Why and where each failed run failed (module docstring), for the first ``limit`` failed runs."""
+    R, T = profile.n_runs, profile.n
+    reasons = estimate.failure_reasons() if hasattr(estimate, "failure_reasons") else ["diverged"] * R
+    at = np.broadcast_to(np.asarray(getattr(estimate, "failed_at", np.full(R, -1))), (R,))
+
+    def value(a, r, k):
+        if a is None:
+            return None
+        return _finite_or_none(_as_runs(a, R, T)[r, k])
+
+    out = []
+    for r in np.flatnonzero(failed)[:limit]:
+        r = int(r)
+        if flagged[r] and at[r] >= 0:
+            k, why = int(at[r]), reasons[r] or "diverged"
+        else:  # not flagged by the estimator: the first non-finite output
+            bad = ~np.isfinite(_as_runs(estimate.soc, R, T)[r]) | ~np.isfinite(_as_runs(estimate.v_pred, R, T)[r])
+            k, why = (int(np.argmax(bad)) if bad.any() else 0), "non-finite output"
+        last = max(k - 1, 0)  # outputs from the failure on repeat the last good values
+        out.append({"run": r, "step": k, "time_s": float(profile.time_s[k]), "reason": why,
+                    "soc": value(estimate.soc, r, last), "soc_std": value(estimate.soc_std, r, last),
+                    "soc_true": value(profile.soc_ref, r, k), "current_a": value(profile.current_a, r, k),
+                    "voltage_v": value(profile.voltage_v, r, k), "v_pred": value(estimate.v_pred, r, last),
+                    "innovation": value(estimate.innovation, r, last),
+                    "innovation_var": value(estimate.innovation_var, r, last)})
+    return out
 
 
 def _compact(a) -> list[float]:

@@ -34,8 +34,9 @@ DEFAULT_SEEDS = 10
 
 
 #: the package parts a fit's result depends on (its data is hashed separately), and a cell's
-FIT_CODE = ("models", "identify", "ocv.py", "profile.py", "data")
-CELL_CODE = ("models", "estimators", "scenarios", "metrics.py", "ocv.py", "profile.py", "data", "study/cell.py")
+FIT_CODE = ("models", "identify", "ocv.py", "profile.py", "segments.py", "data", "scenarios/measured.py")
+CELL_CODE = ("models", "estimators", "scenarios", "metrics.py", "ocv.py", "profile.py", "segments.py", "domain.py",
+             "data", "study/cell.py", "socaxis.py")
 
 
 @functools.cache
@@ -73,7 +74,10 @@ def _json_default(o):
 
 
 def profile_fingerprint(profile) -> str:
-    """SHA-256 of a profile's samples and metadata: two characterisations with this hash are the same test."""
+    """SHA-256 of a profile's samples and metadata: two characterisations with this hash are the same test. A
+    characterisation made of several records (a measured scenario's) brings its own ``fingerprint()``."""
+    if hasattr(profile, "fingerprint"):
+        return profile.fingerprint()
     h = hashlib.sha256()
     for name in ("time_s", "current_a", "voltage_v", "temperature_c", "soc_ref"):
         arr = getattr(profile, name)
@@ -115,11 +119,15 @@ class StudyConfig:
     fit_mode: str = "paper"
     #: extra keyword options per estimator name, part of the cell key (e.g. {"pf": {"n_particles": 200}})
     estimator_options: dict = field(default_factory=dict)
+    #: filter covariances: "model" (the noise recipe, socbench.estimators.model_error) or "sensor" (sensor noise only)
+    noise: str = "model"
 
     def __post_init__(self):
         for kind in ("models", "estimators", "scenarios", "seeds"):
             if not getattr(self, kind):
                 raise ConfigError(f"a study needs at least one of {kind}")
+        if self.noise not in ("model", "sensor"):
+            raise ConfigError(f"noise must be 'model' or 'sensor', got {self.noise!r}")
         if len(set(self.seeds)) != len(self.seeds):
             raise ConfigError("seeds must be distinct")
 
@@ -135,6 +143,7 @@ class StudyConfig:
             "seeds": list(self.seeds),
             "fit_mode": self.fit_mode,
             "estimator_options": {k: dict(v) for k, v in self.estimator_options.items()},
+            "noise": self.noise,
         }
 
 
@@ -145,12 +154,12 @@ def fit_config(model: str, char_hash: str, fit_mode: str, version: str) -> dict:
 
 
 def cell_config(model: str, estimator: str, scenario: str, scenario_fp: str, seeds, fit_key: str,
-                options: dict, version: str) -> dict:
+                options: dict, version: str, noise: str = "model") -> dict:
     """The configuration that determines a cell (its key is the hash of this)."""
     return {"kind": "cell", "schema": STORE_SCHEMA, "version": version, "model": model,
             "estimator": estimator,
             "scenario": scenario, "scenario_fingerprint": scenario_fp, "seeds": [int(s) for s in seeds],
-            "fit": fit_key, "estimator_options": dict(options)}
+            "fit": fit_key, "estimator_options": dict(options), "noise": noise}
 
 
 def seed_from_key(key: str) -> int:

@@ -50,6 +50,7 @@ class StudyResult:
     seconds: float = 0.0
     backend: str = "serial"
     jobs: int = 1
+    missing: list[str] = field(default_factory=list)  # cells not in the store (a read-only look: compute=False)
 
     def frame(self):
         """The leaderboard as a DataFrame with exactly the DESIGN.md columns (empty metrics are None)."""
@@ -82,18 +83,20 @@ def _progress(total: int, enabled: bool | None):
 
 def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", jobs: int | None = None,
               scheduler: str | None = None, toolkit: Toolkit | None = None, progress: bool | None = None,
-              log=None, recompute_stale: bool = False) -> StudyResult:
+              log=None, recompute_stale: bool = False, compute: bool = True) -> StudyResult:
     """Run (or resume) ``config`` into ``store``; see the module docstring. ``log(msg)`` receives progress lines.
 
     Records computed by other code (see :func:`~.grid.code_fingerprint`) are reused and listed in ``stale``, or
-    recomputed when ``recompute_stale``.
+    recomputed when ``recompute_stale``. ``compute=False`` only reads: the result holds the cells already in the
+    store (a study still running, or interrupted) and lists the others in ``missing``; nothing is written.
     """
     t_start = time.perf_counter()
     toolkit = toolkit or Toolkit()
     store = store if isinstance(store, Store) else Store(store)
     say = log or (lambda msg: None)
     run_id = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ") + f"-{os.getpid()}"
-    store.write_config({**config.to_dict(), "version": __version__, "run_id": run_id})
+    if compute:
+        store.write_config({**config.to_dict(), "version": __version__, "run_id": run_id})
 
     # ---- the grid: characterisations, fit keys, cell keys
     char_profiles: dict[str, object] = {}  # fit key -> characterisation profile
@@ -113,9 +116,10 @@ def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", 
             char_profiles.setdefault(fkey, char)
             for est in config.estimators:
                 opts = dict(config.estimator_options.get(est, {}))
-                ckey = stable_hash(cell_config(model, est, scen_name, scen_fp, config.seeds, fkey, opts, __version__))
+                ckey = stable_hash(cell_config(model, est, scen_name, scen_fp, config.seeds, fkey, opts, __version__,
+                                               config.noise))
                 job = {"model": model, "estimator": est, "scenario": scen_name, "seeds": list(config.seeds),
-                       "options": opts, "seed": seed_from_key(ckey), "fit_key": fkey}
+                       "options": opts, "seed": seed_from_key(ckey), "fit_key": fkey, "noise": config.noise}
                 cells.append((ckey, job))
 
     fit_code, cell_code = code_fingerprint(FIT_CODE), code_fingerprint(CELL_CODE)
@@ -142,6 +146,9 @@ def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", 
                     continue
                 stale.append(fkey)
             fits[fkey] = rec
+    missing = [ckey for ckey, _ in todo]
+    if not compute:
+        todo = []
     fit_tasks = [k for k in dict.fromkeys(job["fit_key"] for _, job in todo) if k not in fits]
     say(f"{len(cells)} cells: {len(reused)} in the store, {len(todo)} to run; {len(fit_tasks)} fits to compute")
     if stale:
@@ -178,6 +185,8 @@ def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", 
                     ("fit", fkey, model)
 
     def write_log(interrupted: bool):
+        if not compute:
+            return
         store.write_run_log(run_id, {"run_id": run_id, "started": run_id, "interrupted": interrupted,
                                      "backend": backend, "jobs": None if bk is None else bk.jobs,
                                      "computed": computed, "reused": reused, "stale": stale,
@@ -219,7 +228,7 @@ def run_study(config: StudyConfig, store: Store | str, backend: str = "serial", 
     write_log(interrupted=False)
 
     fits_by_cell = {sm: fits.get(k) for sm, k in fit_of.items()}
-    return StudyResult(config=config, cells=[records[k] for k, _ in cells], fits=fits_by_cell, computed=computed,
-                       reused=reused, stale=stale, seconds=time.perf_counter() - t_start, backend=backend,
-                       jobs=1 if bk is None else bk.jobs)
+    return StudyResult(config=config, cells=[records[k] for k, _ in cells if k in records], fits=fits_by_cell,
+                       computed=computed, reused=reused, stale=stale, seconds=time.perf_counter() - t_start,
+                       backend=backend, jobs=1 if bk is None else bk.jobs, missing=[] if compute else missing)
 

@@ -1,0 +1,664 @@
+"""Real cells at every temperature: temperature-aware models, the noise recipe, and the measured-data scenarios.
+
+Writes ``docs/real_data.md`` (every number in it comes from this run) and ``docs/figures/real_data_*.png``:
+
+1. **Identification** — every registered model fitted on the five Panasonic 18650PF HPPC tests (25, 10, 0, −10,
+   −20 °C) on one SOC axis (:func:`socbench.identify.temperature.fit_temperatures`, paper mode), and on the 25 °C
+   HPPC alone.
+2. **Best model** — the lowest mean open-loop voltage RMSE on the *validation* records, the Cycle_1 runs at the five
+   temperatures (never a US06: the US06 runs are scored below).
+3. **Noise recipe** — the model error of each fit measured on the validation records
+   (:mod:`socbench.estimators.model_error`): the five Cycle_1 runs for the five-temperature fit, the 25 °C Cycle_1
+   alone for the 25 °C fit (a characterisation campaign at 25 °C only).
+4. **The US06 at each temperature** — EKF and UKF from a guess 20 SOC points below the reference (every run starts
+   full), ``soc0_sd`` 0.1, on the record at its own 10 Hz, SOC on the data's axis (:mod:`socbench.socaxis`): the best
+   model with both fits, the next two models with the five-temperature fit, and coulomb counting.
+5. **Leaderboard of the measured group** (``socbench leaderboard --scenarios measured``: Panasonic, CALCE, DJI) on the
+   two best models (``--lb-models``), coulomb/EKF/UKF, 3 seeds; and the default flight scenarios' NIS with the recipe
+   (every model, the default estimators, 10 seeds) beside the sensor-only covariance on two models.
+
+Every step is cached in ``--cache`` (JSON per fit and per run): an interrupted run resumes, a finished one rewrites
+the document in seconds.
+
+    SOCBENCH_DATA_DIR=/work/shared/data python benchmarks/real_data.py [--cache real-data-cache] [--jobs 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from socbench.datasets.panasonic import find_panasonic, load_panasonic  # noqa: E402
+from socbench.estimators import SensorNoise, make_estimator  # noqa: E402
+from socbench.estimators import model_error as recipe  # noqa: E402
+from socbench.estimators.scoring import score  # noqa: E402
+from socbench.identify.temperature import fit_temperatures  # noqa: E402
+from socbench.metrics import voltage_error_stats  # noqa: E402
+from socbench.models import load_params, make_model, model_names, save_params  # noqa: E402
+from socbench.socaxis import run_on_data_axis, soc_axis  # noqa: E402
+
+TAGS = ("25degC", "10degC", "0degC", "n10degC", "n20degC")
+LABEL = {"25degC": "25 °C", "10degC": "10 °C", "0degC": "0 °C", "n10degC": "−10 °C", "n20degC": "−20 °C"}
+SOC0_ERROR = -0.20
+SOC0_SD = 0.1
+#: the recording instruments, as declared by the measured scenarios (catalog/measured/panasonic.toml)
+SENSOR = SensorNoise(voltage_sd=0.002, current_sd=0.02)
+TARGET = {"soc_rmse": 0.015, "coverage": 0.9, "ekf_ukf": 0.005}
+CITE = {
+    "panasonic": "P. Kollmeyer, *Panasonic 18650PF Li-ion Battery Data*, Mendeley Data, doi:10.17632/wykht8y7tg.1 "
+                 "(2018), University of Wisconsin-Madison (`panasonic_18650pf/PROVENANCE.md`)",
+    "calce": "CALCE Battery Research Group, University of Maryland, A123 LiFePO4 dynamic and low-current OCV tests "
+             "(https://calce.umd.edu/battery-data), third-party CSV exports (`calce_a123_lfp/PROVENANCE.md`)",
+    "dji": "K. Shah, G. Ballard, A. Schmidt, M. Schwager, *Multidrone aerial surveys of penguin colonies in "
+           "Antarctica*, Sci. Robot. 5, eabc3000 (2020): WADL flight logs, k2shah/wadl (`uav_dji_m100/PROVENANCE.md`)",
+}
+
+
+# ------------------------------------------------------------------------------------------------ data & cache
+def _record(tag: str, test: str):
+    return load_panasonic(find_panasonic(os.environ["SOCBENCH_DATA_DIR"], tag, test)[0])
+
+
+class Cache:
+    def __init__(self, folder: Path):
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+
+    def path(self, *parts) -> Path:
+        p = self.folder.joinpath(*parts)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        return p
+
+    def json(self, name: str, compute):
+        p = self.path(name)
+        if p.exists():
+            return json.loads(p.read_text())
+        out = compute()
+        tmp = p.with_suffix(".tmp")
+        tmp.write_text(json.dumps(out, default=_jsonable))
+        tmp.replace(p)
+        return out
+
+
+def _jsonable(v):
+    if hasattr(v, "tolist"):
+        return v.tolist()
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    raise TypeError(type(v).__name__)
+
+
+# ------------------------------------------------------------------------------------------------ 1-2: fits
+def fit_job(args) -> dict:
+    """Fit ``model`` on the HPPCs of ``tags``; save PARAMS.json; validation RMSE on the Cycle_1 runs."""
+    model, tags, params_path = args
+    t0 = time.perf_counter()
+    res = fit_temperatures(model, [_record(t, "HPPC") for t in tags])
+    save_params(params_path, model, res.params, fit=res.fit_summary())
+    m = make_model(model, res.params)
+    val = {}
+    for t in TAGS:
+        rec = _record(t, "Cycle")
+        e = recipe.residual(m, rec)
+        val[t] = float(np.sqrt(np.mean(e * e)))
+    return {"model": model, "seconds": time.perf_counter() - t0, "validation_rmse_v": val,
+            "fit": res.fit_summary(), "temps": list(res.temps), "capacities": list(res.capacities),
+            "notes": list(res.notes)}
+
+
+# ------------------------------------------------------------------------------------------------ 4: runs
+def run_job(args) -> dict:
+    """One filter on one US06: the recipe's noise, a guess 20 points low, SOC on the data's axis."""
+    model, params_path, stats_dict, tag, est_name, noise_mode, trace_path = args
+    name, params = load_params(params_path)
+    m = make_model(name, params)
+    prof = _record(tag, "US06")
+    stats = recipe.ModelErrorStats.from_dict(stats_dict) if stats_dict else None
+    run_model, noise = recipe.apply(m, SENSOR, stats, prof, noise=noise_mode if est_name != "coulomb" else "sensor")
+    est = make_estimator(est_name, run_model, noise, soc0_sd=SOC0_SD)
+    axis = soc_axis(params, prof)
+    t0 = time.perf_counter()
+    r = run_on_data_axis(est, prof, axis, soc0=float(prof.soc_ref[0]) + SOC0_ERROR, soc0_sd=SOC0_SD, seed=0)
+    seconds = time.perf_counter() - t0
+    s = score(r, prof)
+    idx = np.unique(np.round(np.linspace(0, prof.n - 1, 2500)).astype(int))
+    np.savez_compressed(trace_path, t=prof.time_s[idx], err=(r.soc[0] - prof.soc_ref)[idx], sd=r.soc_std[0][idx],
+                        temp=prof.temperature_c[idx])
+    out = {k: s[k] for k in ("soc_rmse", "soc_max_abs", "frac_within_3sigma", "nis_mean", "nis_band", "rmse_v",
+                             "nees_mean", "failed_runs")}
+    out.update({"seconds": seconds, "n": prof.n, "axis": axis.to_dict(), "filter_voltage_sd": noise.voltage_sd,
+                "t_start": float(prof.temperature_c[0]), "t_max": float(prof.temperature_c.max())})
+    return out
+
+
+def residual_job(args) -> dict:
+    """Open-loop voltage error of a fit on the US06 of ``tag`` (for the figure and the voltage table)."""
+    params_path, tag, path = args
+    name, params = load_params(params_path)
+    prof = _record(tag, "US06")
+    e = recipe.residual(make_model(name, params), prof)
+    st = voltage_error_stats(prof.voltage_v, prof.voltage_v - e)
+    idx = np.unique(np.round(np.linspace(0, prof.n - 1, 4000)).astype(int))
+    smooth = recipe.moving_average(prof.time_s, e, 10.0)
+    np.savez_compressed(path, t=prof.time_s[idx], e=smooth[idx])
+    return {k: st[k] for k in ("rmse_v", "mean_v", "sd_v", "max_v")}
+
+
+def _pool(jobs: int):
+    return ProcessPoolExecutor(max_workers=jobs) if jobs > 1 else None
+
+
+def _guarded(fn, item):
+    """``fn(item)``, or ``{"error": "..."}`` when it raises: one failed run is a result, not the end of the study."""
+    try:
+        return fn(item)
+    except (KeyboardInterrupt, MemoryError):
+        raise
+    except Exception as exc:  # a model that refuses its state mid-run (a guard), a diverged filter...
+        return {"error": f"{type(exc).__name__}: {exc}".splitlines()[0][:300]}
+
+
+def _each(pool, fn, items):
+    """``(index, result)`` pairs as they finish (each saved at once by the caller: an interrupt loses little)."""
+    from concurrent.futures import as_completed
+
+    if pool is None:
+        for k, x in enumerate(items):
+            yield k, _guarded(fn, x)
+        return
+    futures = {pool.submit(_guarded, fn, x): k for k, x in enumerate(items)}
+    for f in as_completed(futures):
+        yield futures[f], f.result()
+
+
+# ------------------------------------------------------------------------------------------------ 5: studies
+def study(cache: Cache, name: str, models, estimators, scenarios, seeds: int, jobs: int, noise: str = "model"):
+    """Run (or resume) a leaderboard study into ``cache/name``; returns the StudyResult and writes its report."""
+    from socbench.report import write_report
+    from socbench.study import Store, StudyConfig, run_study
+
+    cfg = StudyConfig(models=tuple(models), estimators=tuple(estimators), scenarios=tuple(scenarios),
+                      seeds=tuple(range(seeds)), noise=noise)
+    res = run_study(cfg, Store(cache.path(name, "store")), backend="process" if jobs > 1 else "serial", jobs=jobs,
+                    log=lambda m: print(f"  [{name}] {m}", flush=True))
+    write_report(res, cache.path(name), figures=False)
+    return res
+
+
+# ------------------------------------------------------------------------------------------------ figures
+def fig_soc(path: Path, cache: Cache, best: str, fits: list[str]):
+    fig, axes = plt.subplots(len(TAGS), len(fits), figsize=(5.2 * len(fits), 2.1 * len(TAGS)), sharex="row",
+                             squeeze=False)
+    for row, tag in enumerate(TAGS):
+        for col, fit in enumerate(fits):
+            ax = axes[row, col]
+            for est, color in (("ekf", "C0"), ("ukf", "C3")):
+                p = cache.path("traces", f"{best}_{fit}_{est}_{tag}.npz")
+                if not p.exists():
+                    continue
+                d = np.load(p)
+                ax.plot(d["t"] / 60, 100 * d["err"], color=color, lw=0.9, label=f"{est.upper()} error")
+                ax.fill_between(d["t"] / 60, -300 * d["sd"], 300 * d["sd"], color=color, alpha=0.15,
+                                label=f"{est.upper()} ±3σ")
+            ax.axhline(0, color="k", lw=0.5)
+            ax.set_ylim(-25, 25)
+            ax.set_title(f"US06 {LABEL[tag]}, {best}, {'5-temperature fit' if fit == '5T' else '25 °C fit'}",
+                         fontsize=9)
+            ax.set_ylabel("SOC error [%]")
+            if row == len(TAGS) - 1:
+                ax.set_xlabel("time [min]")
+            if row == 0 and col == 0:
+                ax.legend(fontsize=7, ncol=2, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def fig_voltage(path: Path, cache: Cache, best: str, fits: list[str]):
+    fig, axes = plt.subplots(len(TAGS), 1, figsize=(9, 1.9 * len(TAGS)), squeeze=False)
+    for row, tag in enumerate(TAGS):
+        ax = axes[row, 0]
+        for fit, color in zip(fits, ("C0", "C1")):
+            p = cache.path("residuals", f"{best}_{fit}_{tag}.npz")
+            if p.exists():
+                d = np.load(p)
+                ax.plot(d["t"] / 60, 1000 * d["e"], color=color, lw=0.8,
+                        label="5-temperature fit" if fit == "5T" else "25 °C fit")
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_ylabel("mV")
+        ax.set_title(f"US06 {LABEL[tag]}: measured − {best} open loop (10 s mean)", fontsize=9)
+        if row == 0:
+            ax.legend(fontsize=7)
+    axes[-1, 0].set_xlabel("time [min]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def fig_dji(path: Path, cache: Cache, model: str) -> list:
+    """The two DJI flight scenarios: counted reference, the pack's own SOC, the EKF (recipe) with its ±3σ."""
+    from socbench.scenarios import load_scenario
+    from socbench.study.cell import Toolkit
+
+    tk = Toolkit()
+    rows = []
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.4), squeeze=False)
+    for ax, name in zip(axes[0], ("dji-flight-a", "dji-flight-b")):
+        scen = load_scenario(name)
+        fit = tk.fit_model(model, scen.characterisation(), "paper")
+        m = make_model(model, fit.params)
+        prof = scen.realize([0])
+        run_model, noise, _ = tk.filter_noise("ekf", m, scen, prof, "model")
+        est = tk.run_estimator(tk.make_estimator("ekf", run_model, noise), prof, scen.initial_soc([0]), fit.params, 0)
+        t = prof.time_s / 60
+        ref, bms = prof.soc_ref[0], prof.meta.extra["bms_soc"]
+        ax.plot(t, 100 * ref, "k", lw=1.2, label="reference (counted from take-off)")
+        ax.plot(t, 100 * bms, "C2--", lw=1.0, label="pack's own SOC (BMS)")
+        ax.plot(t, 100 * est.soc[0], "C0", lw=1.0, label=f"EKF ({model}, recipe)")
+        ax.fill_between(t, 100 * (est.soc[0] - 3 * est.soc_std[0]), 100 * (est.soc[0] + 3 * est.soc_std[0]),
+                        color="C0", alpha=0.15)
+        ax.set_title(name, fontsize=9)
+        ax.set_xlabel("time [min]")
+        ax.set_ylabel("SOC [%]")
+        ax.legend(fontsize=7)
+        e = est.soc[0] - ref
+        rows.append({"scenario": name, "ekf_rmse": float(np.sqrt(np.mean(e * e))),
+                     "ekf_cov": float(np.mean(np.abs(e) <= 3 * est.soc_std[0])),
+                     "bms_rmse": float(np.sqrt(np.mean((bms - ref) ** 2))),
+                     "bms_max": float(np.max(np.abs(bms - ref))), "minutes": float(t[-1])})
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return rows
+
+
+# ------------------------------------------------------------------------------------------------ report helpers
+def pc(x, d=2):
+    return "—" if x is None else f"{100 * x:.{d}f}"
+
+
+def mv(x, d=1):
+    return "—" if x is None else f"{1000 * x:.{d}f}"
+
+
+def nis_txt(r):
+    if r.get("nis_mean") is None:
+        return "—"
+    b = r.get("nis_band")
+    return f"{r['nis_mean']:.2f}" + (f" [{b[0]:.2f}, {b[1]:.2f}]" if b else "")
+
+
+def ok(flag: bool) -> str:
+    return "yes" if flag else "**no**"
+
+
+# ------------------------------------------------------------------------------------------------ main
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cache", default=str(ROOT / "real-data-cache"))
+    ap.add_argument("--doc", default=str(ROOT / "docs" / "real_data.md"))
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--seeds", type=int, default=3, help="seeds of the measured-group leaderboard (default 3)")
+    ap.add_argument("--models", default=None, help="candidate models (default: every registered model)")
+    ap.add_argument("--skip-studies", action="store_true", help="no leaderboard studies (sections 6-7 left out)")
+    ap.add_argument("--lb-models", type=int, default=2,
+                    help="models in the measured-group leaderboard: the best N on validation (default 2)")
+    args = ap.parse_args(argv)
+    if not os.environ.get("SOCBENCH_DATA_DIR"):
+        print("set SOCBENCH_DATA_DIR (the Panasonic, CALCE and DJI folders)", file=sys.stderr)
+        return 2
+    wall0 = time.perf_counter()
+    load0 = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    cache = Cache(Path(args.cache))
+    pool = _pool(args.jobs)
+    candidates = args.models.split(",") if args.models else list(model_names())
+
+    # ---- 1-2: five-temperature fits of every candidate, validation on Cycle_1
+    todo = [(m, TAGS, str(cache.path("fits", f"{m}_5T.json"))) for m in candidates
+            if not cache.path("fits", f"{m}_5T.summary.json").exists()]
+    for k, out in _each(pool, fit_job, todo):
+        if "error" in out:
+            print(f"fit {todo[k][0]} failed: {out['error']}", flush=True)
+            continue
+        cache.path("fits", f"{out['model']}_5T.summary.json").write_text(json.dumps(out))
+        print(f"fit {out['model']}: validation " + ", ".join(f"{1000 * v:.0f}" for v in
+                                                             out["validation_rmse_v"].values()) + " mV", flush=True)
+    candidates = [m for m in candidates if cache.path("fits", f"{m}_5T.summary.json").exists()]
+    fits = {m: json.loads(cache.path("fits", f"{m}_5T.summary.json").read_text()) for m in candidates}
+    ranked = sorted(candidates, key=lambda m: np.mean(list(fits[m]["validation_rmse_v"].values())))
+    # models that fit to the same numbers are one model here (PNGV = Thevenin and GNL = DP without the C0 integrator,
+    # Liu = Tremblay2: ECM_SPEC §5.3, §0): the table compares three different ones
+    top, seen = [], set()
+    for m in ranked:
+        key = tuple(round(x, 9) for x in fits[m]["validation_rmse_v"].values())
+        if key not in seen:
+            seen.add(key)
+            top.append(m)
+    best, top = ranked[0], top[:3]
+    print(f"best on validation: {best}; top 3: {top}", flush=True)
+    if not cache.path("fits", f"{best}_25.summary.json").exists():
+        out = fit_job((best, ("25degC",), str(cache.path("fits", f"{best}_25.json"))))
+        cache.path("fits", f"{best}_25.summary.json").write_text(json.dumps(out))
+    fit25 = json.loads(cache.path("fits", f"{best}_25.summary.json").read_text())
+
+    # ---- 3: the noise recipe on the validation records
+    def stats_for(model, fit):
+        def compute():
+            _, params = load_params(cache.path("fits", f"{model}_{fit}.json"))
+            tags = TAGS if fit == "5T" else ("25degC",)
+            return recipe.estimate(make_model(model, params), [_record(t, "Cycle") for t in tags]).to_dict()
+        return cache.json(f"stats/{model}_{fit}.json", compute)
+
+    configs = [(best, "5T"), (best, "25")] + [(m, "5T") for m in top[1:]]
+    stats = {cfg: stats_for(*cfg) for cfg in configs}
+
+    # ---- 4: US06 runs
+    jobs, keys = [], []
+    for model, fit in configs:
+        ests = ("ekf", "ukf", "coulomb") if (model, fit) == (best, "5T") else ("ekf", "ukf")
+        for est in ests:
+            for tag in TAGS:
+                key = f"{model}_{fit}_{est}_{tag}"
+                if not cache.path("runs", f"{key}.json").exists():
+                    jobs.append((model, str(cache.path("fits", f"{model}_{fit}.json")), stats[(model, fit)], tag, est,
+                                 "model", str(cache.path("traces", f"{key}.npz"))))
+                    keys.append(key)
+    for k, out in _each(pool, run_job, jobs):
+        cache.path("runs", f"{keys[k]}.json").write_text(json.dumps(out, default=_jsonable))
+        if "error" in out:
+            print(f"run {keys[k]} failed: {out['error']}", flush=True)
+            continue
+        print(f"run {keys[k]}: SOC RMSE {100 * out['soc_rmse']:.2f} %, within 3σ {out['frac_within_3sigma']:.3f}, "
+              f"NIS {out['nis_mean']:.2f} ({out['seconds']:.0f} s)", flush=True)
+    runs = {p.stem: json.loads(p.read_text()) for p in cache.path("runs").glob("*.json")}
+    rjobs, rkeys = [], []
+    for fit in ("5T", "25"):
+        for tag in TAGS:
+            key = f"{best}_{fit}_{tag}"
+            if not cache.path("residuals", f"{key}.json").exists():
+                rjobs.append((str(cache.path("fits", f"{best}_{fit}.json")), tag,
+                              str(cache.path("residuals", f"{key}.npz"))))
+                rkeys.append(key)
+    for k, out in _each(pool, residual_job, rjobs):
+        cache.path("residuals", f"{rkeys[k]}.json").write_text(json.dumps(out))
+    resid = {p.stem: json.loads(p.read_text()) for p in cache.path("residuals").glob("*.json")}
+    if pool is not None:
+        pool.shutdown()
+
+    # ---- 5: studies
+    lb = flights = flights_sensor = None
+    if not args.skip_studies:
+        from socbench.scenarios.catalog import group_names
+        from socbench.study import DEFAULT_ESTIMATORS, DEFAULT_SCENARIOS
+
+        t0 = time.perf_counter()
+        lb = study(cache, "measured", top[: args.lb_models], ("coulomb", "ekf", "ukf"), group_names("measured"),
+                   args.seeds, args.jobs)
+        lb_wall = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        flights = study(cache, "flights", list(model_names()), DEFAULT_ESTIMATORS, DEFAULT_SCENARIOS, 10, args.jobs)
+        fl_wall = time.perf_counter() - t0
+        flights_sensor = study(cache, "flights-sensor", ("thevenin", "dp"), ("ekf", "ukf"), DEFAULT_SCENARIOS, 3,
+                               args.jobs, noise="sensor")
+
+    # ---- figures
+    figdir = ROOT / "docs" / "figures"
+    figdir.mkdir(parents=True, exist_ok=True)
+    fig_soc(figdir / "real_data_soc_error.png", cache, best, ["5T", "25"])
+    fig_voltage(figdir / "real_data_voltage.png", cache, best, ["5T", "25"])
+    dji_best = None
+    if lb is not None:
+        dji_cells = [r for r in lb.cells if r["row"]["scenario"].startswith("dji") and r["row"]["estimator"] == "ekf"
+                     and r["row"]["soc_rmse"] is not None]
+        dji_best = min(lb.config.models, key=lambda m: np.mean([r["row"]["soc_rmse"] for r in dji_cells
+                                                   if r["row"]["model"] == m] or [np.inf]))
+    dji_rows = cache.json(f"dji_{dji_best or best}.json",
+                          lambda: fig_dji(figdir / "real_data_dji.png", cache, dji_best or best))
+
+    write_doc(Path(args.doc), locals())
+    print(f"wrote {args.doc} in {time.perf_counter() - wall0:.0f} s", flush=True)
+    return 0
+
+
+def verdict(v: dict) -> str:
+    """The must-show targets, counted from the tables above, and why they are (not) met."""
+    best, runs, fits = v["best"], v["runs"], v["fits"]
+    lines = []
+    for fit, label in (("5T", "five-temperature fit"), ("25", "25 °C fit")):
+        met, missed = [], []
+        for tag in TAGS:
+            e, u = runs.get(f"{best}_{fit}_ekf_{tag}"), runs.get(f"{best}_{fit}_ukf_{tag}")
+            if not (e and u) or "error" in e or "error" in u:
+                missed.append(f"{LABEL[tag]} (a run failed)")
+                continue
+            why = []
+            if max(e["soc_rmse"], u["soc_rmse"]) > TARGET["soc_rmse"]:
+                why.append(f"SOC RMSE {pc(e['soc_rmse'])}/{pc(u['soc_rmse'])} %")
+            if min(e["frac_within_3sigma"], u["frac_within_3sigma"]) < TARGET["coverage"]:
+                why.append(f"within 3σ {e['frac_within_3sigma']:.2f}/{u['frac_within_3sigma']:.2f}")
+            if abs(e["soc_rmse"] - u["soc_rmse"]) > TARGET["ekf_ukf"]:
+                why.append(f"EKF−UKF {100 * abs(e['soc_rmse'] - u['soc_rmse']):.1f} points")
+            (missed if why else met).append(LABEL[tag] + (f" ({', '.join(why)})" if why else ""))
+        lines.append(f"- **{best}, {label}, US06 from a 20-point error**: all three targets met at "
+                     f"{', '.join(met) if met else 'no temperature'}; missed at {', '.join(missed) if missed else '—'}"
+                     " (EKF/UKF).")
+    val = fits[best]["validation_rmse_v"]
+    lines.append(f"- **Why, first: the model.** The best model's open-loop error on the validation drive cycles is "
+                 f"{mv(val['25degC'], 0)} mV at 25 °C but {mv(val['0degC'], 0)}, {mv(val['n10degC'], 0)} and "
+                 f"{mv(val['n20degC'], 0)} mV at 0, −10 and −20 °C (section 2), an order of magnitude above its HPPC "
+                 "fit at those temperatures (section 1). Fitted on HPPC pulses only (and the Panasonic HPPC files "
+                 "leave out the discharges between the pulse sets, so a fit never sees polarisation build up under "
+                 "a sustained load), no ECM here predicts the long polarisation of a cold cell on a drive cycle. An "
+                 "honest filter cannot tell a 20-point SOC error (≈ 0.1–0.2 V of OCV) from a model error of the same "
+                 "size, and the EKF and UKF, linearising differently, settle in different places.")
+    lines.append("- **Why, second: the recipe's assumptions.** On synthetic records with a planted stationary error "
+                 "the recipe's band holds the truth 95–99 % of the time (`tests/test_model_error.py`); the real "
+                 "error is not stationary: it depends on the current history, on SOC and on temperature in ways the "
+                 "three Gauss–Markov states only approximate, and wherever the model's parameters vary with SOC a "
+                 "filter can read structure into it. The consistency columns (within 3σ, NIS) say where this "
+                 "happens instead of hiding it; with the sensor-only covariance they are far worse (section 7).")
+    lines.append("- **What carries:** the five-temperature set runs every record at its measured cell temperature "
+                 "(one mechanism for every model); the SOC-axis conversion makes counting on the model's axis "
+                 "reproduce each temperature's own reference; the measured group runs in the leaderboard and is "
+                 "skipped cleanly without data.")
+    return "\n".join(lines) + "\n"
+
+
+def write_doc(path: Path, v: dict):
+    best, top, fits, fit25, runs, stats, resid = (v[k] for k in ("best", "top", "fits", "fit25", "runs", "stats",
+                                                                  "resid"))
+    ranked, lb, flights, flights_sensor = v["ranked"], v["lb"], v["flights"], v["flights_sensor"]
+    L = []
+    w = L.append
+    w("# Real cells at every temperature: temperature-aware models, honest filters, measured-data scenarios\n")
+    w(f"*Generated by `benchmarks/real_data.py` (`SOCBENCH_DATA_DIR=/work/shared/data python benchmarks/real_data.py "
+      f"--jobs {v['args'].jobs}`); every number below comes from that run. Python {platform.python_version()}, "
+      f"{os.cpu_count()} CPU cores shared with other jobs (1-minute load average {v['load0']:.1f} at the start).*\n")
+    w("**Data.** " + CITE["panasonic"] + ": HPPC, Cycle_1 and US06 at 25, 10, 0, −10, −20 °C (plus HWFET, LA92, NN "
+      "at 25 °C in the leaderboard). " + CITE["calce"] + ". " + CITE["dji"] + ".\n")
+    w("## 1. One SOC axis, five temperatures\n")
+    f5 = fits[best]["fit"]
+    w(f"Each HPPC is placed on the charge axis of the 25 °C capacity, Q_ref = {f5['capacity_ref_ah']:.4g} Ah (the "
+      "charge a cold cell fails to deliver before the cut-off is lost to resistance, not missing charge), fitted on "
+      "its own (`socbench.identify.temperature.fit_temperatures`, paper mode), and the parameters become tables over "
+      "SOC × temperature (log-linear in T for positive quantities, exact at each fitted temperature, held outside); "
+      "the OCV is each HPPC's own rest points (a cold HPPC covers only the top of the axis: below it the lowest-"
+      "reaching curve is shifted to meet it). The same command: `socbench fit --data HPPC25 HPPC10 HPPC0 HPPCn10 "
+      f"HPPCn20 --model {best} --out P.json`.\n")
+    w("| HPPC | temperature (median of the cell thermocouple) | capacity delivered [Ah] | SOC range on Q_ref | "
+      f"fit RMSE ({best}) [mV] |")
+    w("|---|---|---|---|---|")
+    for rec in sorted(f5["by_temperature"], key=lambda r: -r["temperature_c"]):
+        q = rec["capacity_ah"]
+        w(f"| {rec['record']} | {rec['temperature_c']:.1f} °C | {q:.4g} | [{1 - q / f5['capacity_ref_ah']:.3f}, 1] | "
+          f"{mv(rec['rmse_v'])} |")
+    w("\n" + "; ".join(n for n in fits[best]["notes"][1:]) + ".\n")
+    w("The US06 runs heat the cell (the model looks its parameters up at the measured cell temperature, sample by "
+      "sample):\n")
+    w("| US06 | cell temperature at the start | maximum | reference SOC capacity Q_data [Ah] |")
+    w("|---|---|---|---|")
+    for tag in TAGS:
+        r = runs.get(f"{best}_5T_coulomb_{tag}")
+        if r and "error" not in r:
+            w(f"| {LABEL[tag]} | {r['t_start']:.1f} °C | {r['t_max']:.1f} °C | {r['axis']['data_capacity_ah']:.5g} |")
+    w("\nReported SOC follows the data: z_data = 1 − (1 − z_model)·Q_ref/Q_data, σ_data = σ_model·Q_ref/Q_data "
+      "(`socbench.socaxis`; the initial guess the other way).\n")
+    w("## 2. Best model, chosen on validation records\n")
+    w("Open-loop voltage RMSE [mV] of the five-temperature fits on the Cycle_1 runs (validation; the US06 runs are "
+      "never used to choose):\n")
+    w("| model | " + " | ".join(LABEL[t] for t in TAGS) + " | mean |")
+    w("|---|" + "---|" * (len(TAGS) + 1))
+    for m in ranked:
+        vals = [fits[m]["validation_rmse_v"][t] for t in TAGS]
+        w(f"| {m} | " + " | ".join(mv(x) for x in vals) + f" | **{mv(np.mean(vals))}** |")
+    w(f"\nBest: **{best}** (then {', '.join(top[1:])}).\n")
+    w("## 3. The noise recipe\n")
+    w("`socbench.estimators.model_error` (the equations are in its docstring). The fitted model runs open loop on "
+      "records where the SOC is known — the validation records, never the one scored — and its voltage error is split "
+      "into a resistive part (local regression on the current), a slow part (10 s mean), a fast part and a white part; "
+      "each gets a scale per temperature × SOC and an integral correlation time. The filter's model is augmented with "
+      "three unit-variance Gauss–Markov states (`ModelError` effect: "
+      "y += σ_s(z,T)·ε_s + σ_f(z,T)·ε_f − σ_r(z,T)·ε_r·I, ε⁺ = e^{−dt/τ}ε + w) whose walk variances "
+      "1 − e^{−2dt₀/τ} enter Q, and R = σ_V² + the white variance averaged "
+      "over the record's temperatures: inside the form the compiled filters take (R_k = σ_V² + σ_I²D_k², "
+      "Q_k = σ_I²B_kB_kᵀ + diag(walk)·dt_k/dt₀). The sensor-only covariance stays available (`--noise sensor`).\n")
+    for cfg in ((best, "5T"), (best, "25")):
+        s = recipe.ModelErrorStats.from_dict(stats[cfg])
+        sm = s.summary()
+        which = ("five-temperature fit, on the five Cycle_1 runs" if cfg[1] == "5T"
+                 else "25 °C fit, on the 25 °C Cycle_1 only")
+        w(f"**{cfg[0]}, {which}** (RMS over SOC; τ_slow {s.tau_slow_s:.0f} s, τ_fast {s.tau_fast_s:.1f} s, τ_r "
+          f"{s.tau_r_s:.0f} s):\n")
+        w("| temperature node | slow [mV] | fast [mV] | resistive [mΩ] | white [mV] |")
+        w("|---|---|---|---|---|")
+        for j, t in enumerate(s.temps):
+            w(f"| {t:.1f} °C | {mv(sm['slow'][j])} | {mv(sm['fast'][j])} | {mv(sm['r'][j])} | {mv(sm['white'][j])} |")
+        w("")
+    w("## 4. The US06 at each temperature (the must-show)\n")
+    w(f"{best}, a guess {-100 * SOC0_ERROR:.0f} SOC points below the reference (SD {SOC0_SD:g}), the record at its "
+      "own 10 Hz, the recipe's noise. Targets: SOC RMSE ≤ 1.5 %, within 3σ ≥ 0.9, EKF and UKF within 0.5 points.\n")
+    w("| US06 | fit | EKF SOC RMSE % | EKF within 3σ | EKF NIS [95 % band] | UKF SOC RMSE % | UKF within 3σ | "
+      "UKF NIS | \\|EKF − UKF\\| points | targets met |")
+    w("|---|---|---|---|---|---|---|---|---|---|")
+    for tag in TAGS:
+        for fit in ("5T", "25"):
+            e, u = runs.get(f"{best}_{fit}_ekf_{tag}"), runs.get(f"{best}_{fit}_ukf_{tag}")
+            if not (e and u):
+                continue
+            if "error" in e or "error" in u:
+                why = "; ".join(f"{n} failed ({r['error']})" for n, r in (("EKF", e), ("UKF", u)) if "error" in r)
+                w(f"| {LABEL[tag]} | {'5 temperatures' if fit == '5T' else '25 °C only'} | {why} |||||||| **no** |")
+                continue
+            met = (max(e["soc_rmse"], u["soc_rmse"]) <= TARGET["soc_rmse"]
+                   and min(e["frac_within_3sigma"], u["frac_within_3sigma"]) >= TARGET["coverage"]
+                   and abs(e["soc_rmse"] - u["soc_rmse"]) <= TARGET["ekf_ukf"])
+            w(f"| {LABEL[tag]} | {'5 temperatures' if fit == '5T' else '25 °C only'} | {pc(e['soc_rmse'])} | "
+              f"{e['frac_within_3sigma']:.3f} | {nis_txt(e)} | {pc(u['soc_rmse'])} | {u['frac_within_3sigma']:.3f} | "
+              f"{nis_txt(u)} | {100 * abs(e['soc_rmse'] - u['soc_rmse']):.2f} | {ok(met)} |")
+    w("\n![SOC error with ±3σ](figures/real_data_soc_error.png)\n")
+    w("*SOC error (data axis) of the EKF and UKF with their ±3σ bands, per temperature; left the five-temperature "
+      "fit, right the 25 °C fit.*\n")
+    w("## 5. SOC, voltage and consistency over temperature × model × estimator\n")
+    w("US06, five-temperature fits (the three best models on validation), the same protocol; V RMSE is the filter's "
+      "innovation (measured − predicted before the update); open loop = the model alone from the true initial state.\n")
+    w("| US06 | model | estimator | SOC RMSE % | SOC max % | within 3σ | NIS [95 % band] | V RMSE mV | open-loop V "
+      "RMSE mV |")
+    w("|---|---|---|---|---|---|---|---|---|")
+    for tag in TAGS:
+        for m in top:
+            for est in ("ekf", "ukf", "coulomb"):
+                r = runs.get(f"{m}_5T_{est}_{tag}")
+                if not r:
+                    continue
+                if "error" in r:
+                    w(f"| {LABEL[tag]} | {m} | {est} | failed: {r['error']} ||||||")
+                    continue
+                ol = resid.get(f"{m}_5T_{tag}")
+                w(f"| {LABEL[tag]} | {m} | {est} | {pc(r['soc_rmse'])} | {pc(r['soc_max_abs'])} | "
+                  f"{r['frac_within_3sigma']:.3f} | {nis_txt(r)} | {mv(r['rmse_v'])} | "
+                  f"{mv(ol['rmse_v']) if ol else '—'} |")
+    w("\n![voltage residuals](figures/real_data_voltage.png)\n")
+    w(f"*Open-loop voltage error of {best} on each US06 (10 s mean), five-temperature vs 25 °C fit.*\n")
+    if lb is not None:
+        from socbench.report import nis_text
+        from socbench.report import ranked as ranked_cells
+
+        w("## 6. Leaderboard of the measured group\n")
+        w(f"`socbench leaderboard --scenarios measured --models {','.join(lb.config.models)} --estimators "
+          f"coulomb,ekf,ukf --seeds "
+          f"{v['args'].seeds}` ({len(lb.cells)} cells, {v['lb_wall']:.0f} s wall). Every scenario replays a measured "
+          "record with its own voltage; seeds perturb the initial SOC guess (20 points low ± 2); the models are fitted "
+          "on characterisation tests only (Panasonic: the five HPPCs; CALCE: the C/22 OCV test + one other dynamic "
+          "record; DJI: 8 other flights) and the noise recipe uses each scenario's validation records (catalog TOML "
+          "files say which).\n")
+        w("| scenario | rank | model | estimator | SOC RMSE % | within 3σ | NIS [95 % band] | V RMSE mV | failed |")
+        w("|---|---|---|---|---|---|---|---|---|")
+        for scen in lb.config.scenarios:
+            for k, rec in enumerate(ranked_cells(lb, scen), 1):
+                r = rec["row"]
+                cov = "—" if r["frac_within_3sigma"] is None else f"{r['frac_within_3sigma']:.3f}"
+                w(f"| {scen if k == 1 else ''} | {k} | {r['model']} | {r['estimator']} | {pc(r['soc_rmse'])} | "
+                  f"{cov} | {nis_text(r['nis_mean'], rec.get('nis_band'))} | {mv(r['v_rmse'])} | "
+                  f"{r['failed_runs']}/{r['n_runs']} |")
+        w("\n**The DJI flights: the pack's own SOC beside the counted reference** (EKF on the model with the best DJI "
+          "SOC RMSE above):\n")
+        w("| flight | minutes | EKF SOC RMSE % | EKF within 3σ | pack BMS SOC − reference: RMS % | max % |")
+        w("|---|---|---|---|---|---|")
+        for r in v["dji_rows"]:
+            w(f"| {r['scenario']} | {r['minutes']:.0f} | {pc(r['ekf_rmse'])} | {r['ekf_cov']:.3f} | "
+              f"{pc(r['bms_rmse'])} | {pc(r['bms_max'])} |")
+        w("\n![DJI flights](figures/real_data_dji.png)\n")
+    if flights is not None:
+        w("## 7. The default flight scenarios after the noise recipe\n")
+        w(f"`socbench leaderboard` (every model, {', '.join(flights.config.estimators)}, 10 seeds; "
+          f"{v['fl_wall']:.0f} s wall): NIS mean per cell with the recipe (target: within a factor 3 of 1).\n")
+        w("| scenario | estimator | cells | NIS median | NIS min | NIS max | cells with 1/3 ≤ NIS ≤ 3 | within 3σ "
+          "median |")
+        w("|---|---|---|---|---|---|---|---|")
+        for scen in flights.config.scenarios:
+            for est in flights.config.estimators:
+                rows = [r["row"] for r in flights.cells if r["row"]["scenario"] == scen and r["row"]["estimator"] == est
+                        and r["row"]["nis_mean"] is not None]
+                if not rows:
+                    continue
+                nis = np.array([r["nis_mean"] for r in rows])
+                cov = np.array([r["frac_within_3sigma"] for r in rows if r["frac_within_3sigma"] is not None])
+                w(f"| {scen} | {est} | {len(rows)} | {np.median(nis):.2f} | {nis.min():.2f} | {nis.max():.2f} | "
+                  f"{int(np.sum((nis >= 1 / 3) & (nis <= 3)))}/{len(rows)} | "
+                  f"{np.median(cov) if cov.size else float('nan'):.3f} |")
+        bad = [r["row"] for r in flights.cells if r["row"]["nis_mean"] is not None
+               and not (1 / 3 <= r["row"]["nis_mean"] <= 3) and r["row"]["estimator"] != "coulomb"]
+        if bad:
+            w("\nFiltering cells outside the factor 3: " + "; ".join(
+                f"{r['scenario']}/{r['model']}+{r['estimator']} {r['nis_mean']:.2f}" for r in bad) + ".\n")
+        if flights_sensor is not None:
+            w("\nThe same with the sensor-only covariance (`--noise sensor`, thevenin and dp, 3 seeds):\n")
+            w("| scenario | model | estimator | NIS | within 3σ | SOC RMSE % |")
+            w("|---|---|---|---|---|---|")
+            for rec in flights_sensor.cells:
+                r = rec["row"]
+                w(f"| {r['scenario']} | {r['model']} | {r['estimator']} | {r['nis_mean']:.1f} | "
+                  f"{r['frac_within_3sigma']:.3f} | {pc(r['soc_rmse'])} |")
+    w("\n## What is met and what is not\n")
+    w(verdict(v))
+    path.write_text("\n".join(L) + "\n")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,417 @@
+"""The noise recipe: the model's own voltage error, measured on records where the SOC is known, becomes the filters'
+R, Q and three coloured model-error states, so that the ±3σ band says how wrong the model is, not only the sensors.
+
+Residual. The fitted model runs open loop on each record (from the record's reference SOC, charge gaps of an HPPC
+file added back): ``e_k = v_meas,k − v_model,k`` is the model's voltage error at the true SOC ``z_k`` (the model's
+own axis). Which records: the *validation* records when there are any (other drive cycles of the same cell, never the
+one that is scored), else the identification record the model was fitted on (an HPPC: optimistic, it saw those
+samples). Nothing from the record being estimated is ever used.
+
+Resolution. The error is measured at :data:`RESOLUTION_S` = 1 s: records sampled faster are bin-averaged to 1 s
+first (:func:`bin_average`). Finer than that a residual is no longer a model error the filter may average: a 10 Hz
+record's sample-to-sample differences are dominated by the logger's channel skew and by errors correlated over a
+second, and treating them as independent would let a filter learn ten times more per second than the data hold.
+
+Decomposition (``W`` = :data:`WINDOW_S` = 10 s, ``W_r`` = :data:`RESISTANCE_WINDOW_S` = 60 s; ``⟨·⟩_W`` a centred
+moving average over a window)::
+
+    r_k = −cov_{W_r}(e, I) / var_{W_r}(I)        resistive part: the error that scales with the current,
+                                                  e ≈ … − r·I (a resistance the model has wrong)
+    a_k = e_k + r_k I_k                           the rest of the error
+    s_k = ⟨a⟩_W                                   slow part (a filter can mistake it for SOC)
+    f_k = a_k − s_k                               fast part (short-time-constant mismatch)
+    d_k = (a_{k+1} − a_k)²/2                      sample-to-sample energy: the white part (sensor noise, skew)
+
+Scales on a grid of temperatures ``T_j`` (the parameter set's measured temperatures; one node for a
+single-temperature set) × SOC ``z_m`` (:data:`SOC_GRID`, every 0.1: a model's error is largest near the ends, at the
+knee and in the hysteresis a charge leaves), with bilinear hat weights ``h_jm(T_k, z_k)`` of each sample's cell
+temperature and SOC and its duration ``dt_k``, ``⟨x⟩_jm = Σ h_jm x_k dt_k / Σ h_jm dt_k`` (an empty cell takes its
+nearest filled SOC cell, then its nearest filled temperature)::
+
+    σ_s²(T_j, z_m) = ⟨s²⟩_jm           (mean square: a bias is a slow error too)
+    σ_f²(T_j, z_m) = max(⟨f²⟩_jm − ⟨d⟩_jm, 0)
+    σ_r²(T_j, z_m) = ⟨v r²⟩_jm / ⟨v⟩_jm     (v_k = var_{W_r}(I): r is only known where the current moves)
+    σ_0²(T_j)      = ⟨d⟩_j              (white; for a Gauss–Markov part with τ ≫ dt, E d ≈ σ_0²)
+    τ_s, τ_r, τ_f  = integral time scales ∫ρ(L)dL of ρ(L) = ⟨x_k x_{k+L}⟩/⟨x²⟩ of s and r (1 s grid, lags to half the
+                     median record length, at most 4 h), resp. of f without its white part (grid of the median sample
+                     step, lags to 60 s), up to the first lag where ρ ≤ 0; pooled over the records by duration
+
+The mean is not removed from ρ: a persistent bias keeps ρ up and τ long, as it must. Why the integral time and not
+the 1/e lag: the SOC is a low-frequency quantity, and a Gauss–Markov state with τ = ∫ρ has the error's variance
+*and* its spectral density at zero frequency (2σ²∫ρ), so a filter averages the error as much as the data allow, no
+more.
+
+Filter noise, inside the form every filter (and the compiled kernels) take, ``R_k = σ_V² + σ_I² D_k²`` and
+``Q_k = σ_I² B_k B_kᵀ + diag(walk²)·dt_k/dt₀``:
+
+* the model is augmented with :class:`~socbench.models.effects.ModelError`::
+
+      y += σ_s(z, T)·ε_s + σ_f(z, T)·ε_f − σ_r(z, T)·ε_r·I,     ε_c⁺ = φ_c ε_c + w_c,   φ_c = e^{−dt/τ_c}
+
+  unit-variance Gauss–Markov states whose scales follow the SOC and cell temperature (one mechanism, looked up like
+  every parameter). They start at 0 with their stationary spread (SD 1: a record may start anywhere); their walk
+  variances ``1 − φ_c(dt₀)²`` (``dt₀`` the record's median step) enter ``Q``. A coloured error must be a state: as
+  white noise in ``R`` it would let the filter average thousands of "independent" samples of what is one error, and
+  its SOC band would collapse. The resistive state matters wherever a parameter varies with SOC: without it every
+  current edge would be an independent look at ``R0(z)``, and a filter would read SOC off the model's resistance
+  table to a precision the model does not have;
+* ``σ_V² = σ_extra² + mean_k σ_0²(T_k)·max(1, 1 s/dt₀)`` over the samples of the record to be filtered (its own
+  temperature column), at least the sensor's ``σ_V²``: white noise of the same spectral density as a 1 s white error
+  (a 10 Hz record: ten samples, each ten times as noisy, make one second's worth). The residual already holds the
+  sensor noise of the residual records; ``σ_extra`` is noise added on top of the filtered record afterwards (a
+  measured scenario's optional sensor noise);
+* ``σ_I`` stays the current sensor's (model error is not current noise), and the SOC gets no random walk.
+
+With ``noise="sensor"`` the model and the sensor covariance are used as they are (the covariance without model error).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..errors import ConfigError, DataError
+from ..models.params import temperature_weights
+from ..ocv import T_REF_C
+from ..profile import Profile
+from .noise import SensorNoise
+
+#: width of the moving average that separates the slow part of the error from the fast part [s]
+WINDOW_S = 10.0
+#: the time resolution the error is measured at [s]: faster records are bin-averaged to it first
+RESOLUTION_S = 1.0
+#: longest lag searched for the slow part's correlation time [s]
+MAX_LAG_S = 4 * 3600.0
+#: longest lag searched for the fast part's correlation time [s]
+FAST_MAX_LAG_S = 60.0
+#: window of the local regression of the error on the current (the resistive part) [s]
+RESISTANCE_WINDOW_S = 60.0
+#: noise settings of socbench estimate and the leaderboard
+NOISE_MODES = ("model", "sensor")
+
+
+#: SOC grid of the model-error scales (the error is largest near the ends: knee, hysteresis after a charge)
+SOC_GRID = tuple(np.round(np.linspace(0.0, 1.0, 11), 2))
+
+
+@dataclass(frozen=True)
+class ModelErrorStats:
+    """The measured model error. Per temperature × SOC (``temps`` × ``soc``): slow and fast SDs [V] and the
+    resistive SD [Ω]; per temperature: the white SD [V]; correlation times [s]."""
+
+    temps: tuple
+    soc: tuple
+    slow_sd: tuple
+    fast_sd: tuple
+    resistance_sd: tuple
+    white_sd: tuple
+    tau_slow_s: float
+    tau_fast_s: float
+    tau_r_s: float
+    window_s: float = WINDOW_S
+    records: tuple = ()
+    samples: tuple = ()  # per temperature: seconds of residual that weighed on it
+
+    def __post_init__(self):
+        t = tuple(float(x) for x in np.ravel(self.temps))
+        z = tuple(float(x) for x in np.ravel(self.soc))
+        K, Z = len(t), len(z)
+        if K < 1 or Z < 1 or np.any(np.diff(t) <= 0) or np.any(np.diff(z) <= 0):
+            raise ConfigError("model_error: 'temps' and 'soc' must be non-empty and increasing")
+        grids = {}
+        for k in ("slow_sd", "fast_sd", "resistance_sd"):
+            g = np.asarray(getattr(self, k), dtype=float)
+            if g.size != K * Z:
+                raise ConfigError(f"model_error: '{k}' needs {K} × {Z} values (temperatures × SOC), got {g.size}")
+            grids[k] = tuple(tuple(float(v) for v in row) for row in g.reshape(K, Z))
+        white = tuple(float(x) for x in np.ravel(self.white_sd))
+        if len(white) != K:
+            raise ConfigError(f"model_error: 'white_sd_v' needs {K} values (one per temperature)")
+        vals = [v for g in grids.values() for row in g for v in row] + list(white)
+        taus = (self.tau_slow_s, self.tau_fast_s, self.tau_r_s)
+        if not all(np.isfinite(v) and v >= 0 for v in vals) or not all(np.isfinite(v) and v > 0 for v in taus):
+            raise ConfigError("model_error: SDs must be finite and >= 0, correlation times > 0")
+        object.__setattr__(self, "temps", t)
+        object.__setattr__(self, "soc", z)
+        for k, g in grids.items():
+            object.__setattr__(self, k, g)
+        object.__setattr__(self, "white_sd", white)
+        for k in ("tau_slow_s", "tau_fast_s", "tau_r_s", "window_s"):
+            object.__setattr__(self, k, float(getattr(self, k)))
+        object.__setattr__(self, "records", tuple(str(r) for r in self.records))
+        object.__setattr__(self, "samples", tuple(float(x) for x in self.samples))
+
+    # ---------------------------------------------------------------- use
+    def white_var(self, temperature_c=None) -> float:
+        """Mean of ``σ_0²(T_k)`` over the temperatures of a record (None: at :data:`T_REF_C`)."""
+        var = np.asarray(self.white_sd) ** 2
+        t = np.asarray(T_REF_C if temperature_c is None else temperature_c, dtype=float)
+        if len(self.temps) == 1:
+            return float(var[0])
+        return float(np.mean(np.interp(t, self.temps, var)))
+
+    def effect(self):
+        """The :class:`~socbench.models.effects.ModelError` effect carrying the slow, fast and resistive parts."""
+        from ..models.effects import ModelError
+
+        return ModelError(temps=self.temps, soc=self.soc, sd_slow=self.slow_sd, sd_fast=self.fast_sd,
+                          sd_r=self.resistance_sd, tau_slow=self.tau_slow_s, tau_fast=self.tau_fast_s,
+                          tau_r=self.tau_r_s)
+
+    def summary(self) -> dict:
+        """RMS over SOC of each scale, per temperature (for one-line reports): ``{"slow", "fast", "r", "white"}``."""
+        def rms(g):
+            return [float(np.sqrt(np.mean(np.square(row)))) for row in g]
+
+        return {"slow": rms(self.slow_sd), "fast": rms(self.fast_sd), "r": rms(self.resistance_sd),
+                "white": list(self.white_sd)}
+
+    # ---------------------------------------------------------------- persistence
+    def to_dict(self) -> dict:
+        return {"temps": list(self.temps), "soc": list(self.soc), "slow_sd_v": [list(r) for r in self.slow_sd],
+                "fast_sd_v": [list(r) for r in self.fast_sd], "resistance_sd_ohm": [list(r) for r in
+                                                                                   self.resistance_sd],
+                "white_sd_v": list(self.white_sd), "tau_slow_s": self.tau_slow_s, "tau_fast_s": self.tau_fast_s,
+                "tau_r_s": self.tau_r_s, "window_s": self.window_s, "records": list(self.records),
+                "seconds_per_temperature": list(self.samples),
+                "recipe": "socbench.estimators.model_error: open-loop residual; slow, fast and resistive parts -> "
+                          "coloured states (ModelError effect), white part -> R"}
+
+    @classmethod
+    def from_dict(cls, d) -> ModelErrorStats:
+        try:
+            return cls(tuple(d["temps"]), tuple(d["soc"]), d["slow_sd_v"], d["fast_sd_v"], d["resistance_sd_ohm"],
+                       tuple(d["white_sd_v"]), float(d["tau_slow_s"]), float(d["tau_fast_s"]), float(d["tau_r_s"]),
+                       float(d.get("window_s", WINDOW_S)), tuple(d.get("records", ())),
+                       tuple(d.get("seconds_per_temperature", ())))
+        except (KeyError, TypeError, ValueError):
+            raise ConfigError("model_error needs keys temps, soc, slow_sd_v, fast_sd_v, resistance_sd_ohm, "
+                              "white_sd_v, tau_slow_s, tau_fast_s, tau_r_s") from None
+
+
+# ------------------------------------------------------------------------------------------------ residuals
+def residual(model, profile: Profile, with_soc: bool = False):
+    """Open-loop voltage error ``v_meas − v_model`` of ``model`` on ``profile`` from its reference SOC at the start
+    (on the model's axis; else full), charge that only the reference knows (HPPC gaps) added back; with
+    ``with_soc`` also the model's SOC path ``(e, z)``."""
+    from ..identify.hppc import unrecorded_charge
+    from ..socaxis import soc_axis
+
+    profile.require("voltage_v")
+    if profile.batched:
+        raise DataError("residual needs a plain profile (one run)", file=profile.meta.source or profile.name)
+    axis = soc_axis(model.params, profile)
+    z0 = float(axis.to_model(profile.soc_ref[0])) if profile.soc_ref is not None else 1.0
+    jumps = None
+    if profile.soc_ref is not None:
+        extra = unrecorded_charge(profile)
+        if np.any(extra):
+            jumps = -extra / model.capacity_ah
+    x0 = model.x0(np.clip(z0, 0.0, 1.0))
+    states, v = model.open_loop(x0, profile.time_s, profile.current_a, profile.temperature_c, jumps)
+    e = profile.voltage_v - v
+    if not np.all(np.isfinite(e)):
+        raise DataError(f"the model's open-loop voltage is not finite on this record ({model.name})",
+                        file=profile.meta.source or profile.name)
+    return (e, states[..., 0]) if with_soc else e
+
+
+def moving_average(time_s, x, window_s: float = WINDOW_S) -> np.ndarray:
+    """Mean of ``x`` over the samples within ``±window_s/2`` of each sample (by time: any sampling)."""
+    t = np.asarray(time_s, dtype=float)
+    c = np.r_[0.0, np.cumsum(x)]
+    a = np.searchsorted(t, t - window_s / 2, side="left")
+    b = np.searchsorted(t, t + window_s / 2, side="right")
+    return (c[b] - c[a]) / (b - a)
+
+
+def _durations(time_s) -> np.ndarray:
+    dt = np.diff(time_s)
+    med = float(np.median(dt)) if dt.size else 1.0
+    return np.minimum(np.r_[dt, med], 10.0 * med)  # a gap counts as one ordinary sample, not as hours
+
+
+def _acov(time_s, x, step: float, max_lag_s: float) -> np.ndarray:
+    """``mean_k x_k x_{k+L}`` on a grid of ``step`` seconds (linear interpolation), lags 0 … max. The mean is *not*
+    removed: a bias is an error that never decorrelates, and must count as one."""
+    g = np.arange(time_s[0], time_s[-1], step)
+    if g.size < 4:
+        return np.array([float(np.mean(np.square(x)))])
+    y = np.interp(g, time_s, x)
+    n = y.size
+    f = np.fft.rfft(y, 2 * n)
+    r = np.fft.irfft(f * np.conj(f), 2 * n)[:n] / np.arange(n, 0, -1)  # unbiased per lag
+    return r[: int(min(max_lag_s / step, n // 2)) + 1]
+
+
+def _integral_time(rho: np.ndarray, step: float) -> float:
+    """Integral time scale ``∫ ρ(L) dL`` [s] (trapezoid, ``ρ[0] = 1``), up to the first lag where ρ ≤ 0 if any."""
+    if rho.size < 2:
+        return step
+    neg = np.flatnonzero(rho <= 0.0)
+    r = rho[: int(neg[0]) + 1] if neg.size else rho
+    return float(step * (np.sum(r) - 0.5 * (r[0] + r[-1])))
+
+
+def _pooled_time(items, step: float, max_lag_s: float) -> float:
+    """Integral time scale of several records' correlations ``(acov, duration, white variance)``: each covariance
+    without its white part at lag 0, the records pooled by duration, lags up to ``max_lag_s``."""
+    L = min(c.size for c, _, _ in items)
+    L = max(min(L, int(max_lag_s / step) + 1), 1)
+    num, den = np.zeros(L), 0.0
+    for c, dur, white in items:
+        var = c[0] - white
+        if not var > 0 or L < 2:
+            continue
+        num[1:] += dur * c[1:L]
+        den += dur * var
+    if den <= 0:
+        return step
+    return _integral_time(np.r_[1.0, num[1:] / den], step)
+
+
+def _temperature(profile) -> float:
+    from ..identify.temperature import record_temperature
+
+    try:
+        return record_temperature(profile)[0]
+    except DataError:
+        return T_REF_C
+
+
+def _bilinear(temps, soc, temp, z):
+    """Hat weights of samples on the temperature × SOC grid: four ``(flat cell index, weight)`` pairs."""
+    K, Z = len(temps), len(soc)
+    if K > 1:
+        kt, wt = temperature_weights(temps, temp)
+    else:
+        kt, wt = np.zeros(np.shape(z), dtype=int), np.zeros(np.shape(z))
+    kz, wz = temperature_weights(soc, z)  # the same clamped piecewise-linear rule, on the SOC grid
+    out = []
+    for dt_, wt_ in ((0, 1.0 - wt), (1, wt)):
+        for dz_, wz_ in ((0, 1.0 - wz), (1, wz)):
+            out.append((np.minimum(kt + dt_, K - 1) * Z + np.minimum(kz + dz_, Z - 1), wt_ * wz_))
+    return out
+
+
+def _fill(num, den, temps, soc):
+    """``num/den`` on the grid; empty cells take the nearest filled SOC cell at their temperature, else the nearest
+    filled temperature row."""
+    K, Z = len(temps), len(soc)
+    val = np.full(K * Z, np.nan)
+    ok = den > 0
+    val[ok] = num[ok] / den[ok]
+    val = val.reshape(K, Z)
+    zz = np.asarray(soc)
+    for k in range(K):
+        have = np.isfinite(val[k])
+        if have.any() and not have.all():
+            idx = np.flatnonzero(have)
+            val[k, ~have] = val[k, idx[np.argmin(np.abs(zz[~have, None] - zz[idx][None, :]), axis=1)]]
+    rows = np.flatnonzero(np.isfinite(val).all(axis=1))
+    tt = np.asarray(temps)
+    for k in range(K):
+        if not np.isfinite(val[k]).all():
+            val[k] = val[rows[np.argmin(np.abs(tt[rows] - tt[k]))]] if rows.size else 0.0
+    return val
+
+
+def bin_average(profile: Profile, width_s: float = RESOLUTION_S) -> Profile:
+    """``profile`` averaged over consecutive ``width_s`` bins of its time axis (current, voltage, temperature and
+    reference alike; a bin is stamped at its start; bins with no sample, inside a gap, do not exist). A profile whose
+    median step is already ``width_s`` or more is returned as is."""
+    if profile.n < 2 or float(np.median(profile.dt)) >= width_s:
+        return profile
+    t = profile.time_s
+    b = np.floor((t - t[0]) / width_s).astype(np.int64)
+    ub, inv, cnt = np.unique(b, return_inverse=True, return_counts=True)
+
+    def avg(a):
+        return None if a is None else np.bincount(inv, weights=a) / cnt
+
+    soc = avg(profile.soc_ref)
+    return Profile(t[0] + ub * width_s, avg(profile.current_a), avg(profile.voltage_v), avg(profile.temperature_c),
+                   None if soc is None else np.clip(soc, 0.0, 1.0), profile.meta)
+
+
+def estimate(model, records, temps=None, window_s: float = WINDOW_S, soc=SOC_GRID,
+             resolution_s: float = RESOLUTION_S) -> ModelErrorStats:
+    """Measure the model error of ``model`` on ``records`` (see the module docstring). ``temps``: the temperature
+    nodes (default: the parameter set's measured temperatures, else one node at the records' median temperature);
+    ``soc``: the SOC grid of the scales; ``resolution_s``: records sampled faster are bin-averaged to it first."""
+    records = [bin_average(p, resolution_s) for p in records]
+    if not records:
+        raise ConfigError("the noise recipe needs at least one record with a reference SOC")
+    temps = tuple(float(t) for t in (temps or model.params.temperatures or
+                                     (float(np.median([_temperature(p) for p in records])),)))
+    soc = tuple(float(z) for z in soc)
+    K, Z = len(temps), len(soc)
+    grid = {key: np.zeros(K * Z) for key in ("s", "f", "d", "w", "r", "v")}
+    slow_cov, fast_cov, r_cov = [], [], []
+    for prof in records:
+        e, z = residual(model, prof, with_soc=True)
+        t, cur = prof.time_s, prof.current_a
+        m_i = moving_average(t, cur, RESISTANCE_WINDOW_S)
+        var_i = np.maximum(moving_average(t, cur * cur, RESISTANCE_WINDOW_S) - m_i ** 2, 0.0)
+        cov_ei = moving_average(t, e * cur, RESISTANCE_WINDOW_S) - moving_average(t, e, RESISTANCE_WINDOW_S) * m_i
+        i_scale = float(np.sqrt(np.mean(cur * cur))) if prof.n else 0.0
+        r = -cov_ei / np.maximum(var_i, (0.05 * i_scale) ** 2 + 1e-12)
+        a = e + r * cur
+        s = moving_average(t, a, window_s)
+        f = a - s
+        d = np.zeros(prof.n)
+        if prof.n > 1:
+            d[:-1] = 0.5 * np.diff(a) ** 2
+            d[-1] = d[-2]
+        dt = _durations(t)
+        temp = prof.temperature_c if prof.temperature_c is not None else np.full(prof.n, _temperature(prof))
+        for cell, weight in _bilinear(temps, soc, temp, np.clip(z, 0.0, 1.0)):
+            wdt = weight * dt
+            for key, x in (("s", s * s), ("f", f * f), ("d", d), ("w", 1.0), ("r", var_i * r * r), ("v", var_i)):
+                np.add.at(grid[key], cell, wdt * x)
+        dur = float(np.sum(dt))
+        step = float(np.median(np.diff(t))) if prof.n > 1 else 1.0
+        slow_cov.append((_acov(t, s, 1.0, MAX_LAG_S), dur, 0.0))
+        fast_cov.append((_acov(t, f, step, FAST_MAX_LAG_S), dur, float(np.sum(d * dt) / dur), step))
+        r_cov.append((_acov(t, r, 1.0, MAX_LAG_S), dur * float(np.mean(var_i)), 0.0))
+    if not (grid["w"] > 0).any():
+        raise ConfigError("the noise recipe found no samples")
+    slow = np.sqrt(_fill(grid["s"], grid["w"], temps, soc))
+    fast_var = _fill(grid["f"], grid["w"], temps, soc) - _fill(grid["d"], grid["w"], temps, soc)
+    res = np.sqrt(_fill(grid["r"], grid["v"], temps, soc)) if (grid["v"] > 0).any() else np.zeros((K, Z))
+    w_T, d_T = grid["w"].reshape(K, Z).sum(axis=1), grid["d"].reshape(K, Z).sum(axis=1)
+    white = np.sqrt(_fill(d_T, w_T, temps, (0.0,))[:, 0])
+    # correlations are trusted up to half the median record (beyond, too few sample pairs)
+    max_lag = min(MAX_LAG_S, 0.5 * float(np.median([d for _, d, _ in slow_cov])))
+    tau_slow = _pooled_time(slow_cov, 1.0, max_lag)
+    fast_step = float(np.median([x[3] for x in fast_cov]))
+    tau_fast = _pooled_time([x[:3] for x in fast_cov], fast_step, FAST_MAX_LAG_S)
+    tau_r = _pooled_time(r_cov, 1.0, max_lag)
+    return ModelErrorStats(temps, soc, slow, np.sqrt(np.maximum(fast_var, 0.0)), res, white,
+                           max(tau_slow, window_s), min(max(tau_fast, fast_step), window_s),
+                           max(tau_r, RESISTANCE_WINDOW_S), window_s, tuple(p.name for p in records), tuple(w_T))
+
+
+# ------------------------------------------------------------------------------------------------ the recipe
+def apply(model, sensor: SensorNoise, stats: ModelErrorStats | None, profile: Profile | None = None,
+          extra_voltage_sd: float = 0.0, noise: str = "model"):
+    """``(model, SensorNoise)`` a filter runs with: ``noise="model"`` the recipe (module docstring) for ``profile``'s
+    temperatures, ``"sensor"`` (or no ``stats``) the model and the sensor noise unchanged."""
+    from ..models.effects import augment
+
+    if noise not in NOISE_MODES:
+        raise ConfigError(f"unknown noise setting '{noise}'; known: {', '.join(NOISE_MODES)}")
+    if noise == "sensor" or stats is None:
+        return model, sensor
+    aug = augment(model, [stats.effect()])
+    temp = None if profile is None else profile.temperature_c
+    # the walk variances are exact at the record's typical step dt₀ (first order in dt_k/dt₀ around it)
+    dt0 = float(np.median(profile.dt)) if profile is not None and profile.n > 1 else sensor.dt
+    # white at the measured resolution: a faster record gets the same information per second, not more
+    var = extra_voltage_sd ** 2 + stats.white_var(temp) * max(1.0, RESOLUTION_S / dt0)
+    walk = np.zeros(aug.n_states)
+    walk[-3:] = np.sqrt(aug.effects[-1].walk_var(dt0))
+    tuned = replace(sensor, dt=dt0, voltage_sd=float(np.sqrt(max(var, sensor.voltage_sd ** 2))),
+                    walk_sd=tuple(walk), soc_walk_sd=0.0, state_walk_sd=0.0)
+    return aug, tuned

@@ -1,0 +1,186 @@
+"""Fit a model at several temperatures and assemble one temperature-aware parameter set.
+
+``fit_temperatures(name, records)`` takes identification records (HPPC tests) measured at different temperatures:
+
+1. **Temperature of each record**: the median of its temperature column (the cell's own thermocouple for the
+   Panasonic files: the 25 °C HPPC runs at a median 25.9 °C), else the ambient temperature its loader read from the
+   file name (``meta.extra["ambient_temperature_c"]``); a record with neither is an error, and so are two records less
+   than :data:`MIN_SPACING_C` apart.
+2. **One SOC axis**. Every record is placed on the charge axis of one reference capacity ``Q_ref`` (default: the
+   largest charge any record delivers, normally the warmest): ``z = 1 − Ah/Q_ref``. A colder HPPC, which reaches its
+   cut-off after ``Q_T < Q_ref``, then covers ``[1 − Q_T/Q_ref, 1]``. Why not each record on its own capacity: the
+   charge a cold cell delivers before the cut-off is mostly lost to resistance, not missing charge; blending two
+   temperatures at equal fractions of their own capacities would blend different charge states (tens of mV of OCV
+   apart in the knee).
+3. **Fit** each record with :func:`~socbench.identify.fit.fit_model` on that axis (``capacity_ah=Q_ref``). SOC
+   polynomials of a record that covers part of the axis are fitted on its range and stored clamped to it (their end
+   values held), lookups hold their end values by construction: nothing is extrapolated below a cold record's range.
+4. **Tables**. Each parameter becomes a :class:`~socbench.models.params.TemperatureTable` over the fitted
+   temperatures: log-linear in ``T`` (``"log"``) for positive quantities (resistances, capacitances, time constants
+   — their fit is logarithmic, :mod:`socbench.identify.specs`), linear otherwise; exact at every fitted
+   temperature, between its two neighbours in between, the end tables held outside (with a warning from
+   :func:`socbench.checks.check_temperature_range` when data leave the range).
+5. **OCV(z, T)** (:class:`~socbench.ocv.TemperatureOCV`): each record's own HPPC rest points, where the data has
+   them. Below a record's lowest rest point there is no data at that temperature: the curve is continued by the
+   curve that reaches lowest (normally the warmest), shifted to meet the record's lowest point (so the shape comes
+   from data, the level from that temperature; the note says by how much).
+6. **Capacity per temperature** ``Q_T`` (each record's own discharge) is kept as data:
+   :class:`~socbench.models.params.CapacityTable` (``capacity_by_temperature`` in PARAMS.json).
+
+A single record gives a plain single-temperature set (exactly :func:`fit_model`).
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import DataError
+from ..models.params import CapacityTable, ModelParams, TemperatureTable
+from ..ocv import OCVCurve, TemperatureOCV, monotone_points
+from ..profile import Profile
+from .fit import FitResult, fit_model
+from .hppc import analyze_hppc
+from .specs import Guess, param_spec
+
+#: two identification records closer than this [K] are the same temperature (an error: which one would count?)
+MIN_SPACING_C = 1.0
+
+
+def record_temperature(profile: Profile) -> tuple[float, str]:
+    """``(T [°C], how it was found)``: the median of the temperature column, else the file's ambient temperature."""
+    src = profile.meta.source or profile.name
+    if profile.temperature_c is not None:
+        t = np.asarray(profile.temperature_c, dtype=float)
+        return float(np.median(t)), f"median of the temperature column ({t.min():.1f}…{t.max():.1f} °C)"
+    amb = profile.meta.extra.get("ambient_temperature_c")
+    if amb is not None:
+        return float(amb), "ambient temperature of the file (no temperature column)"
+    raise DataError("no temperature column and no ambient temperature: cannot place the record in temperature",
+                    file=src, column="temperature_c")
+
+
+@dataclass(frozen=True, eq=False)
+class TemperatureFit:
+    """The assembled set and the fit of each record, coldest first."""
+
+    name: str
+    params: ModelParams
+    temps: tuple
+    fits: tuple  # FitResult per temperature
+    capacities: tuple  # Q_T [Ah] per temperature (each record's own discharge)
+    capacity_ref: float
+    sources: tuple  # record names
+    temperature_notes: tuple
+    notes: tuple = ()
+    seconds: float = 0.0
+    mode: str = "paper"
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def rmse_v(self) -> float:
+        """RMS of the per-record fit RMSEs (each over its fitted samples)."""
+        return float(np.sqrt(np.mean([f.rmse_v ** 2 for f in self.fits])))
+
+    @property
+    def warnings(self) -> list:
+        return [f"{t:g} °C: {w}" for t, f in zip(self.temps, self.fits) for w in f.warnings]
+
+    def fit_summary(self) -> dict:
+        """The ``"fit"`` block of PARAMS.json: one entry per temperature plus how the set was assembled."""
+        return {
+            "mode": self.mode,
+            "rmse_v": self.rmse_v,
+            "seconds": self.seconds,
+            "capacity_ref_ah": self.capacity_ref,
+            "by_temperature": [
+                {"temperature_c": t, "record": s, "temperature_from": how, "capacity_ah": q,
+                 **f.fit_summary()}
+                for t, s, how, q, f in zip(self.temps, self.sources, self.temperature_notes, self.capacities,
+                                           self.fits)],
+            "notes": list(self.notes),
+        }
+
+
+def extend_ocv(curve: OCVCurve, reference: OCVCurve) -> tuple[OCVCurve, float | None]:
+    """``curve`` continued below its lowest rest point by ``reference`` shifted to meet it; ``(curve, shift [V])``
+    (shift None when nothing was added). Monotone: the reference is, and it ends at the junction."""
+    z_lo = float(curve.soc[0])
+    below = reference.soc < z_lo - 1e-9
+    if not below.any():
+        return curve, None
+    shift = float(curve(z_lo)) - float(reference(z_lo))
+    z = np.r_[reference.soc[below], curve.soc]
+    v = np.r_[reference.voltage[below] + shift, curve.voltage]
+    return OCVCurve(*monotone_points(z, v), source=curve.source), shift
+
+
+def _table_scale(name: str, nodes) -> str:
+    """"log" for a positive quantity (fitted as a logarithm) whose every node is positive, else "linear"."""
+    positive = all(n.range_on_unit()[0] > 0 for n in nodes)
+    return "log" if param_spec(name, Guess()).log and positive else "linear"
+
+
+def fit_temperatures(name: str, records, mode: str = "paper", capacity_ah: float | None = None,
+                     options: dict | None = None, **fit_kwargs) -> TemperatureFit:
+    """Fit ``name`` on every record and assemble the temperature-aware set (see the module docstring).
+
+    ``capacity_ah`` is ``Q_ref`` (default: the largest charge a record delivers); ``fit_kwargs`` go to
+    :func:`fit_model` (``compress``, ``time_weighted``, ``knots``…).
+    """
+    t0 = _time.perf_counter()
+    records = list(records)
+    if not records:
+        raise DataError("fit_temperatures needs at least one record")
+    placed = []
+    for prof in records:
+        temp, how = record_temperature(prof)
+        placed.append((temp, how, prof))
+    placed.sort(key=lambda x: x[0])
+    for (ta, _, pa), (tb, _, pb) in zip(placed, placed[1:]):
+        if tb - ta < MIN_SPACING_C:
+            raise DataError(f"two identification records at the same temperature ({ta:.1f} and {tb:.1f} °C): "
+                            f"{pa.name} and {pb.name}; give one record per temperature",
+                            file=pb.meta.source or pb.name)
+    analyses = [analyze_hppc(p) for _, _, p in placed]
+    own = [float(a.capacity_ah) for a in analyses]
+    q_ref = float(capacity_ah) if capacity_ah else max(own)
+    fits: list[FitResult] = []
+    for _, _, prof in placed:
+        fits.append(fit_model(name, prof, mode=mode, capacity_ah=q_ref, options=options, **fit_kwargs))
+    temps = tuple(t for t, _, _ in placed)
+    notes = [f"fitted at {len(temps)} temperatures ({', '.join(f'{t:.1f}' for t in temps)} °C) on one SOC axis "
+             f"counted with Q_ref = {q_ref:.4g} Ah"]
+    if len(fits) == 1:
+        f = fits[0]
+        params = f.params.replace(notes=f.params.notes + tuple(notes))
+        return TemperatureFit(name, params, temps, tuple(fits), tuple(own), q_ref,
+                              tuple(p.name for _, _, p in placed), tuple(h for _, h, _ in placed), tuple(notes),
+                              _time.perf_counter() - t0, mode)
+    # OCV: each record's own curve, continued below its range by the curve that reaches lowest
+    curves = [f.params.ocv for f in fits]
+    ref = min(curves, key=lambda c: float(c.soc[0]))
+    node_curves = []
+    for temp, c in zip(temps, curves):
+        ext, shift = extend_ocv(c, ref)
+        if shift is not None:
+            notes.append(f"OCV at {temp:.1f} °C below z = {c.soc[0]:.3f} (no rest points there): the lowest-reaching "
+                         f"curve shifted by {1000 * shift:+.1f} mV")
+        node_curves.append(ext)
+    ocv = TemperatureOCV(temps, node_curves, source=f"HPPC rest points at {len(temps)} temperatures on Q_ref = "
+                                                    f"{q_ref:.4g} Ah")
+    values = {}
+    for pname in fits[0].params.values:
+        nodes = [f.params[pname] for f in fits]
+        values[pname] = TemperatureTable(temps, tuple(nodes), _table_scale(pname, nodes))
+    cap = CapacityTable(temps, tuple(own), source="charge each identification record discharges from full to "
+                                                 "its end (HPPC: to the last pulse set)")
+    base = fits[-1].params
+    params = ModelParams(capacity_ah=q_ref, ocv=ocv, values=values, eta_charge=base.eta_charge,
+                         options=dict(base.options), source="socbench fit (several temperatures)",
+                         notes=tuple(notes) + tuple(n for f in fits for n in f.params.notes),
+                         capacity_by_temperature=cap)
+    return TemperatureFit(name, params, temps, tuple(fits), tuple(own), q_ref, tuple(p.name for _, _, p in placed),
+                          tuple(h for _, h, _ in placed), tuple(notes), _time.perf_counter() - t0, mode)

@@ -1,0 +1,142 @@
+"""Segmented records: where a record restarts (a battery swap, a recharge) and the SOC each segment starts from.
+
+A record may put several discharges back to back (the DJI M100 loader joins 144 pack discharges on one time axis,
+separated by gaps). Counting charge through them from the first SOC, a model leaves [0, 1] after a few packs. A
+**segment boundary** is a gap in the time stamps — a step longer than ``GAP_FACTOR`` × the median step and at least
+``MIN_GAP_S`` — across which the pack's charge changed in a way the current column does not say:
+
+* with a reference SOC: the reference after the gap is higher, by more than ``SOC_JUMP``, than the current counted
+  over the gap leaves it (``Δz_ref + I_k·Δt/(3600 Q) > SOC_JUMP``, zero-order hold, ``Q`` the record's declared
+  capacity, the reference's own scale). Charge came in from outside the record: a recharge, a fresh pack. A *fall*
+  beyond the count is not a boundary: it is charge the same cell delivered while the logger was off (the Panasonic
+  HPPC files omit the discharges between pulse sets), which the fit carries as SOC jumps
+  (:func:`socbench.identify.hppc.unrecorded_charge`, ``soc_jumps`` of :meth:`Model.open_loop`), as before;
+* without one (needs an OCV curve and a capacity): both sides of the gap at rest (``|I| ≤ REST_C_RATE·Q``) and the
+  OCV inverse of the voltage after the gap above that before it (plus the counted change) by more than
+  ``SOC_JUMP_VOLTAGE`` — larger than ``SOC_JUMP`` because a rest voltage read minutes after a load still relaxes.
+
+**Restart.** Each segment after the first starts from rest: every state but SOC at rest (``Model.x0``), and SOC
+
+* for a model (``simulate``, ``fit``, ``diagnose``): the reference SOC at the segment's first sample where the record
+  has one, else the OCV inverse of its first voltage (the pack has rested through the gap), clipped to [0, 1];
+* for an estimator: the OCV inverse of its first voltage, with the initial covariance it started the record with —
+  an estimator never reads the reference it is scored against, so a restart is a new start, like the record's first.
+
+**The current over a boundary is not integrated.** The zero-order hold would carry the last sample's current across
+the whole gap (16 A of flight current over a 10-minute battery swap: 2.7 Ah, half a pack); the restart SOC replaces
+whatever happened in the gap. Gaps that are not boundaries keep the zero-order hold, as every model step does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .profile import Profile
+
+#: a gap: a step longer than this many median steps ...
+GAP_FACTOR = 5.0
+#: ... and at least this long [s]
+MIN_GAP_S = 30.0
+#: reference-SOC rise beyond the counted charge that marks a restart (a BMS shows SOC in 1 % steps; a recharge or
+#: a fresh pack adds tens of points)
+SOC_JUMP = 0.05
+#: the same from the OCV inverse of rest voltages (no reference)
+SOC_JUMP_VOLTAGE = 0.10
+#: |I| ≤ this C-rate counts as rest for the voltage rule
+REST_C_RATE = 0.2
+#: restart rules
+REFERENCE, OCV = "reference", "ocv"
+
+
+@dataclass(frozen=True)
+class Segments:
+    """Where the segments of a record start (``starts[0] == 0``) and why each boundary is one."""
+
+    starts: tuple
+    n: int
+    reasons: tuple = ()
+
+    @classmethod
+    def whole(cls, n: int) -> Segments:
+        """The record as one segment."""
+        return cls((0,), int(n))
+
+    @property
+    def count(self) -> int:
+        return len(self.starts)
+
+    def spans(self) -> list[tuple[int, int]]:
+        """``[(start, stop), ...]`` sample ranges of the segments."""
+        ends = list(self.starts[1:]) + [self.n]
+        return list(zip(self.starts, ends))
+
+    def to_dict(self, max_listed: int = 20) -> dict:
+        """JSON form: the count and the first ``max_listed`` boundaries (first row, counted from 1) with reasons."""
+        return {"count": self.count,
+                "boundaries": [{"row": int(k) + 1, "reason": r}
+                               for k, r in zip(self.starts[1:max_listed + 1], self.reasons[:max_listed])],
+                **({"boundaries_not_listed": self.count - 1 - max_listed} if self.count - 1 > max_listed else {})}
+
+
+def find_segments(profile: Profile, ocv=None, capacity_ah: float | None = None) -> Segments:
+    """The segments of ``profile`` (module docstring). ``ocv`` and ``capacity_ah`` (the model's) serve the rule
+    without a reference SOC and stand in when the record declares no capacity."""
+    n = profile.n
+    if n < 3:
+        return Segments.whole(n)
+    t = profile.time_s
+    dt = np.diff(t)
+    gap = np.flatnonzero((dt > GAP_FACTOR * float(np.median(dt))) & (dt >= MIN_GAP_S))
+    if gap.size == 0:
+        return Segments.whole(n)
+    q = profile.meta.capacity_ah or capacity_ah
+    i_before = profile.current_a[..., gap]
+    counted = -i_before * dt[gap] / (3600.0 * q) if q else np.zeros(np.shape(i_before))
+    if profile.soc_ref is not None:
+        rise = profile.soc_ref[..., gap + 1] - profile.soc_ref[..., gap] - counted
+        what, limit = "reference SOC", SOC_JUMP
+    elif profile.voltage_v is not None and ocv is not None and q:
+        rest = (np.abs(i_before) <= REST_C_RATE * q) & (np.abs(profile.current_a[..., gap + 1]) <= REST_C_RATE * q)
+        z_before = ocv.inverse(profile.voltage_v[..., gap], temp=_temp(profile, gap))
+        z_after = ocv.inverse(profile.voltage_v[..., gap + 1], temp=_temp(profile, gap + 1))
+        rise = np.where(rest, z_after - z_before - counted, 0.0)
+        what, limit = "rest-voltage SOC", SOC_JUMP_VOLTAGE
+    else:
+        return Segments.whole(n)
+    rise = np.reshape(rise, (-1, gap.size))
+    worst = rise.max(axis=0)  # a batch restarts where any run does
+    hit = worst > limit
+    reasons = tuple(f"{what} {worst[j]:+.2f} beyond the counted charge over a {dt[gap[j]]:.0f} s gap"
+                    for j in np.flatnonzero(hit))
+    return Segments((0,) + tuple(int(k) + 1 for k in gap[hit]), n, reasons)
+
+
+def _temp(profile: Profile, k):
+    """The cell temperature at sample(s) ``k`` (None without a temperature column: the curve's reference)."""
+    return None if profile.temperature_c is None else profile.temperature_c[..., k]
+
+
+def resolve(segments, profile: Profile, ocv=None, capacity_ah: float | None = None) -> Segments:
+    """``segments`` as given: None → :func:`find_segments`; False → the whole record; a :class:`Segments` as is."""
+    if segments is None or segments is True:
+        return find_segments(profile, ocv, capacity_ah)
+    if segments is False:
+        return Segments.whole(profile.n)
+    if not isinstance(segments, Segments) or segments.n != profile.n:
+        raise ValueError("segments must be None, False or the Segments of this profile")
+    return segments
+
+
+def restart_soc(profile: Profile, start: int, ocv, rule: str = REFERENCE) -> np.ndarray:
+    """The SOC a segment starting at sample ``start`` restarts from (module docstring), shape like one sample of
+    the current: the reference there (``rule="reference"`` and the record has one), else the OCV inverse of the
+    voltage there, clipped to [0, 1]; 1 when the record has neither."""
+    if rule == REFERENCE and profile.soc_ref is not None:
+        z = profile.soc_ref[..., start]
+    elif profile.voltage_v is not None:
+        z = ocv.inverse(profile.voltage_v[..., start], temp=_temp(profile, start))
+    else:
+        z = np.ones(np.shape(profile.current_a[..., start]))
+    return np.clip(np.asarray(z, dtype=float), 0.0, 1.0)

@@ -1,0 +1,90 @@
+"""Blocked cross-validation of the diagnosis: honest held-out scores, an effect that shows in part of the data only,
+and the SOC estimate of the augmented model.
+
+* honest: the parameters fold j fits never depend on the voltage of block j (corrupt it, they do not move, to
+  rounding), while the all-data fit and the other folds do;
+* split-proof: hysteresis that only shows after the first recharge, in the second half of a single record, is found
+  (one first/second-half cut fits on a half where it leaves no trace);
+* SOC: adding the found effect does not make the EKF's or the UKF's held-out SOC error worse by more than 0.2 points.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from socbench import loads
+from socbench.diagnose import diagnose, make_folds
+from socbench.diagnose.core import _coarse, fit_base
+from socbench.diagnose.search import Search
+from socbench.diagnose.synthetic import cell, hidden_case
+from socbench.models import make_model
+from socbench.models.effects import augment, make_effect
+from socbench.profile import Profile, ProfileMeta
+
+
+def test_fold_parameters_never_see_their_held_out_block():
+    fit, ev = hidden_case("capacity", "thevenin", "pulses", "small", v_sd=1e-3, seed=3)
+    base, info = fit_base("thevenin", [fit], "constant")
+    rec = _coarse(ev, 1.0, 4000)
+    folds = make_folds([rec], 4)
+    search = Search(base, folds, info["t_ref_c"], base_refit=False)
+    theta0 = np.array([1.05])
+    clean = search.fit(["capacity"], theta0)[0]
+    bad_v = rec.voltage_v + np.where(folds.blocks[0] == 2, 0.05 + 0.01 * np.sin(np.arange(rec.n)), 0.0)
+    corrupt = make_folds([rec.with_(voltage_v=bad_v)], 4)
+    dirty = Search(base, corrupt, info["t_ref_c"], base_refit=False).fit(["capacity"], theta0)[0]
+    np.testing.assert_allclose(dirty.row(2), clean.row(2), rtol=1e-12, atol=1e-12)
+    assert abs(dirty.row(None)[0] - clean.row(None)[0]) > 1e-4  # the all-data fit sees block 2
+    assert max(abs(dirty.row(j)[0] - clean.row(j)[0]) for j in (0, 1, 3)) > 1e-4  # so do the other folds
+    assert abs(clean.row(2)[0] - 1.15) < 0.05  # and the fit itself is right: the hidden capacity factor
+
+
+def _late_hysteresis_record(seed: int):
+    """A thevenin cell with hysteresis (M = 25 mV) starting on the discharge branch: the first half of the record
+    discharges in pulses (h stays at −1, where the HPPC's rest points put the OCV), the second half recharges
+    partially between pulses, so the hysteresis shows only there."""
+    rng = np.random.default_rng(seed)
+    name, params = cell("thevenin")
+    q = params.capacity_ah
+    truth = augment(make_model(name, params), [make_effect("hysteresis", M=0.025, M0=0.0, gamma=40.0, h0=-1.0)])
+    segs = []
+    for _ in range(16):  # first half: discharge pulses and rests
+        segs += [(q * rng.uniform(0.3, 0.8), rng.uniform(60, 120)), (0.0, rng.uniform(120, 300))]
+    for _ in range(5):  # second half: recharges and discharges
+        segs += [(-q * rng.uniform(0.5, 1.0), rng.uniform(200, 400)), (0.0, rng.uniform(120, 300)),
+                 (q * rng.uniform(0.5, 1.5), rng.uniform(150, 300)), (0.0, rng.uniform(120, 300))]
+    i = np.concatenate([np.full(int(s / 2.0), a) for a, s in segs])
+    t = np.arange(i.size) * 2.0
+    prof = Profile(t, i, temperature_c=np.full(t.size, 25.0))
+    sim = truth.simulate(prof, soc0=0.95)
+    meta = ProfileMeta(name="late", source="late", capacity_ah=q)
+    ev = Profile(t, i, voltage_v=sim.voltage_v + rng.normal(0, 1e-3, t.size), temperature_c=prof.temperature_c,
+                 soc_ref=np.clip(sim.soc, 0, 1), meta=meta)
+    hp = loads.hppc(q, dt=2.0, rest_s=1800.0)
+    v_hp = truth.simulate(Profile(hp.time_s, hp.current_a), soc0=1.0).voltage_v + rng.normal(0, 1e-3, hp.n)
+    fit = Profile(hp.time_s, hp.current_a, voltage_v=v_hp, temperature_c=np.full(hp.n, 25.0),
+                  meta=ProfileMeta(name="hppc", source="hppc", capacity_ah=q))
+    return fit, ev, truth
+
+
+def test_an_effect_that_shows_only_in_the_second_half_of_the_record_is_found():
+    fit, ev, _ = _late_hysteresis_record(21)
+    d = diagnose("thevenin", [fit], [ev])
+    e, blocks = d.held_out_residual["before"], d.split.blocks[0]
+    first, second = np.sqrt(np.mean(e[blocks < 2] ** 2)), np.sqrt(np.mean(e[blocks >= 2] ** 2))
+    assert second > 4 * first  # the base model's error lives in the second half
+    assert d.effects_added[:1] == ["hysteresis"], [(c.effect, c.score) for c in d.rounds[0]["candidates"]]
+    assert d.after["rmse_v"] <= 0.5 * d.before["rmse_v"]
+    # and the filters' SOC is not made worse by the added states (0.2 points)
+    for name in ("ekf", "ukf"):
+        assert d.after["soc"][name]["soc_rmse"] <= d.before["soc"][name]["soc_rmse"] + 0.002
+
+
+@pytest.mark.parametrize("effect,load,seed", [("capacity", "pulses", 31), ("current_bias", "rests", 32)])
+def test_soc_of_the_augmented_model_is_not_worse(effect, load, seed):
+    fit, ev = hidden_case(effect, "thevenin", load, "small", v_sd=1e-3, seed=seed)
+    d = diagnose("thevenin", [fit], [ev])
+    assert effect in d.effects_added
+    for name in ("ekf", "ukf"):
+        assert d.after["soc"][name]["soc_rmse"] <= d.before["soc"][name]["soc_rmse"] + 0.002, d.after["soc"]

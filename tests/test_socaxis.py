@@ -1,0 +1,66 @@
+"""The SOC-axis conversion: a model counting charge with Q_ref, a record whose reference counts with Q_data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from socbench.errors import ConfigError
+from socbench.estimators import SensorNoise, make_estimator
+from socbench.models import make_model, paper_params
+from socbench.profile import Profile, ProfileMeta
+from socbench.socaxis import REFERENCE_CAPACITY_KEY, SocAxis, run_on_data_axis, soc_axis
+
+
+def test_conversion_is_linear_invertible_and_scales_the_sd():
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        q_ref, q_data = rng.uniform(0.5, 50.0, 2)
+        ax = SocAxis(q_ref, q_data)
+        z = rng.uniform(0, 1, 50)
+        sd = rng.uniform(0, 0.2, 50)
+        zd, sdd = ax.to_data(z, sd)
+        # both count the same charge from full: 1 − z is the charge over the capacity
+        np.testing.assert_allclose((1 - zd) * q_data, (1 - z) * q_ref, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(sdd * q_data, sd * q_ref, rtol=1e-12)
+        zm, sdm = ax.to_model(zd, sdd)
+        np.testing.assert_allclose(zm, z, atol=1e-12)
+        np.testing.assert_allclose(sdm, sd, rtol=1e-12)
+    assert SocAxis(2.0, 2.0).identity and not SocAxis(2.0, 1.5).identity
+    with pytest.raises(ConfigError):
+        SocAxis(0.0, 1.0)
+
+
+def test_soc_axis_only_converts_a_counted_reference():
+    p = paper_params("thevenin")
+    plain = Profile(np.arange(3.0), np.ones(3), np.full(3, 22.0), meta=ProfileMeta(capacity_ah=30.0))
+    assert soc_axis(p, plain).identity  # a declared capacity is not a reference definition
+    counted = Profile(np.arange(3.0), np.ones(3), np.full(3, 22.0),
+                      meta=ProfileMeta(capacity_ah=18.0, extra={REFERENCE_CAPACITY_KEY: 18.0}))
+    ax = soc_axis(p, counted)
+    assert ax.model_capacity_ah == p.capacity_ah and ax.data_capacity_ah == 18.0
+
+
+def test_coulomb_counting_on_the_model_axis_reproduces_a_reference_counted_with_another_capacity():
+    """A cell that delivers less than the model's capacity (a cold cell): the counter on the model's axis, converted,
+    is the data's reference; unconverted it is off by (1 − z)(1 − Q_data/Q_ref)."""
+    rng = np.random.default_rng(4)
+    p = paper_params("thevenin")  # 22 Ah
+    q_data = 17.0
+    t = np.arange(3000.0)
+    i = rng.uniform(0, 30, t.size)
+    ah = np.r_[0.0, np.cumsum(i[:-1] * np.diff(t)) / 3600.0]
+    ref = 1.0 - ah / q_data
+    prof = Profile(t, i, np.full(t.size, 22.0), soc_ref=np.clip(ref, 0, 1),
+                   meta=ProfileMeta(capacity_ah=q_data, extra={REFERENCE_CAPACITY_KEY: q_data}))
+    model = make_model("thevenin", p)
+    est = make_estimator("coulomb", model, SensorNoise(0.01, 0.01), capacity_ah=p.capacity_ah)
+    ax = soc_axis(p, prof)
+    out = run_on_data_axis(est, prof, ax, soc0=1.0, soc0_sd=0.02)
+    np.testing.assert_allclose(out.soc[0], ref, atol=1e-9)
+    np.testing.assert_allclose(out.soc_std[0, 0], 0.02, rtol=1e-12)  # the initial SD given on the data's axis
+    raw = est.run(prof, soc0=1.0).soc[0]
+    assert np.max(np.abs(raw - ref)) > 0.5 * (1 - q_data / p.capacity_ah) * (1 - ref.min())
+    # a guess given on the data's axis lands on the model's axis
+    z0 = run_on_data_axis(est, prof, ax, soc0=0.8, soc0_sd=0.1).soc[0, 0]
+    assert z0 == pytest.approx(0.8)
