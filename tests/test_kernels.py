@@ -318,13 +318,18 @@ def _options(name):
     return {"n_particles": 48} if name == "pf" else {}
 
 
-def _compare(a, b):
+def _compare(a, b, spread=None):
+    """``a`` (numpy) and ``b`` equal to 1e-9 relative, or within 10× ``spread`` (:func:`_rounding_spread`) where the
+    numpy engine itself moves further than that under a rounding-level change of its input."""
     for f in FIELDS:
         ra, rb = getattr(a, f), getattr(b, f)
         if ra is None:
             assert rb is None, f
             continue
-        assert np.all(np.abs(ra - rb) <= TOL * (1.0 + np.abs(ra))), f"{f}: max |diff| {np.max(np.abs(ra - rb)):.3g}"
+        tol = TOL * (1.0 + np.abs(ra))
+        if spread is not None:
+            tol = np.maximum(tol, 10.0 * spread[f])
+        assert np.all(np.abs(ra - rb) <= tol), f"{f}: max |diff| {np.max(np.abs(ra - rb)):.3g}"
     for f in ("gated", "clamped", "failed", "failed_at", "failed_reason"):
         np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
     for key in ("psd_repairs", "resampled", "tempered"):
@@ -342,6 +347,24 @@ MODEL_CASES = {
 }
 
 
+#: estimators whose recursion amplifies rounding on these records: compared to 1e-9 or 10× numpy's own spread
+CHAOTIC = ("hinf",)
+
+
+def _rounding_spread(estimator, profile, soc0, a, seed=5):
+    """Per field, per run: the largest change of the numpy engine's output ``a`` when every voltage sample moves by
+    one part in 2⁵² (a rounding-level change). For a stable recursion this is ~1e-15; a recursion that amplifies
+    rounding (the H∞ posterior held at its feasibility cap, ``P⁺_zz = 2 P_K,zz`` on every update) grows it by orders
+    of magnitude over a record, and then no two orders of summation — numpy's BLAS and the compiled loop — can agree
+    to 1e-9 either."""
+    p2 = Profile(profile.time_s, profile.current_a, voltage_v=profile.voltage_v * (1.0 + 2.0**-52),
+                 temperature_c=profile.temperature_c, soc_ref=profile.soc_ref, meta=profile.meta)
+    a2 = estimator.run(p2, soc0=soc0, seed=seed)
+    return {f: (None if getattr(a, f) is None else
+                np.max(np.abs(getattr(a, f) - getattr(a2, f)), axis=tuple(range(1, getattr(a, f).ndim)),
+                       keepdims=True)) for f in FIELDS}
+
+
 def _pair(name, model, profile, soc0, **options):
     opts = {**_options(name), "store_states": True, **options}
     try:
@@ -351,7 +374,7 @@ def _pair(name, model, profile, soc0, **options):
     a = numpy_engine.run(profile, soc0=soc0, seed=5)
     auto = make_estimator(name, model, NOISE, **opts)
     b = auto.run(profile, soc0=soc0, seed=5)
-    return a, b, auto
+    return a, b, auto, _rounding_spread(numpy_engine, profile, soc0, a)
 
 
 @pytest.mark.parametrize("case", sorted(MODEL_CASES))
@@ -363,7 +386,7 @@ def test_every_estimator_compiled_equals_numpy(name, case):
     temp = "temperature" in case
     p = _record(model, temp=temp)
     soc0 = np.array([0.6, 0.75, 0.02, 0.45])  # a far-off start (gating), one near empty (clamping)
-    a, b, est = _pair(name, model, p, soc0)
+    a, b, est, spread = _pair(name, model, p, soc0)
     assert a.info["engine"] == "numpy"
     lowered, why = est.engine_plan()
     if lowered is None:
@@ -371,7 +394,7 @@ def test_every_estimator_compiled_equals_numpy(name, case):
         _compare(a, b)  # the same engine ran
         return
     assert b.info["engine"] == "compiled"
-    _compare(a, b)
+    _compare(a, b, spread if name in CHAOTIC else None)
     if name != "coulomb":
         assert a.gated.any(), "the record should exercise the gate"
 
@@ -385,8 +408,8 @@ def test_every_estimator_freezes_a_divergence_like_numpy(name):
     v[1, 70:] += 3.0  # a run that goes far off: its NIS explodes
     p = Profile(p.time_s, p.current_a, voltage_v=v, soc_ref=p.soc_ref, meta=p.meta)
     opts = {"nis_max": 1e3, "var_max": 0.5}
-    a, b, est = _pair(name, model, p, np.array([0.6, 0.6, 0.6, 0.6]), **opts)
-    _compare(a, b)
+    a, b, est, spread = _pair(name, model, p, np.array([0.6, 0.6, 0.6, 0.6]), **opts)
+    _compare(a, b, spread if name in CHAOTIC else None)
     if name not in ("coulomb",) and est.engine_plan()[0] is not None:
         assert a.failed.any()
 
@@ -417,13 +440,14 @@ def test_the_noise_recipe_runs_compiled_like_numpy(name):
     noise = SensorNoise(voltage_sd=0.01, current_sd=0.2, walk_sd=tuple(walk))
     o = {**_options(name), "store_states": True}
     try:
-        a = make_estimator(name, model, noise, engine="numpy", **o).run(p, soc0=0.55, seed=4)
+        numpy_engine = make_estimator(name, model, noise, engine="numpy", **o)
     except ConfigError as exc:
         pytest.skip(f"{name} refuses this model: {exc}")
+    a = numpy_engine.run(p, soc0=0.55, seed=4)
     est = make_estimator(name, model, noise, **o)
     b = est.run(p, soc0=0.55, seed=4)
-    _compare(a, b)
-    if name in ("ekf", "ukf", "pf", "coulomb"):
+    _compare(a, b, _rounding_spread(numpy_engine, p, 0.55, a, seed=4) if name in CHAOTIC else None)
+    if name != "srukf":
         assert b.info["engine"] == "compiled", b.info.get("engine_note")
 
 
@@ -459,3 +483,24 @@ def test_a_subclass_that_changes_a_hook_runs_numpy():
     est = Inflated(make_model("dp", paper_params("dp")), NOISE)
     lowered, why = est.engine_plan()
     assert lowered is None and "process_cov" in why
+
+
+def test_the_hinf_exception_is_numpy_s_own_sensitivity():
+    """Why hinf is compared within its rounding spread: at the feasibility cap the numpy engine itself moves by
+    >1e-7 when the voltages move by one part in 2⁵², while on a record it never caps it stays at rounding level and
+    the compiled kernel equals it to 1e-9 like every other filter."""
+    model = MODEL_CASES["dp"]()
+    p = _record(model)
+    soc0 = np.array([0.6, 0.75, 0.02, 0.45])
+    a, b, est, spread = _pair("hinf", model, p, soc0)
+    assert b.info["engine"] == "compiled"
+    capped = a.info["theta_capped"] > 0
+    assert capped.any() and (~capped).any()
+    assert spread["soc"][capped].max() > 1e-7
+    np.testing.assert_array_equal(a.info["theta_capped"], b.info["theta_capped"])
+    for r in np.flatnonzero(~capped):  # never capped: the plain 1e-9 comparison
+        assert np.all(np.abs(a.soc[r] - b.soc[r]) <= TOL * (1.0 + np.abs(a.soc[r])))
+    small = make_estimator("hinf", model, NOISE, engine="numpy", theta=1.0, store_states=True).run(p, soc0=soc0)
+    fast = make_estimator("hinf", model, NOISE, engine="compiled", theta=1.0, store_states=True).run(p, soc0=soc0)
+    assert not small.info["theta_capped"].any()
+    _compare(small, fast)  # a θ the Riccati bound never caps: 1e-9 on every run

@@ -80,8 +80,7 @@ class EKF(Estimator):
         return self.noise.Q(B, dt)
 
     def _run_compiled(self, job, seed=None):
-        from ..kernels.engine import parallel_runs
-        from ..kernels.filters import ekf
+        from ..kernels.filters import VAR_EKF
 
-        parallel_runs(ekf, job.R, *job.model_args, *job.noise_args, job.opt, *job.out_args)
+        job.kalman(VAR_EKF)
         return job.finish({"gate_threshold": job.threshold})

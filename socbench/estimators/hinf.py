@@ -109,3 +109,11 @@ class HInfinityFilter(Estimator):
                 settle_predict(rec, k + 1, x, P, x_good, P_good)
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold, "theta": opt["theta"],
                                          "theta_capped": capped})
+
+    def _run_compiled(self, job, seed=None):
+        from ..kernels.filters import VAR_HINF
+
+        o = self.options
+        vout = job.kalman(VAR_HINF, (o["theta"], o["feasibility_margin"]))
+        return job.finish({"gate_threshold": job.threshold, "theta": o["theta"],
+                           "theta_capped": vout[:, 0].astype(int)})

@@ -48,7 +48,9 @@ def noise_arrays(noise, n: int):
     walk = sensor_walk(s, n)
     if noise.walk is not None:
         walk = walk + np.asarray(noise.walk, dtype=float) * s.dt
-    has_walk = s.has_walk or noise.walk is not None
+    if noise.Q_override is not None:
+        walk = np.zeros(n)
+    has_walk = (s.has_walk or noise.walk is not None) and noise.Q_override is None  # NoiseModel.Q: the override alone
     nz = np.array([s.voltage_sd**2, s.input_var, np.nan if noise.R_override is None else float(noise.R_override),
                    s.dt, 1.0 if has_walk else 0.0, 0.0 if noise.Q_override is None else 1.0, s.current_sd**2,
                    s.current_bias_sd**2])
@@ -117,6 +119,20 @@ class Job:
         self.status = np.zeros(R, dtype=np.int64)
         self.repairs = np.zeros(R, dtype=np.int64)
 
+    def keep_states(self) -> None:
+        """Store the states and variances of every sample whatever ``store_states`` says (an estimator that reads
+        them after the run, e.g. the joint filter's parameter paths)."""
+        if not self.store:
+            self.store = True
+            self.xs = np.empty((self.R, self.T, self.n))
+            self.pd = np.empty((self.R, self.T, self.n))
+
+    def add_walk(self, var_per_dt0) -> None:
+        """Add an estimator's own random-walk variances per sensor period ``(n,)`` to Q (also under an override)."""
+        self.walk = np.ascontiguousarray(self.walk + np.asarray(var_per_dt0, dtype=float))
+        self.nz = self.nz.copy()
+        self.nz[4] = 1.0  # filters.HAS_WALK
+
     @property
     def model_args(self) -> tuple:
         return (self.im, self.fm, self.x0, self.P0, self.cur, self.volt, self.temp, self.has_temp, self.dts)
@@ -130,6 +146,16 @@ class Job:
         # the flags as bytes: a compiled function stores into them through a pointer (kernels.filters.record)
         return (self.outf, self.outb.view(np.uint8), self.xs, self.pd, self.store, self.failed, self.failed_at,
                 self.status, self.repairs)
+
+    def kalman(self, variant: int, vopt=(0.0,)):
+        """Run the EKF-family kernel (:func:`socbench.kernels.filters.ekf`) with update ``variant`` over the batch;
+        returns its per-run outputs ``(R, 2)`` (the variant's ``vout``)."""
+        from .filters import ekf
+
+        vout = np.zeros((self.R, 2))
+        parallel_runs(ekf, self.R, *self.model_args, *self.noise_args, self.opt, int(variant),
+                      np.asarray(vopt, dtype=float), vout, *self.out_args)
+        return vout
 
     def finish(self, info: dict):
         """The :class:`Estimate`, or None when a run met a condition only the numpy engine reports (its status)."""

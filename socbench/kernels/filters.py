@@ -58,14 +58,16 @@ def measurement_var(nz, D):
 
 @kernel(inline=True)
 def process_cov(nz, walk, Qo, B, n, dt, var, Q):
-    """``Q_k`` into ``Q`` (n × n) (noise.SensorNoise.process_cov with input variance ``var``, or the override)."""
+    """``Q_k`` into ``Q`` (n × n): the sensor-noise form with input variance ``var`` (noise.SensorNoise.process_cov)
+    or the override matrix, plus ``diag(walk)·dt/dt0`` where ``nz[HAS_WALK]`` (the sensor's and the model's random
+    walks, or an estimator's own; engine.noise_arrays leaves it off under an override, as NoiseModel.Q does)."""
     if nz[Q_OVR] != 0.0:
         for a in range(n * n):
             Q[a] = Qo[a]
-        return
-    for a in range(n):
-        for b in range(n):
-            Q[a * n + b] = var * B[a] * B[b]
+    else:
+        for a in range(n):
+            for b in range(n):
+                Q[a * n + b] = var * B[a] * B[b]
     if nz[HAS_WALK] != 0.0:
         for a in range(n):
             Q[a * n + a] += walk[a] * (dt / nz[DT0])
@@ -162,11 +164,42 @@ def load_run(x0, P0, r, n, x, P):
             P[a, b] = P0[r, a, b]
 
 
-# ================================================================================================ EKF
+# ================================================================================================ EKF family
+#: the update of the EKF-family kernel (``variant``); ``vopt`` and ``vout`` per variant:
+#:   EKF   the Kalman update in Joseph form (estimators/ekf.py)                     vopt —           vout —
+#:   AEKF  the EKF with fading-memory Sage–Husa R̂ (and Q̂) (estimators/aekf.py)     vopt [d, r_min_ratio, r_max_ratio,
+#:                                                                                  adapt_r, adapt_q]
+#:                                                                                  vout [r̂, q̂_zz] per run
+#:   HINF  the extended H∞ posterior with the feasibility cap (estimators/hinf.py)  vopt [θ, margin]
+#:                                                                                  vout [samples with θ capped]
+VAR_EKF, VAR_AEKF, VAR_HINF = 0, 1, 2
+
+
+@kernel(inline=True)
+def joseph(P, K, H, Rk, n, A, M):
+    """``P ← (I − K H) P (I − K H)ᵀ + R_k K Kᵀ`` (pointers; ``A``, ``M`` n × n scratch)."""
+    for a in range(n):
+        for b in range(n):
+            A[a * n + b] = (1.0 if a == b else 0.0) - K[a] * H[b]
+    for a in range(n):
+        for b in range(n):
+            s = 0.0
+            for c in range(n):
+                s += A[a * n + c] * P[c * n + b]
+            M[a * n + b] = s
+    for a in range(n):
+        for b in range(n):
+            s = 0.0
+            for c in range(n):
+                s += M[a * n + c] * A[b * n + c]
+            P[a * n + b] = s + Rk * (K[a] * K[b])
+
+
 @kernel
-def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, opt, outf, outb, xs, pd, store,
-        failed, failed_at, status, repairs):
-    """Extended Kalman filter (estimators/ekf.py) over runs ``r0 … r1 − 1``."""
+def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, opt, variant, vopt, vout, outf, outb,
+        xs, pd, store, failed, failed_at, status, repairs):
+    """The EKF family over runs ``r0 … r1 − 1``: linearised prediction and a scalar update that is the EKF's
+    (estimators/ekf.py), the adaptive EKF's or the H∞ filter's (``variant``, see :data:`VAR_EKF`)."""
     T = cur.shape[1]
     n = x0.shape[1]
     jac = n > 0  # True, as a run-time value: a literal would make numba compile a copy of every callee
@@ -177,22 +210,33 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
     PHt = np.empty(n)
     B = np.empty(n)
     w = np.empty(n)
+    col = np.empty(n)
     P = np.empty((n, n))
     F = np.empty((n, n))
     A = np.empty((n, n))
     Q = np.empty((n, n))
     M = np.empty((n, n))
     V = np.empty((n, n))
+    G = np.empty((n, n))
+    qh = np.empty((n, n))
     work = np.empty((n, n))
     scratch = np.empty(WORK_SIZE)
     imp, fmp, xp, xnp, Hp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(x), ptr(xn), ptr(H), ptr(B), ptr(F), ptr(scratch)
-    Pp, Qp, Mp, Vp, wp, workp = ptr(P), ptr(Q), ptr(M), ptr(V), ptr(w), ptr(work)
+    Pp, Qp, Mp, Vp, wp, workp, Ap, Kp = ptr(P), ptr(Q), ptr(M), ptr(V), ptr(w), ptr(work), ptr(A), ptr(K)
     nzp, walkp, Qop, optp = ptr(nz), ptr(walk), ptr(Qo), ptr(opt)
     outfp, outbp, xsp, pdp = ptr(outf), ptr(outb), ptr(xs), ptr(pd)
     R_all = outf.shape[1]
+    aekf = variant == VAR_AEKF
+    hinf = variant == VAR_HINF
     for r in range(r0, r1):
         load_run(x0, P0, r, n, x, P)
         consecutive = np.int64(0)
+        r_hat = 0.0
+        capped = 0
+        if aekf:
+            for a in range(n):
+                for b in range(n):
+                    qh[a, b] = 0.0
         for k in range(T):
             ik = cur[r, k]
             tk = temp[r, k]
@@ -202,6 +246,12 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                 status[r] = st
                 break
             Rk = measurement_var(nzp, D)
+            r_nom = Rk
+            if aekf:
+                if k == 0:
+                    r_hat = r_nom
+                if vopt[3] != 0.0:
+                    Rk = r_hat
             S = 0.0
             for a in range(n):
                 s = 0.0
@@ -213,24 +263,43 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             e = volt[r, k] - y
             nis = e * e / S
             gated, consecutive = gate(nis, opt[G_THR], consecutive, opt[G_REL])
-            for a in range(n):
-                K[a] = 0.0 if gated else PHt[a] / S
-                x[a] = x[a] + K[a] * e
-            for a in range(n):  # Joseph form: (I − K H) P (I − K H)ᵀ + R K Kᵀ
-                for b in range(n):
-                    A[a, b] = (1.0 if a == b else 0.0) - K[a] * H[b]
-            for a in range(n):
-                for b in range(n):
-                    s = 0.0
-                    for c in range(n):
-                        s += A[a, c] * P[c, b]
-                    M[a, b] = s
-            for a in range(n):
-                for b in range(n):
-                    s = 0.0
-                    for c in range(n):
-                        s += M[a, c] * A[b, c]
-                    P[a, b] = s + Rk * (K[a] * K[b])
+            if hinf:  # the Kalman posterior P_K (ungated), then P⁺ = (P_K⁻¹ − θ_k e_z e_zᵀ)⁻¹ (Sherman–Morrison)
+                for a in range(n):
+                    K[a] = PHt[a] / S
+                    for b in range(n):
+                        G[a, b] = P[a, b]
+                joseph(Pp, Kp, Hp, Rk, n, Ap, Mp)
+                symmetrise(Pp, n)
+                pzz = P[0, 0]
+                th = vopt[1] / pzz
+                if not (th < vopt[0] or th != th):  # np.minimum(θ, ρ / P_zz): NaN propagates
+                    th = vopt[0]
+                if th < vopt[0] and not gated:
+                    capped += 1
+                c = th / (1.0 - th * pzz)
+                for a in range(n):
+                    col[a] = P[a, 0]
+                for a in range(n):
+                    for b in range(n):
+                        P[a, b] = P[a, b] + c * (col[a] * col[b])
+                for a in range(n):
+                    if gated:
+                        K[a] = 0.0
+                    else:
+                        s = 0.0
+                        for b in range(n):
+                            s += P[a, b] * H[b]
+                        K[a] = s / Rk
+                    x[a] = x[a] + K[a] * e
+                if gated:
+                    for a in range(n):
+                        for b in range(n):
+                            P[a, b] = G[a, b]
+            else:
+                for a in range(n):
+                    K[a] = 0.0 if gated else PHt[a] / S
+                    x[a] = x[a] + K[a] * e
+                joseph(Pp, Kp, Hp, Rk, n, Ap, Mp)
             clamped, bad, repaired = settle(xp, Pp, n, nis, optp, wp, Vp, workp)
             if repaired:
                 repairs[r] += 1
@@ -243,6 +312,16 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                 w[a] = P[a, a]
             record(outfp, outbp, xsp, pdp, store, R_all, T, r, k, x[0], math.sqrt(P[0, 0]), y, e, S, clamped, gated,
                    xp, wp, n)
+            if aekf and not gated:  # the noise estimates (gated samples do not adapt)
+                d = vopt[0]
+                HPHt = S - Rk
+                rr = (1.0 - d) * r_hat + d * (e * e - HPHt)
+                if rr < vopt[1] * r_nom:
+                    rr = (1.0 - d) * r_hat + d * e * e
+                r_hat = min(max(rr, vopt[1] * r_nom), vopt[2] * r_nom)
+                for a in range(n):
+                    for b in range(n):
+                        qh[a, b] = (1.0 - d) * qh[a, b] + d * ((K[a] * e) * (K[b] * e))
             if k + 1 == T:
                 break
             # ---------------------------------------------------------------- predict
@@ -253,6 +332,10 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             for a in range(n):
                 x[a] = xn[a]
             process_cov(nzp, walkp, Qop, Bp, n, dts[k], nz[IN_VAR], Qp)
+            if aekf and vopt[4] != 0.0:
+                for a in range(n):
+                    for b in range(n):
+                        Q[a, b] = Q[a, b] + qh[a, b]
             propagate(Fp, Pp, Qp, n, Mp)
             symmetrise(Pp, n)
             bad = diverged_cov(xp, n, Pp, 0.0, np.inf, np.inf)
@@ -261,6 +344,11 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                 failed_at[r] = k + 1
                 freeze(outf, outb, xs, pd, store, r, k + 1, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
                 break
+        if aekf:
+            vout[r, 0] = r_hat
+            vout[r, 1] = qh[0, 0]
+        elif hinf:
+            vout[r, 0] = capped
 
 
 # ================================================================================================ UKF
