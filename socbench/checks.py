@@ -35,6 +35,28 @@ def check_voltage_level(profile: Profile, params: ModelParams, params_name: str 
         )
 
 
+def check_capacity(profile: Profile, params: ModelParams, params_name: str = "parameters") -> float | None:
+    """Warn (one line) when the record declares a capacity far from the parameter set's.
+
+    A parameter set counts charge with its own capacity: on a pack of a quarter of it, the simulated SOC falls four
+    times too slowly and the voltage error grows through every discharge, which looks like a model failure. The
+    voltage-level check cannot see it (same cell count, same OCV range). Returns the ratio record / parameters (None
+    when the record declares no capacity); warns outside [0.75, 1.33] (wider than the capacity change of a cell
+    between 25 and −20 °C, so a temperature-aware set never trips it).
+    """
+    declared = getattr(profile.meta, "capacity_ah", None)
+    if not declared or not params.capacity_ah:
+        return None
+    ratio = float(declared) / float(params.capacity_ah)
+    if not 0.75 <= ratio <= 1.0 / 0.75:
+        src = profile.meta.source or profile.meta.name
+        warnings.warn(f"{src}: the record declares a capacity of {float(declared):.4g} Ah, {params_name} has "
+                      f"{float(params.capacity_ah):.4g} Ah (×{ratio:.2f}): the simulated SOC drifts from the record's "
+                      "through every discharge; use parameters fitted for this cell or pack (socbench fit)",
+                      SocbenchWarning, stacklevel=2)
+    return ratio
+
+
 def check_temperature_range(profile: Profile, params: ModelParams, params_name: str = "parameters") -> dict:
     """Warn (one line) when a temperature-aware parameter set meets data outside its measured temperatures.
 

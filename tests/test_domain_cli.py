@@ -72,3 +72,28 @@ def test_dji_command_of_the_issue(data_dir, tmp_path, capsys):
     assert np.isfinite(d["rmse_v"]) and d["rmse_v"] < 30.0  # the held OCV: volts, never kilovolts
     (line,) = _warnings(capsys.readouterr().err)
     assert "SOC below 0" in line and "OCV held" in line
+
+
+@pytest.mark.realdata
+def test_dji_pack_capacity_mismatch_is_named(data_dir, tmp_path, capsys):
+    """paper:dp is a 22 Ah pack, the M100 flights a 5.5 Ah one: the command names the mismatch in one line, and the
+    same parameters at the record's capacity bring the per-segment error under 1 V RMS — the capacity, not the
+    segmenting, is what is left."""
+    import dataclasses
+
+    data = str(data_dir / "uav_dji_m100" / "battery_telemetry_all_flights.csv")
+    out = tmp_path / "out.json"
+    assert main(["simulate", "--data", data, "--params", "paper:dp", "--json", str(out)]) == 0
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if "declares a capacity" in line]
+    assert len(lines) == 1 and "5.5 Ah" in lines[0] and "22 Ah" in lines[0]
+    mismatched = json.loads(out.read_text())
+    assert mismatched["capacity_ratio"] == pytest.approx(0.25)
+    params = paper_params("dp")
+    params = params[1] if isinstance(params, tuple) else params
+    path = tmp_path / "dp_5p5.json"
+    save_params(path, "dp", dataclasses.replace(params, capacity_ah=5.5))
+    assert main(["simulate", "--data", data, "--params", str(path), "--json", str(out)]) == 0
+    matched = json.loads(out.read_text())
+    assert "declares a capacity" not in capsys.readouterr().err
+    assert matched["rmse_v"] < 1.0 < mismatched["rmse_v"]

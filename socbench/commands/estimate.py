@@ -33,7 +33,7 @@ import json
 import warnings
 from pathlib import Path
 
-from ..checks import check_temperature_range
+from ..checks import check_capacity, check_temperature_range
 from ..datasets import load
 from ..domain import guard_fractions, warn_outside
 from ..errors import ConfigError, DataError, SocbenchWarning
@@ -97,6 +97,7 @@ def run(args) -> int:
     profile.require("voltage_v")
     name, params = resolve_params(args.params)
     temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set")
+    capacity_ratio = check_capacity(profile, params, f"the '{args.params}' parameter set")
     model = make_model(name, params)
     noise_mode = args.noise if args.estimator != "coulomb" else "sensor"
     stats = model_error_of(args.params) if noise_mode == "model" else None
@@ -127,6 +128,8 @@ def run(args) -> int:
         metrics.update({"nees_mean": None, "frac_within_3sigma": None})
     if temperature:
         metrics["temperature_range"] = temperature
+    if capacity_ratio is not None:
+        metrics["capacity_ratio"] = capacity_ratio  # record / parameter set (check_capacity)
     for key in est.info.get("parameters", ()):  # parameter estimates (the joint estimator): final value and 3σ
         metrics["parameters"] = list(est.info["parameters"])
         for k in (key, f"{key}_3sigma"):

@@ -18,7 +18,7 @@ import json
 
 import pandas as pd
 
-from ..checks import check_temperature_range, check_voltage_level
+from ..checks import check_capacity, check_temperature_range, check_voltage_level
 from ..datasets import load
 from ..domain import warn_outside
 from ..errors import DataError
@@ -58,6 +58,7 @@ def run(args) -> int:
         raise DataError(f"--soc0 must be in [0, 1], got {args.soc0}")
     check_voltage_level(profile, params, f"the '{args.params}' parameter set")
     temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set")
+    capacity_ratio = check_capacity(profile, params, f"the '{args.params}' parameter set")
     model = make_model(name, params)
     axis = soc_axis(params, profile)
     soc0 = args.soc0 if args.soc0 is not None else (float(profile.soc_ref[0]) if profile.soc_ref is not None
@@ -69,6 +70,8 @@ def run(args) -> int:
                   "segments": sim.segments.to_dict(), "domain": sim.domain})
     if temperature:
         stats["temperature_range"] = temperature
+    if capacity_ratio is not None:
+        stats["capacity_ratio"] = capacity_ratio  # record / parameter set (check_capacity)
     segs = f"  {sim.segments.count} segments" if sim.segments.count > 1 else ""
     print(
         f"{name} on {profile.name}: n={stats['n']}{segs}  RMS {1000 * stats['rmse_v']:.1f} mV  "
