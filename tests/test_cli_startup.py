@@ -12,8 +12,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _loaded_commands(args: list[str]) -> set[str]:
-    code = ("import sys\nfrom socbench.cli import main\nmain(%r)\n"
-            "print(sorted(m for m in sys.modules if m.startswith('socbench.commands.')))") % (args,)
+    code = (f"import sys\nfrom socbench.cli import main\nmain({args!r})\n"
+            "print(sorted(m for m in sys.modules if m.startswith('socbench.commands.')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
     return set(eval(out.stdout.strip().splitlines()[-1]))  # noqa: S307 - our own printed list
 

@@ -179,6 +179,11 @@ def test_what_does_not_lower_says_why():
 
     with pytest.raises(NotLowerable, match="unknown"):
         lower(augment(make_model("dp", paper_params("dp")), [Unknown()]))
+    batched = ModelErrorEffect(sd_slow=np.full((3, 1, 2), 0.01))  # a batch of scale grids: no compiled layout
+    with pytest.raises(NotLowerable, match="model_error"):
+        lower(augment(make_model("dp", paper_params("dp")), [batched]))
+    est = make_estimator("ekf", augment(make_model("dp", paper_params("dp")), [batched]), NOISE)
+    assert est.engine_plan()[0] is None and "model_error" in est.engine_plan()[1]  # auto: numpy, and says why
 
 
 # ================================================================================================ open loop (fits)
