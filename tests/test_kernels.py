@@ -337,7 +337,11 @@ def _compare(a, b, spread=None):
         assert np.all(np.abs(ra - rb) <= tol), f"{f}: max |diff| {np.max(np.abs(ra - rb)):.3g}"
     for f in ("gated", "clamped", "failed", "failed_at", "failed_reason"):
         np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
-    for key in ("psd_repairs", "resampled", "tempered"):
+    for key in ("r_hat", "q_hat_soc", "capacity_ah", "capacity_ah_3sigma", "r0_ohm", "r0_ohm_3sigma"):
+        if key in a.info:  # the adaptive and joint filters' own outputs
+            ra, rb = np.asarray(a.info[key]), np.asarray(b.info[key])
+            assert np.all(np.abs(ra - rb) <= TOL * (1.0 + np.abs(ra))), key
+    for key in ("psd_repairs", "resampled", "tempered", "theta_capped"):
         if key in a.info:
             np.testing.assert_array_equal(a.info[key], b.info[key], err_msg=key)
 

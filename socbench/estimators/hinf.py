@@ -96,7 +96,7 @@ class HInfinityFilter(Estimator):
                 no_gate = np.zeros(R, dtype=bool)
                 _, PK, _ = kalman_update(x, P, H, Rk, S, e, no_gate)
                 Pp, th = hinf_posterior(symmetrise(PK), opt["theta"], opt["feasibility_margin"])
-                capped += (th < opt["theta"]) & ~gated
+                capped += (th < opt["theta"]) & ~gated & ~rec.failed  # a failed run is frozen: it counts nothing more
                 K = np.where(gated[:, None], 0.0, np.einsum("rij,rj->ri", Pp, H) / Rk[:, None])
                 x = x + K * e[:, None]
                 P = np.where(gated[:, None, None], P, Pp)
