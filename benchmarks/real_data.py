@@ -124,13 +124,20 @@ def fit_job(args) -> dict:
 
 # ------------------------------------------------------------------------------------------------ 4: runs
 def run_job(args) -> dict:
-    """One filter on one US06: the recipe's noise, a guess 20 points low, SOC on the data's axis."""
-    model, params_path, stats_dict, tag, est_name, noise_mode, trace_path = args
+    """One filter on one record (default the US06): the recipe's noise, a guess 20 points low, SOC on the data's
+    axis; the record bin-averaged to ``resolution`` seconds (0: as recorded)."""
+    model, params_path, stats_dict, tag, est_name, noise_mode, trace_path, resolution, *test = args
     name, params = load_params(params_path)
     m = make_model(name, params)
-    prof = _record(tag, "US06")
+    prof = _record(tag, test[0] if test else "US06")
+    if resolution > 0:
+        prof = recipe.bin_average(prof, resolution)
     stats = recipe.ModelErrorStats.from_dict(stats_dict) if stats_dict else None
-    run_model, noise = recipe.apply(m, SENSOR, stats, prof, noise=noise_mode if est_name != "coulomb" else "sensor")
+    unscheduled = noise_mode == "model-unscheduled"  # the ablation: the recipe with the full Jacobian
+    run_model, noise = recipe.apply(m, SENSOR, stats, prof, noise="sensor" if est_name == "coulomb" else
+                                    "model" if unscheduled else noise_mode)
+    if unscheduled:
+        run_model.schedule_soc = False
     est = make_estimator(est_name, run_model, noise, soc0_sd=SOC0_SD)
     axis = soc_axis(params, prof)
     t0 = time.perf_counter()
@@ -138,8 +145,9 @@ def run_job(args) -> dict:
     seconds = time.perf_counter() - t0
     s = score(r, prof)
     idx = np.unique(np.round(np.linspace(0, prof.n - 1, 2500)).astype(int))
-    np.savez_compressed(trace_path, t=prof.time_s[idx], err=(r.soc[0] - prof.soc_ref)[idx], sd=r.soc_std[0][idx],
-                        temp=prof.temperature_c[idx])
+    if trace_path:
+        np.savez_compressed(trace_path, t=prof.time_s[idx], err=(r.soc[0] - prof.soc_ref)[idx], sd=r.soc_std[0][idx],
+                            temp=prof.temperature_c[idx])
     out = {k: s[k] for k in ("soc_rmse", "soc_max_abs", "frac_within_3sigma", "nis_mean", "nis_band", "rmse_v",
                              "nees_mean", "failed_runs")}
     out.update({"seconds": seconds, "n": prof.n, "axis": axis.to_dict(), "filter_voltage_sd": noise.voltage_sd,
@@ -148,16 +156,24 @@ def run_job(args) -> dict:
 
 
 def residual_job(args) -> dict:
-    """Open-loop voltage error of a fit on the US06 of ``tag`` (for the figure and the voltage table)."""
-    params_path, tag, path = args
+    """Open-loop voltage error of a fit on the US06 (or ``test``) of ``tag`` (for the figure and the voltage table),
+    and how its slow part follows the load: the least-squares line of the 10 s mean error on the 5-minute mean
+    current (``load_slope_v_per_a``), the record's mean |current|."""
+    params_path, tag, path, *test = args
     name, params = load_params(params_path)
-    prof = _record(tag, "US06")
+    prof = _record(tag, test[0] if test else "US06")
     e = recipe.residual(make_model(name, params), prof)
     st = voltage_error_stats(prof.voltage_v, prof.voltage_v - e)
-    idx = np.unique(np.round(np.linspace(0, prof.n - 1, 4000)).astype(int))
     smooth = recipe.moving_average(prof.time_s, e, 10.0)
-    np.savez_compressed(path, t=prof.time_s[idx], e=smooth[idx])
-    return {k: st[k] for k in ("rmse_v", "mean_v", "sd_v", "max_v")}
+    if path:
+        idx = np.unique(np.round(np.linspace(0, prof.n - 1, 4000)).astype(int))
+        np.savez_compressed(path, t=prof.time_s[idx], e=smooth[idx])
+    load = recipe.moving_average(prof.time_s, prof.current_a, 300.0)
+    slope = float(np.polyfit(load, smooth, 1)[0])
+    out = {k: st[k] for k in ("rmse_v", "mean_v", "sd_v", "max_v")}
+    out.update({"slow_rms_v": float(np.sqrt(np.mean(smooth ** 2))), "load_slope_v_per_a": slope,
+                "mean_abs_current_a": float(np.mean(np.abs(prof.current_a)))})
+    return out
 
 
 def _pool(jobs: int):
@@ -319,6 +335,15 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-studies", action="store_true", help="no leaderboard studies (sections 6-7 left out)")
     ap.add_argument("--lb-models", type=int, default=2,
                     help="models in the measured-group leaderboard: the best N on validation (default 2)")
+    ap.add_argument("--lb-scenarios", default="*",
+                    help="measured-group scenarios of the leaderboard, comma-separated shell patterns (default: all)")
+    ap.add_argument("--flight-seeds", type=int, default=10, help="seeds of the default flight scenarios (default 10)")
+    ap.add_argument("--resolution", type=float, default=1.0,
+                    help="the filters run on the records bin-averaged to this many seconds, the noise recipe's "
+                         "resolution (default 1; 0: the records' own 10 Hz)")
+    ap.add_argument("--shortlist", type=int, default=4,
+                    help="models (best open-loop voltage on validation) whose filters are tried on the validation "
+                         "records to choose the best (default 4)")
     args = ap.parse_args(argv)
     if not os.environ.get("SOCBENCH_DATA_DIR"):
         print("set SOCBENCH_DATA_DIR (the Panasonic, CALCE and DJI folders)", file=sys.stderr)
@@ -344,18 +369,11 @@ def main(argv=None) -> int:
     ranked = sorted(candidates, key=lambda m: np.mean(list(fits[m]["validation_rmse_v"].values())))
     # models that fit to the same numbers are one model here (PNGV = Thevenin and GNL = DP without the C0 integrator,
     # Liu = Tremblay2: ECM_SPEC §5.3, §0): the table compares three different ones
-    top, seen = [], set()
+    top = []
     for m in ranked:
-        key = tuple(round(x, 9) for x in fits[m]["validation_rmse_v"].values())
-        if key not in seen:
-            seen.add(key)
-            top.append(m)
-    best, top = ranked[0], top[:3]
-    print(f"best on validation: {best}; top 3: {top}", flush=True)
-    if not cache.path("fits", f"{best}_25.summary.json").exists():
-        out = fit_job((best, ("25degC",), str(cache.path("fits", f"{best}_25.json"))))
-        cache.path("fits", f"{best}_25.summary.json").write_text(json.dumps(out))
-    fit25 = json.loads(cache.path("fits", f"{best}_25.summary.json").read_text())
+        val = np.array(list(fits[m]["validation_rmse_v"].values()))
+        if not any(np.all(np.abs(val - np.array(list(fits[k]["validation_rmse_v"].values()))) < 1e-4) for k in top):
+            top.append(m)  # equal to 0.1 mV at every temperature: one model
 
     # ---- 3: the noise recipe on the validation records
     def stats_for(model, fit):
@@ -364,6 +382,34 @@ def main(argv=None) -> int:
             tags = TAGS if fit == "5T" else ("25degC",)
             return recipe.estimate(make_model(model, params), [_record(t, "Cycle") for t in tags]).to_dict()
         return cache.json(f"stats/{model}_{fit}.json", compute)
+
+    # the filters themselves on the validation records (EKF, the recipe measured on those records, the scoring
+    # protocol): the model whose filter tracks the SOC best there is the best model; never a US06
+    shortlist = top[: args.shortlist]
+    vjobs, vkeys = [], []
+    for m in shortlist:
+        for tag in TAGS:
+            key = f"{m}_5T_ekf_{tag}"
+            if not cache.path("validation", f"{key}.json").exists():
+                vjobs.append((m, str(cache.path("fits", f"{m}_5T.json")), stats_for(m, "5T"), tag, "ekf", "model", "",
+                              args.resolution, "Cycle"))
+                vkeys.append(key)
+    for k, out in _each(pool, run_job, vjobs):
+        cache.path("validation", f"{vkeys[k]}.json").write_text(json.dumps(out, default=_jsonable))
+    vruns = {p.stem: json.loads(p.read_text()) for p in cache.path("validation").glob("*.json")}
+
+    def val_score(m):
+        rs = [vruns.get(f"{m}_5T_ekf_{t}") for t in TAGS]
+        # the median over the temperatures: one catastrophic temperature must not decide alone
+        return np.inf if any(r is None or "error" in r for r in rs) else float(np.median([r["soc_rmse"] for r in rs]))
+
+    top = sorted(shortlist, key=val_score) + top[args.shortlist:]
+    best, top = top[0], top[:3]
+    print(f"best on validation: {best}; top 3: {top}", flush=True)
+    if not cache.path("fits", f"{best}_25.summary.json").exists():
+        out = fit_job((best, ("25degC",), str(cache.path("fits", f"{best}_25.json"))))
+        cache.path("fits", f"{best}_25.summary.json").write_text(json.dumps(out))
+    fit25 = json.loads(cache.path("fits", f"{best}_25.summary.json").read_text())
 
     configs = [(best, "5T"), (best, "25")] + [(m, "5T") for m in top[1:]]
     stats = {cfg: stats_for(*cfg) for cfg in configs}
@@ -377,7 +423,7 @@ def main(argv=None) -> int:
                 key = f"{model}_{fit}_{est}_{tag}"
                 if not cache.path("runs", f"{key}.json").exists():
                     jobs.append((model, str(cache.path("fits", f"{model}_{fit}.json")), stats[(model, fit)], tag, est,
-                                 "model", str(cache.path("traces", f"{key}.npz"))))
+                                 "model", str(cache.path("traces", f"{key}.npz")), args.resolution))
                     keys.append(key)
     for k, out in _each(pool, run_job, jobs):
         cache.path("runs", f"{keys[k]}.json").write_text(json.dumps(out, default=_jsonable))
@@ -386,6 +432,18 @@ def main(argv=None) -> int:
             continue
         print(f"run {keys[k]}: SOC RMSE {100 * out['soc_rmse']:.2f} %, within 3σ {out['frac_within_3sigma']:.3f}, "
               f"NIS {out['nis_mean']:.2f} ({out['seconds']:.0f} s)", flush=True)
+    # the ablation: the best model's filters with the recipe but the full Jacobian (no parameter scheduling)
+    ajobs, akeys = [], []
+    for est in ("ekf", "ukf"):
+        for tag in TAGS:
+            key = f"{best}_5T_{est}_{tag}"
+            if not cache.path("unscheduled", f"{key}.json").exists():
+                ajobs.append((best, str(cache.path("fits", f"{best}_5T.json")), stats[(best, "5T")], tag, est,
+                              "model-unscheduled", "", args.resolution))
+                akeys.append(key)
+    for k, out in _each(pool, run_job, ajobs):
+        cache.path("unscheduled", f"{akeys[k]}.json").write_text(json.dumps(out, default=_jsonable))
+    unsched = {p.stem: json.loads(p.read_text()) for p in cache.path("unscheduled").glob("*.json")}
     runs = {p.stem: json.loads(p.read_text()) for p in cache.path("runs").glob("*.json")}
     rjobs, rkeys = [], []
     for fit in ("5T", "25"):
@@ -395,6 +453,11 @@ def main(argv=None) -> int:
                 rjobs.append((str(cache.path("fits", f"{best}_{fit}.json")), tag,
                               str(cache.path("residuals", f"{key}.npz"))))
                 rkeys.append(key)
+    for tag in TAGS:
+        key = f"{best}_5T_{tag}_Cycle"  # the validation record, for the comparison with the scored one
+        if not cache.path("residuals", f"{key}.json").exists():
+            rjobs.append((str(cache.path("fits", f"{best}_5T.json")), tag, "", "Cycle"))
+            rkeys.append(key)
     for k, out in _each(pool, residual_job, rjobs):
         cache.path("residuals", f"{rkeys[k]}.json").write_text(json.dumps(out))
     resid = {p.stem: json.loads(p.read_text()) for p in cache.path("residuals").glob("*.json")}
@@ -408,11 +471,15 @@ def main(argv=None) -> int:
         from socbench.study import DEFAULT_ESTIMATORS, DEFAULT_SCENARIOS
 
         t0 = time.perf_counter()
-        lb = study(cache, "measured", top[: args.lb_models], ("coulomb", "ekf", "ukf"), group_names("measured"),
-                   args.seeds, args.jobs)
+        from fnmatch import fnmatch
+
+        pats = args.lb_scenarios.split(",")
+        lb_scen = [s for s in group_names("measured") if any(fnmatch(s, p) for p in pats)]
+        lb = study(cache, "measured", top[: args.lb_models], ("coulomb", "ekf", "ukf"), lb_scen, args.seeds, args.jobs)
         lb_wall = time.perf_counter() - t0
         t0 = time.perf_counter()
-        flights = study(cache, "flights", list(model_names()), DEFAULT_ESTIMATORS, DEFAULT_SCENARIOS, 10, args.jobs)
+        flights = study(cache, "flights", list(model_names()), DEFAULT_ESTIMATORS, DEFAULT_SCENARIOS, args.flight_seeds,
+                        args.jobs)
         fl_wall = time.perf_counter() - t0
         flights_sensor = study(cache, "flights-sensor", ("thevenin", "dp"), ("ekf", "ukf"), DEFAULT_SCENARIOS, 3,
                                args.jobs, noise="sensor")
@@ -459,20 +526,35 @@ def verdict(v: dict) -> str:
                      f"{', '.join(met) if met else 'no temperature'}; missed at {', '.join(missed) if missed else '—'}"
                      " (EKF/UKF).")
     val = fits[best]["validation_rmse_v"]
+    resid = v["resid"]
     lines.append(f"- **Why, first: the model.** The best model's open-loop error on the validation drive cycles is "
                  f"{mv(val['25degC'], 0)} mV at 25 °C but {mv(val['0degC'], 0)}, {mv(val['n10degC'], 0)} and "
                  f"{mv(val['n20degC'], 0)} mV at 0, −10 and −20 °C (section 2), an order of magnitude above its HPPC "
                  "fit at those temperatures (section 1). Fitted on HPPC pulses only (and the Panasonic HPPC files "
                  "leave out the discharges between the pulse sets, so a fit never sees polarisation build up under "
-                 "a sustained load), no ECM here predicts the long polarisation of a cold cell on a drive cycle. An "
-                 "honest filter cannot tell a 20-point SOC error (≈ 0.1–0.2 V of OCV) from a model error of the same "
-                 "size, and the EKF and UKF, linearising differently, settle in different places.")
-    lines.append("- **Why, second: the recipe's assumptions.** On synthetic records with a planted stationary error "
-                 "the recipe's band holds the truth 95–99 % of the time (`tests/test_model_error.py`); the real "
-                 "error is not stationary: it depends on the current history, on SOC and on temperature in ways the "
-                 "three Gauss–Markov states only approximate, and wherever the model's parameters vary with SOC a "
-                 "filter can read structure into it. The consistency columns (within 3σ, NIS) say where this "
-                 "happens instead of hiding it; with the sensor-only covariance they are far worse (section 7).")
+                 "a sustained load), no ECM here predicts the long polarisation of a cold cell on a drive cycle: the "
+                 "slow error follows the recent load (section 4c: a negative load slope that grows as the cell gets "
+                 "colder). An honest filter cannot tell a SOC error from a model error of the same voltage (about "
+                 "10 mV per SOC point in the middle of the curve).")
+    vr = [v["vruns"].get(f"{best}_5T_ekf_{t}") for t in TAGS]
+    if all(r and "error" not in r for r in vr):
+        lines.append("- **Not only the scored cycle:** on the validation Cycle_1 runs themselves, whose error the "
+                     "recipe measured, the best model's EKF reaches " + ", ".join(
+                         f"{pc(r['soc_rmse'], 1)} % ({r['frac_within_3sigma']:.2f} within 3σ) at {LABEL[t]}"
+                         for r, t in zip(vr, TAGS)) + " (section 2): where the model misses the voltage by a tenth "
+                     "of a volt and more for long stretches, an ECM filter does not hold the SOC to a point.")
+    hard = [t for t in TAGS if resid.get(f"{best}_5T_{t}") and resid.get(f"{best}_5T_{t}_Cycle")
+            and resid[f"{best}_5T_{t}"]["slow_rms_v"] > 1.3 * resid[f"{best}_5T_{t}_Cycle"]["slow_rms_v"]]
+    if hard:
+        lines.append("- **Why, second: the scored cycle is harder than the validation cycle.** The noise recipe can "
+                     "only know the error it measured on the validation records; at "
+                     + ", ".join(LABEL[t] for t in hard) + " the US06 draws a higher mean current than Cycle_1 and "
+                     "the model's slow error on it is more than 1.3 times the validation one (section 4c), so the "
+                     "±3σ band, honest on the validation cycle's error, is too narrow on the US06.")
+    lines.append("- **What the recipe now gets right (measured):** on synthetic records with a planted error, "
+                 "including one more persistent than the record, its band holds the truth 90–100 % of the time "
+                 "(`tests/test_model_error.py`); parameter scheduling removes the SOC information a filter read off "
+                 "the fitted tables' slopes (section 4 against 4b).")
     lines.append("- **What carries:** the five-temperature set runs every record at its measured cell temperature "
                  "(one mechanism for every model); the SOC-axis conversion makes counting on the model's axis "
                  "reproduce each temperature's own reference; the measured group runs in the leaderboard and is "
@@ -527,6 +609,19 @@ def write_doc(path: Path, v: dict):
     for m in ranked:
         vals = [fits[m]["validation_rmse_v"][t] for t in TAGS]
         w(f"| {m} | " + " | ".join(mv(x) for x in vals) + f" | **{mv(np.mean(vals))}** |")
+    w(f"The {len(v['shortlist'])} best distinct models there ({', '.join(v['shortlist'])}) then run their EKF (the "
+      "noise recipe measured on the same Cycle_1 runs, the scoring protocol below) on each Cycle_1 run: the model "
+      "whose filter tracks the SOC best on validation is the best model (open-loop voltage alone is not the "
+      "criterion: a filter corrects a slow voltage error it can tell apart from the SOC).\n")
+    w("| model | " + " | ".join(f"EKF {LABEL[t]} SOC RMSE % (within 3σ)" for t in TAGS) + " | median SOC RMSE % |")
+    w("|---|" + "---|" * (len(TAGS) + 1))
+    for m in v["shortlist"]:
+        rs = [v["vruns"].get(f"{m}_5T_ekf_{t}") for t in TAGS]
+        cells = [("failed" if "error" in r else f"{pc(r['soc_rmse'])} ({r['frac_within_3sigma']:.2f})") if r else "—"
+                 for r in rs]
+        w(f"| {m} | " + " | ".join(cells) + f" | **{pc(v['val_score'](m))}** |")
+    w("\n(The criterion is the median over the five temperatures; the mean, dominated by the coldest records' "
+      "failures, would pick a model whose validation error at 25 °C is over 15 %.)\n")
     w(f"\nBest: **{best}** (then {', '.join(top[1:])}).\n")
     w("## 3. The noise recipe\n")
     w("`socbench.estimators.model_error` (the equations are in its docstring). The fitted model runs open loop on "
@@ -538,6 +633,23 @@ def write_doc(path: Path, v: dict):
       "1 − e^{−2dt₀/τ} enter Q, and R = σ_V² + the white variance averaged "
       "over the record's temperatures: inside the form the compiled filters take (R_k = σ_V² + σ_I²D_k², "
       "Q_k = σ_I²B_kB_kᵀ + diag(walk)·dt_k/dt₀). The sensor-only covariance stays available (`--noise sensor`).\n")
+    w("Three rules keep the band honest where the first version of the recipe was not (sections 4 and 8 measure "
+      "it):\n")
+    w("- **Parameter scheduling** (`Model.schedule_soc`, set by the recipe; `socbench.estimators.base."
+      "scheduled_jacobian`, `scheduled_step`): the parameters of the dynamics (R1(z), C1(z), …) are looked up at the "
+      "estimated SOC but not differentiated in it, in the EKF family (∂x_j⁺/∂z = 0 for j ≠ z) and the sigma-point "
+      "filters alike (every point steps its other states with the mean SOC's parameters and keeps its own SOC "
+      "deviation). Differentiated, tables fitted point by point on HPPC pulses let a filter read the SOC off the "
+      "polarisation's shape to a precision the model does not have (section 4b: the same runs with the full "
+      "Jacobian).\n")
+    w("- **Persistence**: a correlation time is the larger of the integral time and −L/ln ρ(L) at the longest lag "
+      "measured, so an error that has not decorrelated within the records is not averaged away over two of them.\n")
+    w("- **Robust scales**: each SOC cell's mean square is shrunk toward its temperature row's median cell by the "
+      "independent looks it holds (cell seconds / 2τ): a persistent error seen a few times per cell is a handful of "
+      "numbers, and the smallest would narrow the band there.\n")
+    w("On synthetic records with a planted error (`tests/test_model_error.py`, now including an error more persistent "
+      "than the record) the band holds the truth 90–100 % of the time in every configuration; the first version "
+      "held a persistent error 47 % of the time there.\n")
     for cfg in ((best, "5T"), (best, "25")):
         s = recipe.ModelErrorStats.from_dict(stats[cfg])
         sm = s.summary()
@@ -551,8 +663,11 @@ def write_doc(path: Path, v: dict):
             w(f"| {t:.1f} °C | {mv(sm['slow'][j])} | {mv(sm['fast'][j])} | {mv(sm['r'][j])} | {mv(sm['white'][j])} |")
         w("")
     w("## 4. The US06 at each temperature (the must-show)\n")
-    w(f"{best}, a guess {-100 * SOC0_ERROR:.0f} SOC points below the reference (SD {SOC0_SD:g}), the record at its "
-      "own 10 Hz, the recipe's noise. Targets: SOC RMSE ≤ 1.5 %, within 3σ ≥ 0.9, EKF and UKF within 0.5 points.\n")
+    res = v["args"].resolution
+    w(f"{best}, a guess {-100 * SOC0_ERROR:.0f} SOC points below the reference (SD {SOC0_SD:g}), "
+      + (f"the record bin-averaged to {res:g} s (the noise recipe's resolution; the filters at the records' own 10 Hz "
+         "take 60–190 s a run on the numpy engine here)" if res > 0 else "the record at its own 10 Hz")
+      + ", the recipe's noise. Targets: SOC RMSE ≤ 1.5 %, within 3σ ≥ 0.9, EKF and UKF within 0.5 points.\n")
     w("| US06 | fit | EKF SOC RMSE % | EKF within 3σ | EKF NIS [95 % band] | UKF SOC RMSE % | UKF within 3σ | "
       "UKF NIS | \\|EKF − UKF\\| points | targets met |")
     w("|---|---|---|---|---|---|---|---|---|---|")
@@ -571,6 +686,28 @@ def write_doc(path: Path, v: dict):
             w(f"| {LABEL[tag]} | {'5 temperatures' if fit == '5T' else '25 °C only'} | {pc(e['soc_rmse'])} | "
               f"{e['frac_within_3sigma']:.3f} | {nis_txt(e)} | {pc(u['soc_rmse'])} | {u['frac_within_3sigma']:.3f} | "
               f"{nis_txt(u)} | {100 * abs(e['soc_rmse'] - u['soc_rmse']):.2f} | {ok(met)} |")
+    w("\n**4b. The same with the full Jacobian** (the recipe without parameter scheduling; five-temperature fit):\n")
+    w("| US06 | EKF SOC RMSE % | EKF within 3σ | EKF NIS | UKF SOC RMSE % | UKF within 3σ | UKF NIS |")
+    w("|---|---|---|---|---|---|---|")
+    for tag in TAGS:
+        e, u = v["unsched"].get(f"{best}_5T_ekf_{tag}"), v["unsched"].get(f"{best}_5T_ukf_{tag}")
+        cells = []
+        for r in (e, u):
+            cells += (["failed", "", ""] if r is None or "error" in r else
+                      [pc(r["soc_rmse"]), f"{r['frac_within_3sigma']:.3f}", nis_txt(r)])
+        w(f"| {LABEL[tag]} | " + " | ".join(cells) + " |")
+    w(f"\n**4c. The model's error on the validation cycle and on the scored one** ({best}, five-temperature fit, open "
+      "loop from the true initial state at the records' own 10 Hz; slow = the 10 s mean; load slope = the "
+      "least-squares line of the slow error on the 5-minute mean current):\n")
+    w("| temperature | Cycle_1 mean \\|I\\| A | Cycle_1 slow RMS mV | Cycle_1 load slope mV/A | US06 mean \\|I\\| A | "
+      "US06 slow RMS mV | US06 load slope mV/A |")
+    w("|---|---|---|---|---|---|---|")
+    for tag in TAGS:
+        c, u = v["resid"].get(f"{best}_5T_{tag}_Cycle"), v["resid"].get(f"{best}_5T_{tag}")
+        if c and u:
+            w(f"| {LABEL[tag]} | {c['mean_abs_current_a']:.2f} | {mv(c['slow_rms_v'], 0)} | "
+              f"{mv(c['load_slope_v_per_a'], 0)} | {u['mean_abs_current_a']:.2f} | {mv(u['slow_rms_v'], 0)} | "
+              f"{mv(u['load_slope_v_per_a'], 0)} |")
     w("\n![SOC error with ±3σ](figures/real_data_soc_error.png)\n")
     w("*SOC error (data axis) of the EKF and UKF with their ±3σ bands, per temperature; left the five-temperature "
       "fit, right the 25 °C fit.*\n")
@@ -600,13 +737,23 @@ def write_doc(path: Path, v: dict):
         from socbench.report import ranked as ranked_cells
 
         w("## 6. Leaderboard of the measured group\n")
-        w(f"`socbench leaderboard --scenarios measured --models {','.join(lb.config.models)} --estimators "
-          f"coulomb,ekf,ukf --seeds "
+        from socbench.scenarios.catalog import group_names
+
+        every = group_names("measured")
+        subset = list(lb.config.scenarios) != list(every)
+        w(f"`socbench leaderboard --scenarios {'measured' if not subset else ','.join(lb.config.scenarios)} --models "
+          f"{','.join(lb.config.models)} --estimators coulomb,ekf,ukf --seeds "
           f"{v['args'].seeds}` ({len(lb.cells)} cells, {v['lb_wall']:.0f} s wall). Every scenario replays a measured "
           "record with its own voltage; seeds perturb the initial SOC guess (20 points low ± 2); the models are fitted "
           "on characterisation tests only (Panasonic: the five HPPCs; CALCE: the C/22 OCV test + one other dynamic "
           "record; DJI: 8 other flights) and the noise recipe uses each scenario's validation records (catalog TOML "
           "files say which).\n")
+        if subset:
+            w(f"**Shrunk to meet the deadline of this run** (`--lb-scenarios {v['args'].lb_scenarios}`, "
+              f"`--lb-models {v['args'].lb_models}`): {len(lb.config.scenarios)} of the {len(every)} scenarios of "
+              f"the group; left out: {', '.join(s for s in every if s not in lb.config.scenarios)} (the Panasonic "
+              "records at 10 Hz take 60–190 s per filter run on the numpy engine here). The full group runs with the "
+              "defaults.\n")
         w("| scenario | rank | model | estimator | SOC RMSE % | within 3σ | NIS [95 % band] | V RMSE mV | failed |")
         w("|---|---|---|---|---|---|---|---|---|")
         for scen in lb.config.scenarios:
@@ -626,7 +773,8 @@ def write_doc(path: Path, v: dict):
         w("\n![DJI flights](figures/real_data_dji.png)\n")
     if flights is not None:
         w("## 7. The default flight scenarios after the noise recipe\n")
-        w(f"`socbench leaderboard` (every model, {', '.join(flights.config.estimators)}, 10 seeds; "
+        w(f"`socbench leaderboard` (every model, {', '.join(flights.config.estimators)}, "
+          f"{len(flights.config.seeds)} seeds; "
           f"{v['fl_wall']:.0f} s wall): NIS mean per cell with the recipe (target: within a factor 3 of 1).\n")
         w("| scenario | estimator | cells | NIS median | NIS min | NIS max | cells with 1/3 ≤ NIS ≤ 3 | within 3σ "
           "median |")

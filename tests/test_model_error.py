@@ -65,6 +65,8 @@ CONFIGS = [
     {"slow_sd": 0.03, "tau": 300.0, "r_sd": 0.0, "white_sd": 0.005},
     {"slow_sd": 0.08, "tau": 900.0, "r_sd": 0.0005, "white_sd": 0.01},
     {"slow_sd": 0.015, "tau": 120.0, "r_sd": 0.001, "white_sd": 0.003},
+    # an error more persistent than the record (τ > its 40 min): a filter must not average it as if it renewed
+    {"slow_sd": 0.04, "tau": 6000.0, "r_sd": 0.0005, "white_sd": 0.005},
 ]
 
 
@@ -169,3 +171,46 @@ def test_model_error_effect_jacobians_match_finite_differences():
     s1, v1 = m.open_loop(x[:2], t, np.full((2, 50), 10.0), np.full((2, 50), 5.0))
     s2, v2 = m.open_loop_stepwise(x[:2], t, np.full((2, 50), 10.0), np.full((2, 50), 5.0))
     np.testing.assert_allclose(v1, v2, rtol=1e-10, atol=1e-10)
+
+
+def test_scheduling_drops_the_soc_slope_of_the_dynamics_in_ekf_and_ukf_alike():
+    from socbench.estimators.base import scheduled_jacobian, scheduled_step
+
+    model = make_model("dp", paper_params("dp"))
+    rng = np.random.default_rng(2)
+    x = model.x0(rng.uniform(0.1, 0.9, 4), (4,))
+    x[:, 1:] = rng.normal(0, 0.02, (4, model.n_states - 1))
+    _, F, _ = model.step(x, np.full(4, 20.0), 1.0, None, jac=True)
+    assert np.all(scheduled_jacobian(model, F) == F)  # off by default: the full Jacobian
+    sched = make_model("dp", paper_params("dp"))
+    sched.schedule_soc = True
+    Fs = scheduled_jacobian(sched, F)
+    assert np.all(Fs[:, 1:, 0] == 0) and np.all(Fs[:, :, 1:] == F[:, :, 1:]) and np.all(Fs[:, 0, 0] == F[:, 0, 0])
+    # sigma points: every point's RC states step with the mean's parameters; the SOC keeps its own deviation
+    X = x[:, None, :] + rng.normal(0, 0.03, (4, 5, model.n_states))
+    Xf, _, _ = scheduled_step(sched, X, x, np.full((4, 1), 20.0), 1.0, None, False)
+    Xm = X.copy()
+    Xm[..., 0] = x[:, None, 0]
+    ref, _, _ = model.step(Xm, np.full((4, 1), 20.0), 1.0, None)
+    np.testing.assert_allclose(Xf[..., 1:], ref[..., 1:], rtol=1e-12)
+    plain, _, _ = model.step(X, np.full((4, 1), 20.0), 1.0, None)
+    np.testing.assert_allclose(Xf[..., 0], plain[..., 0], rtol=1e-12, atol=1e-15)
+    assert recipe.apply(model, SensorNoise(0.002, 0.02), recipe.ModelErrorStats(
+        (25.0,), (0.0, 1.0), [[0.02, 0.01]], [[0.0, 0.0]], [[0.0, 0.0]], (0.004,), 400.0, 2.0, 600.0))[0].schedule_soc
+
+
+def test_correlation_time_beyond_the_record_and_robust_cell_scales():
+    # a Gauss–Markov correlation measured to 1200 s gives its τ even when τ is longer than the lags (persistence)
+    lags = np.arange(1201.0)
+    for tau in (300.0, 5000.0, 12000.0):
+        assert recipe._pooled_time([(np.exp(-lags / tau), 1.0, 0.0)], 1.0, 1200.0) == pytest.approx(tau, rel=0.02)
+    assert recipe._pooled_time([(np.ones(1201), 1.0, 0.0)], 1.0, 1200.0) == recipe.MAX_LAG_S  # a bias: capped
+    # an error that changes sign within the lags: the integral time, not the persistence formula
+    osc = np.cos(lags / 200.0) * np.exp(-lags / 400.0)
+    assert recipe._pooled_time([(osc, 1.0, 0.0)], 1.0, 1200.0) < 400.0
+    # cells holding few independent looks move toward the row's median cell; well-observed cells keep their own
+    num = np.array([1.0, 4.0, 9.0, 100.0]) * np.array([1e5, 1e5, 1e5, 10.0])
+    den = np.array([1e5, 1e5, 1e5, 10.0])
+    v = recipe._shrunk(num, den, (25.0,), (0.0, 0.3, 0.6, 1.0), 100.0)[0]
+    np.testing.assert_allclose(v[:3], [1.0, 4.0, 9.0], rtol=0.01)
+    assert v[3] == pytest.approx((0.1 * 100.0 + 6.5) / 1.1)  # the row median of 1, 4, 9, 100 is 6.5

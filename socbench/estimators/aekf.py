@@ -47,7 +47,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from .base import Estimator, settle_predict, settle_update
+from .base import Estimator, scheduled_jacobian, settle_predict, settle_update
 from .ekf import innovation_var, kalman_update
 from .estimate import Estimate
 from .safety import symmetrise
@@ -113,6 +113,7 @@ class AdaptiveEKF(Estimator):
                     break
                 # ---------------------------------------------------------------- predict
                 x, F, B = m.step(x, ik, inputs.dt[k], tk, jac=True)
+                F = scheduled_jacobian(m, F)
                 Q = noise.Q(B, inputs.dt[k])
                 if opt["adapt_q"]:
                     Q = Q + q_hat

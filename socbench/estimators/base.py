@@ -385,6 +385,35 @@ def settle_update(rec: Recorder, k: int, x, P, x_good, P_good, v_pred, e, S, nis
     return x, P
 
 
+def scheduled_jacobian(model, F):
+    """``F`` with ``∂x_j⁺/∂z = 0`` for every state ``j`` but the SOC when ``model.schedule_soc`` (else ``F``).
+
+    Parameter scheduling: the parameters of the dynamics (R1(z), C1(z), …) are looked up at the estimated SOC, but
+    their SOC *slope* is not SOC information. A table fitted point by point on HPPC pulses has slopes the cell does not
+    have; differentiated, they let a filter read the SOC off the polarisation's shape to a precision the model does not
+    have (``docs/real_data.md`` §4b measures it on the Panasonic US06)."""
+    if not getattr(model, "schedule_soc", False):
+        return F
+    F = np.array(F, dtype=float, copy=True)
+    F[..., 1:, 0] = 0.0
+    return F
+
+
+def scheduled_step(model, X, x, i, dt, temp, jac):
+    """``model.step`` of sigma points ``X (R, S, n)`` around the mean ``x (R, n)``; with ``model.schedule_soc`` the
+    sigma-point form of :func:`scheduled_jacobian`: every point steps at the mean SOC (so its other states see the
+    mean's parameters) and keeps its own SOC deviation (the counter's ``∂z⁺/∂z = 1``)."""
+    if not getattr(model, "schedule_soc", False):
+        return model.step(X, i, dt, temp, jac=jac)
+    dz = X[..., 0] - x[:, None, 0]
+    Xs = np.array(X, dtype=float, copy=True)
+    Xs[..., 0] = x[:, None, 0]
+    Xf, F, B = model.step(Xs, i, dt, temp, jac=jac)
+    Xf = np.array(Xf, copy=True)
+    Xf[..., 0] += dz
+    return Xf, F, B
+
+
 def settle_predict(rec: Recorder, k: int, x, P, x_good, P_good) -> None:
     """The safety tail every prediction shares (in place): runs whose predicted state or covariance (or its square
     root) is not finite fail at sample ``k``; failed runs go back to their last good values; the others become the

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Estimator, settle_predict, settle_update
+from .base import Estimator, scheduled_jacobian, settle_predict, settle_update
 from .estimate import Estimate
 from .safety import symmetrise
 
@@ -71,6 +71,7 @@ class EKF(Estimator):
                     break
                 # ---------------------------------------------------------------- predict
                 x, F, B = m.step(x, ik, inputs.dt[k], tk, jac=True)
+                F = scheduled_jacobian(m, F)
                 P = symmetrise(F @ P @ np.swapaxes(F, -1, -2) + self.process_cov(x, B, inputs.dt[k]))
                 settle_predict(rec, k + 1, x, P, x_good, P_good)
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold})

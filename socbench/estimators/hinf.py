@@ -46,7 +46,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from .base import Estimator, settle_predict, settle_update
+from .base import Estimator, scheduled_jacobian, settle_predict, settle_update
 from .ekf import innovation_var, kalman_update
 from .estimate import Estimate
 from .safety import symmetrise
@@ -105,6 +105,7 @@ class HInfinityFilter(Estimator):
                     break
                 # ---------------------------------------------------------------- predict
                 x, F, B = m.step(x, ik, inputs.dt[k], tk, jac=True)
+                F = scheduled_jacobian(m, F)
                 P = symmetrise(F @ P @ np.swapaxes(F, -1, -2) + noise.Q(B, inputs.dt[k]))
                 settle_predict(rec, k + 1, x, P, x_good, P_good)
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold, "theta": opt["theta"],

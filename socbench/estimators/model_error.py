@@ -28,13 +28,17 @@ knee and in the hysteresis a charge leaves), with bilinear hat weights ``h_jm(T_
 temperature and SOC and its duration ``dt_k``, ``⟨x⟩_jm = Σ h_jm x_k dt_k / Σ h_jm dt_k`` (an empty cell takes its
 nearest filled SOC cell, then its nearest filled temperature)::
 
-    σ_s²(T_j, z_m) = ⟨s²⟩_jm           (mean square: a bias is a slow error too)
+    σ_s²(T_j, z_m) = (n_jm ⟨s²⟩_jm + med_m ⟨s²⟩_jm)/(n_jm + 1)   (mean square: a bias is a slow error too; shrunk
+                     toward the row's median cell by the independent looks n_jm = Σ h_jm dt_k / 2τ_s the cell holds:
+                     a persistent error seen a few times per cell is a handful of numbers, the smallest too small)
     σ_f²(T_j, z_m) = max(⟨f²⟩_jm − ⟨d⟩_jm, 0)
     σ_r²(T_j, z_m) = ⟨v r²⟩_jm / ⟨v⟩_jm     (v_k = var_{W_r}(I): r is only known where the current moves)
     σ_0²(T_j)      = ⟨d⟩_j              (white; for a Gauss–Markov part with τ ≫ dt, E d ≈ σ_0²)
     τ_s, τ_r, τ_f  = integral time scales ∫ρ(L)dL of ρ(L) = ⟨x_k x_{k+L}⟩/⟨x²⟩ of s and r (1 s grid, lags to half the
                      median record length, at most 4 h), resp. of f without its white part (grid of the median sample
-                     step, lags to 60 s), up to the first lag where ρ ≤ 0; pooled over the records by duration
+                     step, lags to 60 s), up to the first lag where ρ ≤ 0; pooled over the records by duration; at
+                     least −L/ln ρ(L) at the longest lag L (persistence: an error that has not decorrelated within the
+                     records is a Gauss–Markov error with ρ(L) = e^{−L/τ}, not one that renews after a record)
 
 The mean is not removed from ρ: a persistent bias keeps ρ up and τ long, as it must. Why the integral time and not
 the 1/e lag: the SOC is a low-frequency quantity, and a Gauss–Markov state with τ = ∫ρ has the error's variance
@@ -60,7 +64,11 @@ Filter noise, inside the form every filter (and the compiled kernels) take, ``R_
   (a 10 Hz record: ten samples, each ten times as noisy, make one second's worth). The residual already holds the
   sensor noise of the residual records; ``σ_extra`` is noise added on top of the filtered record afterwards (a
   measured scenario's optional sensor noise);
-* ``σ_I`` stays the current sensor's (model error is not current noise), and the SOC gets no random walk.
+* ``σ_I`` stays the current sensor's (model error is not current noise), and the SOC gets no random walk;
+* the augmented model is *scheduled* (``schedule_soc``): a filter looks the dynamics' parameters up at the estimated
+  SOC without differentiating them (:func:`~socbench.estimators.base.scheduled_jacobian`, ``scheduled_step``). The
+  fitted tables' slopes over SOC are model error too; differentiated, they let a filter read the SOC off the
+  polarisation's shape far more precisely than the model allows.
 
 With ``noise="sensor"`` the model and the sensor covariance are used as they are (the covariance without model error).
 """
@@ -255,8 +263,9 @@ def _integral_time(rho: np.ndarray, step: float) -> float:
 
 
 def _pooled_time(items, step: float, max_lag_s: float) -> float:
-    """Integral time scale of several records' correlations ``(acov, duration, white variance)``: each covariance
-    without its white part at lag 0, the records pooled by duration, lags up to ``max_lag_s``."""
+    """Correlation time of several records' correlations ``(acov, duration, white variance)``: each covariance
+    without its white part at lag 0, the records pooled by duration, lags up to ``max_lag_s``; the larger of the
+    integral time (:func:`_integral_time`) and the persistence time :func:`_persistence_time`."""
     L = min(c.size for c, _, _ in items)
     L = max(min(L, int(max_lag_s / step) + 1), 1)
     num, den = np.zeros(L), 0.0
@@ -268,7 +277,22 @@ def _pooled_time(items, step: float, max_lag_s: float) -> float:
         den += dur * var
     if den <= 0:
         return step
-    return _integral_time(np.r_[1.0, num[1:] / den], step)
+    rho = np.r_[1.0, num[1:] / den]
+    return max(_integral_time(rho, step), _persistence_time(rho, step))
+
+
+def _persistence_time(rho: np.ndarray, step: float) -> float:
+    """``τ = −L/ln ρ(L)`` at the longest lag ``L`` measured [s] (at most :data:`MAX_LAG_S`; ``step`` if ρ(L) ≤ 0).
+
+    The integral time cannot exceed the lags a record holds: an error that has not decorrelated by then (a bias
+    that lasts the record, ρ(L) near 1) would be given a τ of about the record and averaged away over two of them.
+    A Gauss–Markov process has ``ρ(L) = e^{−L/τ}`` at every lag, so the longest lag gives its τ beyond the record
+    (and agrees with the integral time when τ is short)."""
+    L = step * (rho.size - 1)
+    r = float(rho[-1]) if rho.size > 1 else 0.0
+    if not r > 0:
+        return step
+    return float(min(MAX_LAG_S, L / -np.log(min(r, 1.0 - 1e-12))))
 
 
 def _temperature(profile) -> float:
@@ -315,6 +339,21 @@ def _fill(num, den, temps, soc):
         if not np.isfinite(val[k]).all():
             val[k] = val[rows[np.argmin(np.abs(tt[rows] - tt[k]))]] if rows.size else 0.0
     return val
+
+
+def _shrunk(num, den, temps, soc, look_s: float):
+    """Mean squares per cell ``num/den`` shrunk toward their temperature row's typical one:
+    ``(n·v_cell + v_row)/(n + 1)`` with ``n = den/look_s`` the independent looks a cell holds (a Gauss–Markov error
+    gives one per ``2τ`` seconds) and ``v_row`` the median over the row's filled cells. A slow error seen for a few
+    correlation times per SOC cell is a handful of numbers, and the smallest of them would make the band too narrow
+    there; the row's typical value is worth one look."""
+    K, Z = len(temps), len(soc)
+    cell = _fill(num, den, temps, soc)
+    n = den.reshape(K, Z) / look_s
+    # the row's typical cell (median over the filled cells): the ends of the SOC range, where a model's error is
+    # largest, must not set the level of the middle
+    row = np.array([np.median(cell[k][n[k] > 0]) if (n[k] > 0).any() else np.median(cell[k]) for k in range(K)])
+    return (n * cell + row[:, None]) / (n + 1.0)
 
 
 def bin_average(profile: Profile, width_s: float = RESOLUTION_S) -> Profile:
@@ -377,7 +416,6 @@ def estimate(model, records, temps=None, window_s: float = WINDOW_S, soc=SOC_GRI
         r_cov.append((_acov(t, r, 1.0, MAX_LAG_S), dur * float(np.mean(var_i)), 0.0))
     if not (grid["w"] > 0).any():
         raise ConfigError("the noise recipe found no samples")
-    slow = np.sqrt(_fill(grid["s"], grid["w"], temps, soc))
     fast_var = _fill(grid["f"], grid["w"], temps, soc) - _fill(grid["d"], grid["w"], temps, soc)
     res = np.sqrt(_fill(grid["r"], grid["v"], temps, soc)) if (grid["v"] > 0).any() else np.zeros((K, Z))
     w_T, d_T = grid["w"].reshape(K, Z).sum(axis=1), grid["d"].reshape(K, Z).sum(axis=1)
@@ -385,6 +423,7 @@ def estimate(model, records, temps=None, window_s: float = WINDOW_S, soc=SOC_GRI
     # correlations are trusted up to half the median record (beyond, too few sample pairs)
     max_lag = min(MAX_LAG_S, 0.5 * float(np.median([d for _, d, _ in slow_cov])))
     tau_slow = _pooled_time(slow_cov, 1.0, max_lag)
+    slow = np.sqrt(_shrunk(grid["s"], grid["w"], temps, soc, 2.0 * max(tau_slow, window_s)))
     fast_step = float(np.median([x[3] for x in fast_cov]))
     tau_fast = _pooled_time([x[:3] for x in fast_cov], fast_step, FAST_MAX_LAG_S)
     tau_r = _pooled_time(r_cov, 1.0, max_lag)
@@ -405,6 +444,7 @@ def apply(model, sensor: SensorNoise, stats: ModelErrorStats | None, profile: Pr
     if noise == "sensor" or stats is None:
         return model, sensor
     aug = augment(model, [stats.effect()])
+    aug.schedule_soc = True  # the dynamics' parameter slopes over SOC are model error too, not SOC information
     temp = None if profile is None else profile.temperature_c
     # the walk variances are exact at the record's typical step dt₀ (first order in dt_k/dt₀ around it)
     dt0 = float(np.median(profile.dt)) if profile is not None and profile.n > 1 else sensor.dt

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import settle_predict, settle_update
+from .base import scheduled_step, settle_predict, settle_update
 from .estimate import Estimate
 from .ukf import UKF
 
@@ -146,7 +146,7 @@ class SRUKF(UKF):
                     break
                 # ---------------------------------------------------------------- predict
                 X = sqrt_sigma_points(x, L, gamma)
-                Xf, _, B = m.step(X, ik_s, inputs.dt[k], tk_s, jac=noise.needs_B)
+                Xf, _, B = scheduled_step(m, X, x, ik_s, inputs.dt[k], tk_s, noise.needs_B)
                 Q = noise.Q(None if B is None else B[:, 0], inputs.dt[k])
                 x = np.einsum("s,rsi->ri", Wm, Xf)
                 dX = Xf - x[:, None, :]

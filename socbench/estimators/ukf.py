@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from .base import Estimator, settle_predict, settle_update
+from .base import Estimator, scheduled_step, settle_predict, settle_update
 from .estimate import Estimate
 from .safety import repair_psd, symmetrise
 
@@ -111,7 +111,7 @@ class UKF(Estimator):
                     break
                 # ---------------------------------------------------------------- predict
                 X = self.points(x, P)
-                Xf, _, B = m.step(X, ik_s, inputs.dt[k], tk_s, jac=noise.needs_B)
+                Xf, _, B = scheduled_step(m, X, x, ik_s, inputs.dt[k], tk_s, noise.needs_B)
                 Q = noise.Q(None if B is None else B[:, 0], inputs.dt[k])
                 x = np.einsum("s,rsi->ri", Wm, Xf)
                 dX = Xf - x[:, None, :]

@@ -93,6 +93,11 @@ class Model(ABC):
     param_units: ClassVar[dict] = {}
     #: one line on what was corrected against the paper
     corrections: ClassVar[str] = ""
+    #: for the Kalman-type filters: look the SOC-dependent parameters of the dynamics up at the estimated SOC without
+    #: differentiating them (``∂x_j⁺/∂z = 0`` for every state but the SOC; see
+    #: :func:`socbench.estimators.base.scheduled_jacobian`). Set on a model by the noise recipe
+    #: (:func:`socbench.estimators.model_error.apply`); False: the full Jacobian
+    schedule_soc: ClassVar[bool] = False
 
     def __init__(self, params: ModelParams, mode: str | None = None):
         self.params = params
