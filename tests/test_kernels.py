@@ -341,9 +341,12 @@ def _compare(a, b, spread=None):
         if key in a.info:  # the adaptive and joint filters' own outputs
             ra, rb = np.asarray(a.info[key]), np.asarray(b.info[key])
             assert np.all(np.abs(ra - rb) <= TOL * (1.0 + np.abs(ra))), key
+    # counters: on every run, or, where the numpy engine itself is chaotic (spread), on the runs it is not
+    stable = np.ones(a.n_runs, dtype=bool) if spread is None else spread["soc"].ravel() <= TOL
     for key in ("psd_repairs", "resampled", "tempered", "theta_capped"):
         if key in a.info:
-            np.testing.assert_array_equal(a.info[key], b.info[key], err_msg=key)
+            np.testing.assert_array_equal(np.asarray(a.info[key])[stable], np.asarray(b.info[key])[stable],
+                                          err_msg=key)
 
 
 MODEL_CASES = {
@@ -437,12 +440,15 @@ def test_noise_forms_compiled(name):
         _compare(a, b)
 
 
+@pytest.mark.parametrize("schedule", [True, False])
 @pytest.mark.parametrize("name", estimator_names())
-def test_the_noise_recipe_runs_compiled_like_numpy(name):
+def test_the_noise_recipe_runs_compiled_like_numpy(name, schedule):
     """What `socbench estimate` runs by default: the model with the ModelError states and a SensorNoise whose walk_sd
-    drives them (estimators.model_error.apply), on a record with a temperature column."""
+    drives them, parameter scheduling on (estimators.model_error.apply; base.scheduled_jacobian/scheduled_step), on a
+    record with a temperature column; and the same without scheduling."""
     eff = _model_error(21)
     model = augment(make_model("dp", temperature_params("dp")), [eff])
+    model.schedule_soc = schedule
     p = _record(model, T=200, temp=True)
     walk = np.zeros(model.n_states)
     walk[-3:] = np.sqrt(eff.walk_var(1.0))

@@ -108,7 +108,8 @@ class Job:
         self.nz, self.walk, self.Qo = noise_arrays(estimator.noise, n)
         self.threshold = gate_threshold(opt["gate_alpha"])
         self.opt = np.array([self.threshold, float(opt["gate_release"]), float(opt["var_max"]), float(opt["nis_max"]),
-                             float(opt["psd_floor"]), float(opt["psd_rel_floor"])])
+                             float(opt["psd_floor"]), float(opt["psd_rel_floor"]),
+                             1.0 if getattr(estimator.model, "schedule_soc", False) else 0.0])
         self.store = bool(opt["store_states"])
         self.outf = np.empty((5, R, T))
         self.outb = np.zeros((2, R, T), dtype=np.bool_)

@@ -41,8 +41,8 @@ from .linalg import cholesky_lower, diverged_cov, diverged_var, eigh_jacobi, gat
 NOISE_FIELDS = ("voltage_var", "input_var", "r_override", "dt0", "has_walk", "q_override", "current_var", "bias_var")
 V_VAR, IN_VAR, R_OVR, DT0, HAS_WALK, Q_OVR, CUR_VAR, BIAS_VAR = range(8)
 #: opt slots
-OPTION_FIELDS = ("gate_threshold", "gate_release", "var_max", "nis_max", "psd_floor", "psd_rel_floor")
-G_THR, G_REL, VAR_MAX, NIS_MAX, PSD_ABS, PSD_REL = range(6)
+OPTION_FIELDS = ("gate_threshold", "gate_release", "var_max", "nis_max", "psd_floor", "psd_rel_floor", "schedule_soc")
+G_THR, G_REL, VAR_MAX, NIS_MAX, PSD_ABS, PSD_REL, SCHEDULE = range(7)
 
 
 # ================================================================================================ shared pieces
@@ -329,6 +329,9 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             if st != 0:
                 status[r] = st
                 break
+            if opt[SCHEDULE] != 0.0:  # parameter scheduling: ∂x_j⁺/∂z = 0 but for the SOC (base.scheduled_jacobian)
+                for a in range(1, n):
+                    F[a, 0] = 0.0
             for a in range(n):
                 x[a] = xn[a]
             process_cov(nzp, walkp, Qop, Bp, n, dts[k], nz[IN_VAR], Qp)
@@ -457,11 +460,18 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                 break
             # ---------------------------------------------------------------- predict
             sigma_points(xp, Pp, n, lam, Xp, Lp, Mp, wp, Vp, workp)
+            schedule = opt[SCHEDULE] != 0.0
             for s in range(ns):
+                dz = 0.0
+                if schedule:  # every point steps at the mean SOC and keeps its own SOC deviation (base.scheduled_step)
+                    dz = X[s, 0] - x[0]
+                    X[s, 0] = x[0]
                 st = model_step(imp, fmp, ptr_at(X, s * n), ik, dts[k], tk, has_temp, needs_B and s == 0,
                                 ptr_at(Xf, s * n), Fp, Bp, sp)
                 if st != 0:
                     break
+                if schedule:
+                    Xf[s, 0] += dz
             if st != 0:
                 status[r] = st
                 break
