@@ -32,9 +32,17 @@ import numpy as np
 
 from socbench.datasets import load
 from socbench.diagnose import diagnose, fit_base, randomized
+from socbench.diagnose.core import IGNORE_VOLTAGE, soc_attribution
 from socbench.diagnose.cv import cv_residual
 from socbench.diagnose.report import figures, markdown_table, write_report
-from socbench.diagnose.search import NOISE_FLOOR, initial_soc
+from socbench.diagnose.search import (
+    BASE_SCALE,
+    FIELD_REST_MIN_S,
+    NOISE_FLOOR,
+    NOISE_FLOOR_REFIT,
+    PARSIMONY,
+    initial_soc,
+)
 
 REAL = {
     "panasonic": {
@@ -78,7 +86,8 @@ def run_real(key, data_dir: Path, out: Path, report_dir: Path) -> dict:
     bounds = {e.name: e.bounds(diag.base_model) for e in diag.final_model.effects} if diag.effects_added else {}
     result = {"key": key, "case": case, "diagnosis": d, "wall_s": wall, "cpu_s": cpu, "bounds": bounds,
               "figures": [str(p.relative_to(out)) for p in figs], "seconds": diag.seconds,
-              "alone": each_effect_alone(diag) if len(diag.effects_added) > 1 else []}
+              "alone": each_effect_alone(diag) if len(diag.effects_added) > 1 else [],
+              "soc_attribution": soc_attribution(diag, evals)}
     if "oracle" in case:
         result["oracle"] = oracle(case, data_dir, evals, diag)
     return result
@@ -153,16 +162,22 @@ HOW = (
     "its physical bounds 4 times, each time without one block, and scored on the block it did not see; the held-out "
     "RMSE is over every sample. Candidates are the effects whose residual signature explains the most variance "
     "(the SOC drifts — capacity, current bias, leak, efficiency — one family, fitted together), and a *base refit* "
-    "(the base model's own parameters scaled ×0.5…×2 and a voltage offset per record) that stands for base-fit error "
-    "and is never named an effect; an effect within 10 % of a winning base refit is preferred to it. A current "
-    "offset that the rests measure decides the SOC-drift family. The winner is added and refitted with what was "
-    "added before while the held-out RMSE falls by ≥ 10 %, scores above the AIC-like penalty and stays above "
+    f"(the base model's own parameters scaled ×{math.exp(-BASE_SCALE):g}…×{math.exp(BASE_SCALE):g} and a voltage "
+    "offset per record) that stands for base-fit error and is never named an effect; an effect within "
+    f"{100 * PARSIMONY:.0f} % of a winning base refit is preferred to it. Rests of the evaluation records of at least "
+    f"{FIELD_REST_MIN_S / 60:.0f} min (a vehicle's stop draws a small steady current for a minute or two) measure the "
+    "current sensor (the median current there): an offset they read is fitted first and decides the SOC-drift "
+    "family, a null one rules the offset out. The winner is added and refitted with what was added before while the "
+    "held-out RMSE falls by ≥ 10 %, scores above the AIC-like penalty and stays above "
     f"{NOISE_FLOOR:g} × the voltage noise of the averaged records (measured from the second difference of the "
-    "residual on the records as recorded).")
+    f"residual on the records as recorded; {NOISE_FLOOR_REFIT:g} × once the base refit is in the model, every later "
+    "candidate being fitted jointly with it).")
 SOC_HOW = (
     "SOC: the EKF and the UKF run on every record once per fold (records averaged to at most 1500 bins), block j "
-    "scored with fold j's model; each fold's filter voltage noise is its model's RMSE on its training blocks, the "
-    "current noise 1 % of C; an added state's initial SD is the spread of its fitted initial value over the folds "
+    "scored with fold j's model; each fold's filter voltage noise is the held-out residual outside block j (each "
+    "block scored by the fold model that did not see it) as a white-noise equivalent σ·√((1+ρ)/(1−ρ)) (ρ its lag-1 "
+    "autocorrelation), the current noise 1 % of C; an "
+    "added state's initial SD is the spread of its fitted initial value over the folds "
     "(`socbench.models.effects.Effect.initial_sd`), its random walk the effect's declaration (0 for capacity and a "
     "sensor offset: constants within a record).")
 
@@ -196,6 +211,7 @@ def render_real(r) -> list:
         if name in b.get("soc", {}) and a["soc"][name]["soc_rmse"] > b["soc"][name]["soc_rmse"] + 0.002:
             L += [f"**The {name.upper()}'s held-out SOC error grew by more than 0.2 points** "
                   f"({_soc(b, name)} → {_soc(a, name)} %) although the voltage error fell.", ""]
+            L += render_attribution(r.get("soc_attribution"), name)
     if "oracle" in r:
         o = r["oracle"]
         ratio = o["loop_rmse_v"] / o["rmse_v"]
@@ -235,6 +251,31 @@ def render_real(r) -> list:
     return L
 
 
+def render_attribution(att, name) -> list:
+    """Where the SOC change comes from (:func:`socbench.diagnose.core.soc_attribution`), for filter ``name``."""
+    if not att:
+        return []
+    b, a = att["before"], att["after"]
+    pct = lambda x: f"{100 * x:.2f}"  # noqa: E731
+    grew = a["own"][name] - b["own"][name]
+    noise_share = a["own"][name] - a["other"][name]
+    L = [f"Where it comes from (`socbench.diagnose.core.soc_attribution`, same filters and folds, {name.upper()} "
+         "held-out SOC RMSE [%]):", "",
+         "| model | own filter voltage noise | the other model's | voltage ignored (noise × "
+         f"{IGNORE_VOLTAGE:g}) |", "|---|---|---|---|",
+         f"| before | {pct(b['own'][name])} | {pct(b['other'][name])} | {pct(b['voltage_ignored'][name])} |",
+         f"| after | {pct(a['own'][name])} | {pct(a['other'][name])} | {pct(a['voltage_ignored'][name])} |", "",
+         f"Of the {100 * grew:.2f} points, {100 * noise_share:.2f} come from the smaller filter voltage noise of the "
+         f"better voltage model (the filter trusts the voltage more), {100 * (grew - noise_share):.2f} from the "
+         "model at equal filter noise."]
+    if b["own"][name] > b["voltage_ignored"][name] and a["own"][name] > a["voltage_ignored"][name]:
+        L[-1] += (" Both models' filters do worse than counting the current alone "
+                  f"({pct(b['voltage_ignored'][name])} / {pct(a['voltage_ignored'][name])} %): the voltage error "
+                  "left in either model misleads the SOC more than it corrects it, so a smaller but still "
+                  "SOC-biasing voltage error, trusted a little more, moves the estimate further off.")
+    return L + [""]
+
+
 #: what makes an effect hard to name at its physical magnitudes (the rates above say how often it happens)
 WHY_WEAK = {
     "temperature": "an evaluation at one ambient scales every resistance alike, which the base refit can also do; "
@@ -246,8 +287,9 @@ WHY_WEAK = {
                 "with grown resistances here; on a flat LFP curve the drift shows only in the end-of-discharge knee.",
     "current_bias": "without rests in the record nothing measures the offset directly, and its drift is then "
                     "nearly a capacity error or a leak.",
-    "extra_rc": "a slow branch the structure lacks looks like a misfitted slow branch of the base (a DP's second "
-                "RC) or, over a long record, like an SOC drift; the base refit takes up part of it.",
+    "extra_rc": "the fit test shows the missing branch too, so on a DP base the DP's own second branch, fitted on "
+                "the HPPC, takes up much of it, and the base refit (the branches rescaled) most of the rest; it is "
+                "named when, fitted jointly with the refit, it still cuts the error by 10 % above the noise floor.",
     "butler_volmer": "with I₀ of 0.3–2 C the asinh is nearly linear over the loads' currents, so the base fit's R0 "
                      "absorbs most of it, and averaging a record to at most 4000 bins blurs the current peaks where "
                      "the curvature shows.",
@@ -287,7 +329,9 @@ def render(results: dict) -> str:
               "and offsets), with zero, one or two of the eight effects at magnitudes drawn from physical ranges "
               "(sources and ranges: `socbench/diagnose/randomized.py`). The diagnosis gets the base model's name "
               "and the records. `tests/test_undeclared_benchmark.py` runs 20 cases of the same generator with "
-              "another seed and asserts floors on these rates.", "",
+              "another seed and asserts floors on these rates. A drive record ends when the cell reaches 10 % "
+              "(before, one more drive could run it past empty, to a fraction of a volt, which no instrument "
+              "records; `tests/test_undeclared_generator.py` asserts it).", "",
               randomized.markdown(bench)]
         weak = [row for row in bench["rates"]["rows"] if row["named_first"] is not None and row["named_first"] < 0.9]
         if weak:

@@ -15,7 +15,7 @@ import pytest
 
 from socbench import loads
 from socbench.diagnose import diagnose, make_folds
-from socbench.diagnose.core import _coarse, fit_base
+from socbench.diagnose.core import _coarse, fit_base, soc_attribution
 from socbench.diagnose.search import Search
 from socbench.diagnose.synthetic import cell, hidden_case
 from socbench.models import make_model
@@ -88,3 +88,21 @@ def test_soc_of_the_augmented_model_is_not_worse(effect, load, seed):
     assert effect in d.effects_added
     for name in ("ekf", "ukf"):
         assert d.after["soc"][name]["soc_rmse"] <= d.before["soc"][name]["soc_rmse"] + 0.002, d.after["soc"]
+    if effect == "capacity":
+        att = soc_attribution(d, [ev])
+        for key in ("before", "after"):  # its "own" runs are the diagnosis' own SOC numbers, recomputed
+            for name in ("ekf", "ukf"):
+                assert att[key]["own"][name] == pytest.approx(getattr(d, key)["soc"][name]["soc_rmse"], rel=1e-6)
+        # with the voltage ignored the filters count the current: on the fitted capacity (after) far better than on
+        # the base model's, 15 % off
+        for name in ("ekf", "ukf"):
+            assert att["after"]["voltage_ignored"][name] < 0.5 * att["before"]["voltage_ignored"][name], att
+
+
+@pytest.mark.parametrize("effect,measured", [("temperature", True), (None, False), ("capacity", False)])
+def test_a_measured_temperature_away_from_the_fit_is_evidence(effect, measured):
+    # the synthetic temperature case warms from −5 to 20 °C against a 25 °C fit; the others stay at the fit's 25 °C
+    fit, ev = hidden_case(effect, "thevenin", "pulses", "small", v_sd=1e-3, seed=5)
+    base, info = fit_base("thevenin", [fit], "constant")
+    search = Search(base, make_folds([_coarse(ev, 1.0, 4000)], 4), info["t_ref_c"], base_refit=False)
+    assert search.temperature_measured is measured

@@ -14,7 +14,9 @@
    steps while the held-out RMSE falls by ≥ 10 %.
 4. **SOC** (where the data carry a reference SOC): the EKF and the UKF on the base model and on the augmented model of
    every fold, block ``j`` scored with fold ``j``'s run (:func:`soc_errors`); the filters' voltage noise is the
-   white-noise equivalent of each fold model's correlated training residual (:func:`filter_voltage_sd`), an added
+   white-noise equivalent (:func:`filter_voltage_sd`) of the correlated held-out residual outside block ``j`` (each
+   of those blocks scored by the fold model that did not see it: the error the model makes on data it was not
+   fitted on; the training residual hid fold models that generalise badly, which the filter then trusted), an added
    state's initial SD the spread of its fitted initial value over the folds (:func:`fold_spread_sd`).
 
 ``before`` is the base model's error on every averaged sample (no parameter of it was fitted there); ``after`` the
@@ -179,6 +181,9 @@ LOOKUP_KNOTS = np.array([0.0, 0.1, 0.2, 0.4, 0.7, 1.0])
 MAX_RHO = 0.999
 #: samples per record for the SOC filters (their cost is per sample)
 SOC_MAX_SAMPLES = 1500
+#: the residual a fold's filter voltage noise is measured on: "training" (its own model on its training blocks) or
+#: "held_out" (the blocks outside its own, each scored by the fold model that did not see it)
+FILTER_NOISE = "held_out"
 #: filters run for the SOC before/after comparison
 SOC_ESTIMATORS = ("ekf", "ukf")
 #: the current-sensor noise the filters assume [fraction of the capacity, A per A·h]
@@ -324,6 +329,9 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
         def train_rmse(model_or_build, thetas=None):
             """Each fold's filter voltage noise (:func:`filter_voltage_sd`) on the filters' records."""
             out = np.zeros(soc_folds.k)
+            if FILTER_NOISE == "held_out" and thetas is not None:
+                r = cv_residual(model_or_build, soc_folds, soc0s, thetas)[0]
+                return np.array([filter_voltage_sd(r, soc_folds, j) for j in range(soc_folds.k)])
             for j in range(soc_folds.k):
                 r = cv_residual(model_or_build, soc_folds, soc0s, None if thetas is None
                                 else np.repeat(thetas[j:j + 1], soc_folds.k, axis=0))[0]
@@ -346,8 +354,8 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
                                                                             "after": vsd_a.tolist()},
                         "effect_state_sd": {k: list(v) for k, v in isd.items()},
                         "note": "EKF and UKF on every record once per fold, block j scored with fold j's model; "
-                                "filter voltage noise = each fold model's training residual as white-noise equivalent "
-                                "σ·√((1+ρ)/(1−ρ)); current "
+                                "filter voltage noise = the held-out residual outside each fold's block as "
+                                "white-noise equivalent σ·√((1+ρ)/(1−ρ)); current "
                                 f"noise {100 * SOC_CURRENT_SD:g} % of C; an added state's initial SD = the spread of "
                                 "its fitted initial value over the folds"}
         else:
@@ -387,4 +395,40 @@ def _per_record(residual, folds: Folds) -> dict:
         e = residual[k:k + p.n]
         out[p.name] = float(np.sqrt(np.mean(e * e)))
         k += p.n
+    return out
+
+
+#: the filter voltage noise × this makes the filters ignore the voltage (their SOC is then the current counted)
+IGNORE_VOLTAGE = 100.0
+
+
+def soc_attribution(diag: Diagnosis, eval_profiles, dt: float = 1.0) -> dict | None:
+    """Where a change of the held-out SOC error between the base and the final model comes from (None without a
+    reference SOC or without an added step). The same filters and folds as :func:`diagnose`, each model run
+
+    * with its own filter voltage noise (what the diagnosis reports),
+    * with the other model's (the share due to the filter trusting the voltage more or less),
+    * with the voltage ignored (noise × :data:`IGNORE_VOLTAGE`: the current counted through the filter): when a
+      filter does worse than that, the voltage model's remaining error misleads it whatever the model.
+
+    Returns ``{"before"|"after": {"own"|"other"|"voltage_ignored": {estimator: SOC RMSE}}}``."""
+    vsd = diag.soc.get("voltage_sd")
+    if not vsd or not diag.steps or diag.search is None:
+        return None
+    search, last = diag.search, diag.steps[-1]
+    base = search.base
+    records = [_coarse(p, dt, SOC_MAX_SAMPLES) for p in eval_profiles]
+    folds = make_folds(records, diag.split.k)
+    soc0s = [initial_soc(base, p) for p in records]
+    isd = fold_spread_sd(last, base)
+    models = {"before": lambda layout: (base, None),
+              "after": lambda layout: search.fold_models(last, layout, isd)}
+    noise = {"before": np.asarray(vsd["before"]), "after": np.asarray(vsd["after"])}
+    out = {}
+    for key, other in (("before", "after"), ("after", "before")):
+        runs = {"own": noise[key], "other": noise[other], "voltage_ignored": IGNORE_VOLTAGE * noise[key]}
+        out[key] = {}
+        for label, v in runs.items():
+            r = soc_errors(models[key], folds, soc0s, v)
+            out[key][label] = {name: x["soc_rmse"] for name, x in r.items()}
     return out

@@ -238,6 +238,11 @@ def eval_current(rng, kind: str, q: float, dt: float, soc0: float = 0.98):
     if kind == "drive":
         while z > 0.25:
             i = drive_current(rng, q, dt, float(rng.uniform(10.0, 30.0)))
+            left = z - np.cumsum(i) * dt / (3600.0 * q)
+            if left[-1] < 0.1:  # the driver stops at 10 % (a drive never runs the cell past empty)
+                i = i[:max(1, int(np.argmax(left < 0.1)))]
+                add(i)
+                break
             add(i)
             add(np.zeros(max(1, int(round(rng.uniform(60.0, 900.0) / dt)))))
         desc.append("drive cycles")
@@ -290,6 +295,7 @@ class Case:
     evals: list = field(repr=False)
     truth_without: object = field(default=None, repr=False)  # the truth cell without its effects (for the footprint)
     truth: object = field(default=None, repr=False)
+    hidden: dict = field(default_factory=dict, repr=False)  # effect name -> the truth's Effect (not the sensor offset)
 
     def describe(self) -> dict:
         return {"index": self.index, "seed": self.seed, "kind": self.kind, "effects": list(self.effects),
@@ -381,7 +387,7 @@ def draw_case(index: int, seed: int = 0) -> Case:
     base_model = make_model(base, params)
     draws = {"cell": draws}
     ambient = 25.0
-    fit_effects, use_effects = [], []
+    fit_effects, use_effects, hidden = [], [], {}
     growth = 0.0
     for name in effects:
         values, d, amb = _draw_effect(rng, name, chemistry, q, draws["cell"]["R0_ohm"])
@@ -394,6 +400,7 @@ def draw_case(index: int, seed: int = 0) -> Case:
             continue  # a sensor offset: the truth runs on the true current
         eff = make_effect(name, **values)
         use_effects.append(eff)
+        hidden[name] = eff
         if name not in IN_USE_ONLY:
             fit_effects.append(eff)
     aged = base_model
@@ -434,7 +441,7 @@ def draw_case(index: int, seed: int = 0) -> Case:
     draws.update({"hppc": layout, "slow_ocv_test": slow, "load": load, "load_desc": load_desc,
                   "eval_dt_s": dt, "eval_hours": round(float(t[-1]) / 3600.0, 2), "v_sd": v_sd, "i_sd_c": i_sd / q,
                   "v_offset": v_off, "fit_v_sd": v_sd_fit, "fit_i_sd_c": i_sd_fit / q, "fit_i_offset_c": i_off_fit / q})
-    return Case(index, seed, kind, effects, base, chemistry, q, draws, fits, [ev], aged, truth_use)
+    return Case(index, seed, kind, effects, base, chemistry, q, draws, fits, [ev], aged, truth_use, hidden)
 
 
 # ------------------------------------------------------------------------------------------------ scoring
@@ -444,22 +451,31 @@ CUT = 0.30
 SOC_SLACK = 0.002
 
 
-def footprint(case: Case, dt: float = 1.0, max_samples: int = 4000) -> float:
-    """RMS of the voltage the hidden effects add on the evaluation records (truth with them − truth without, on the
-    diagnosis' bins), relative to the evaluation voltage noise: how visible the drawn magnitude is."""
+def footprint(case: Case, dt: float = 1.0, max_samples: int = 4000, only: str | None = None) -> float:
+    """RMS of the voltage the hidden effects (``only``: that one alone) add on the evaluation records (truth with
+    them − truth without, on the diagnosis' bins), relative to the evaluation voltage noise: how visible the drawn
+    magnitude is."""
     from .core import _coarse
 
-    if not case.effects:
+    names = [n for n in case.effects if only is None or n == only]
+    if not names:
         return 0.0
+    effects = [case.hidden[n] for n in names if n in case.hidden]
+    truth = case.truth if only is None else augment(case.truth_without, effects) if effects else case.truth_without
+    b0 = case.draws.get("current_bias", {}).get("b0", 0.0) if "current_bias" in names else 0.0
     sq, n = 0.0, 0
     for ev in case.evals:
         p = _coarse(ev, dt, max_samples)
         p_true = p.with_(current_a=p.current_a - case.draws.get("current_bias", {}).get("b0", 0.0))
-        a = case.truth.simulate(p_true, soc0=0.98).voltage_v
-        b = case.truth_without.simulate(p_true if "current_bias" not in case.effects else p, soc0=0.98).voltage_v
+        a = truth.simulate(p_true, soc0=0.98).voltage_v
+        b = case.truth_without.simulate(p_true if b0 == 0.0 else p, soc0=0.98).voltage_v
         sq += float(np.sum((a - b) ** 2))
         n += p.n
     return float(np.sqrt(sq / n) / case.draws["v_sd"])
+
+
+#: candidates kept per round in a case's result (effect, score, held-out RMSE after [mV]), best first
+ROUND_CANDIDATES = 4
 
 
 def run_case(case: Case, **diagnose_options) -> dict:
@@ -477,7 +493,12 @@ def run_case(case: Case, **diagnose_options) -> dict:
     out = {**case.describe(), "added": d.effects_added, "first": d.effects_added[0] if d.effects_added else None,
            "rmse_before": b["rmse_v"], "rmse_after": a["rmse_v"], "base_fit": d.fit.get("selection", {}).get("chosen"),
            "noise_sd_measured": d.fit.get("voltage_noise_sd"), "wall_s": wall, "cpu_s": cpu,
-           "seconds": d.seconds, "footprint": footprint(case)}
+           "seconds": d.seconds, "footprint": footprint(case),
+           "footprints": {n: footprint(case, only=n) for n in case.effects},
+           "steps": [s.effect for s in d.steps],
+           "rounds": [[[c.effect, round(float(c.score), 4), round(1000 * c.rmse_after, 3)]
+                       for c in r["candidates"] if np.isfinite(c.score)][:ROUND_CANDIDATES] for r in d.rounds],
+           "noise_sd_binned": d.fit.get("voltage_noise_sd_binned")}
     if "soc" in b:
         out["soc_before"] = {k: v["soc_rmse"] for k, v in b["soc"].items()}
         out["soc_after"] = {k: v["soc_rmse"] for k, v in a["soc"].items()}
@@ -528,6 +549,34 @@ def rates(results) -> dict:
                      "median_footprint": float(np.median([r["footprint"] for r in s])) if s else None,
                      "wrongly_first": sum(r["first"] == name for r in results if name not in r["effects"])})
     out["rows"] = rows
+    out["by_footprint"] = by_footprint(results)
+    return out
+
+
+#: detectability classes: the hidden effect's own footprint (RMS voltage it adds) over the voltage noise
+FOOTPRINT_BINS = ((0.0, 1.0, "< 1 (within the noise)"), (1.0, 3.0, "1–3"), (3.0, math.inf, "≥ 3"))
+
+
+def own_footprint(r: dict, name: str) -> float:
+    """The footprint / noise of hidden effect ``name`` alone in case result ``r``."""
+    fp = r.get("footprints") or {}
+    return float(fp[name]) if name in fp else float(r["footprint"])
+
+
+def by_footprint(results) -> list:
+    """The rates by detectability (:data:`FOOTPRINT_BINS`): single-effect cases (named first, RMSE cut) and the
+    effects of two-effect cases (each named or not), by the hidden effect's own footprint. The headline rates stay over
+    all cases; this shows how many misses are effects whose magnitude hides them in the noise."""
+    out = []
+    for lo, hi, label in FOOTPRINT_BINS:
+        single = [r for r in results if r["kind"] == "single" and lo <= own_footprint(r, r["effects"][0]) < hi]
+        pair = [(r, e) for r in results if r["kind"] == "pair" for e in r["effects"]
+                if lo <= own_footprint(r, e) < hi]
+        out.append({"footprint": label, "lo": lo, "hi": hi if math.isfinite(hi) else None,
+                    "named_first_single": _share(r["first"] == r["effects"][0] for r in single),
+                    "cut_30_single": _share("rmse_after" in r and r["rmse_after"] <= (1.0 - CUT) * r["rmse_before"]
+                                            for r in single),
+                    "named_in_pair": _share(e in r["added"] for r, e in pair)})
     return out
 
 
@@ -583,6 +632,15 @@ def markdown(summary: dict) -> str:
         L.append(f"| {row['effect']} | {row['single']} | {_pct(row['named_first'])} | {_pct(row['cut_30'])} | "
                  f"{_pct(row['soc_not_worse'])} | {fp} | {row['pairs']} | {_pct(row['named_in_pair'])} | "
                  f"{row['wrongly_first']} |")
+    if R.get("by_footprint"):
+        L += ["", "By detectability (the hidden effect's own footprint over the voltage noise; the headline rates "
+              "above are over all cases):", "",
+              "| footprint / noise | single cases | named first | RMSE cut ≥ 30 % | effects in pairs | named in pair |",
+              "|---|---|---|---|---|---|"]
+        for b in R["by_footprint"]:
+            s1, c1, p1 = b["named_first_single"], b["cut_30_single"], b["named_in_pair"]
+            L.append(f"| {b['footprint']} | {s1['n']} | {_pct(s1['rate'])} | {_pct(c1['rate'])} | {p1['n']} | "
+                     f"{_pct(p1['rate'])} |")
     if R["errors"]:
         L += ["", f"{R['errors']} case(s) stopped with an error (counted as misses)."]
     return "\n".join(L) + "\n"

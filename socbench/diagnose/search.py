@@ -16,7 +16,7 @@ One round, on the current model ``m`` (the base model, then the base model with 
    least 100 — neighbouring residuals of a voltage fit are far from independent);
 4. add the chosen candidate (:meth:`Search._choose`) if it lowers the held-out RMSE by at least ``min_gain`` (10 %)
    and the model is not already at the noise floor (held-out RMSE ≤ ``NOISE_FLOOR`` × the voltage noise of the
-   averaged records, :func:`residual_noise`); else stop.
+   averaged records, :func:`residual_noise`; ``NOISE_FLOOR_REFIT`` × once the base refit is in the model); else stop.
 
 Candidates. The bounded fit (the expensive part) runs for the ``max_fits`` best-supported families by signature R²
 (at least ``MIN_SIGNATURE_R2``); the four SOC drifts (capacity, current bias, leak, efficiency: one regressor shape up
@@ -25,11 +25,15 @@ to U(z)/U(1) and charge weighting) are one family, fitted together. Beside the e
 for what a better base fit would absorb (an OCV read from unrelaxed rests, a slow branch a short pulse cannot
 identify) and is never named an effect; an effect within ``PARSIMONY`` of a winning base refit is preferred to it.
 For the same reason an extra RC branch whose time constant lies within ×``TWIN_TAU`` of one of the base model's
-branches is not named: it cannot be told from a misfit of that branch.
+branches is not named while the base is not refitted: it cannot be told from a misfit of that branch. Nested tests
+against the refit (:meth:`Search._beyond_refit`): an effect that wins a round in which the refit also cut the error is
+named only if, fitted jointly with the refit, it cuts the refit's error by ``min_gain`` (else the refit is taken);
+after a refit is adopted, the ``CARRY`` best-scoring effects of its round are fitted again jointly with it, whatever
+their signature on the refitted residual (the refit took up part of their shape).
 
-The current sensor gets evidence of its own: where the records hold rests (at least ``REST_MIN_S`` below C/20 whose
-spread is the sensor's noise), the true current is zero, so the measured rest current *is* the offset. ``b`` is
-bounded to that mean ± 3 standard errors (± C/500 for the sensor's resolution); with at least ``REST_EVIDENCE_S`` of
+The current sensor gets evidence of its own: where the records hold rests (at least ``FIELD_REST_MIN_S`` below C/20
+whose spread is the sensor's noise), the true current is zero, so the measured rest current *is* the offset. ``b`` is
+bounded to that median ± 3 standard errors (± C/500 for the sensor's resolution); with at least ``REST_EVIDENCE_S`` of
 rests a clear offset puts the current bias first, a null one rules it out.
 """
 
@@ -41,12 +45,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..models.effects import EFFECTS, augment, make_effect, n_cells
-from .cv import FoldFit, cv_residual, fit_folds
+from .cv import FoldFit, cv_residual, fit_folds, simulate_records
 from .data import Folds
 from .signatures import Trajectory, signatures
 
 #: a rest: at least this long, current below C/20 and steady (within C/200 of its mean)
 REST_MIN_S = 30.0
+#: a rest of the field records that measures the current sensor: at least this long. A vehicle waiting at a light or a
+#: stop draws a small steady auxiliary current (below C/20, as steady as a rest) for a minute or two; a parked cell
+#: rests for many minutes. Shorter quiet spells would read the auxiliary load as a sensor offset.
+FIELD_REST_MIN_S = 300.0
 MIN_N_EFF = 100.0
 #: a candidate whose signature explains less of the residual variance is not fitted
 MIN_SIGNATURE_R2 = 0.01
@@ -62,6 +70,10 @@ REST_OFFSET_C = 5e-4
 #: synthetic cases without a hidden effect (seeds neither the tests nor the benchmark use); the randomised benchmark's
 #: null cases (socbench.diagnose.randomized) measure what it lets through.
 NOISE_FLOOR = 2.5
+#: the floor once the base refit is part of the model: the base model's own error has then been refitted on the
+#: evaluation data (every later candidate is fitted jointly with it), so what stands above the noise is structure a
+#: refit of the base cannot take. Half the noise's own level of headroom is left for the refit's bounded scaling.
+NOISE_FLOOR_REFIT = 1.5
 #: the effects that drift the SOC (one family of signatures)
 SOC_DRIFT = ("capacity", "current_bias", "coulombic_efficiency", "self_discharge")
 #: the pseudo-candidate "the base model's own parameters (scaled) and each record's voltage offset, refitted on the
@@ -75,6 +87,10 @@ BASE_OFFSET_V = 0.05
 PARSIMONY = 0.10
 #: an extra RC branch whose time constant lies within this factor of one of the base model's is that branch misfitted
 TWIN_TAU = 3.0
+#: a measured temperature this far from the fit's [K] is evidence of a temperature effect (Search._choose)
+T_EVIDENCE_K = 5.0
+#: effects fitted again beside the base refit in the round after it was adopted (the best-scoring ones)
+CARRY = 2
 #: compression of the training record for the fits (the held-out part is scored on every sample)
 FIT_COMPRESS = {"max_step_s": 60.0}
 
@@ -144,11 +160,11 @@ def residual_noise(model, profiles, soc0s=None) -> float:
     return robust_sd(d2) / np.sqrt(6.0) if d2.size >= 50 else 0.0
 
 
-def rest_current(profiles, capacity_ah: float, quiet_a: float | None = None):
-    """``(mean, standard error, seconds)`` of the measured current over the rests of ``profiles`` (one or a list),
+def rest_current(profiles, capacity_ah: float, quiet_a: float | None = None, min_s: float = REST_MIN_S):
+    """``(median, standard error, seconds)`` of the measured current over the rests of ``profiles`` (one or a list),
     or None without rests.
 
-    A rest: at least ``REST_MIN_S`` below ``quiet_a`` (default C/20) whose spread (robust sd) is within C/200 plus
+    A rest: at least ``min_s`` below ``quiet_a`` (default C/20) whose spread (robust sd) is within C/200 plus
     three times the current sensor's own noise (the robust sd of successive differences over the quiet samples,
     ``/√2``): a noisy sensor's rest is still a rest, a slow taper is not."""
     vals, weights = [], []
@@ -164,14 +180,16 @@ def rest_current(profiles, capacity_ah: float, quiet_a: float | None = None):
                 continue
             seg = i[a:b]
             dur = profile.time_s[b - 1] - profile.time_s[a]
-            if dur >= REST_MIN_S and robust_sd(seg) <= capacity_ah / 200.0 + 3.0 * sensor:
+            if dur >= min_s and robust_sd(seg) <= capacity_ah / 200.0 + 3.0 * sensor:
                 vals.append(seg)
                 weights.append(dur)
     if not vals:
         return None
     allv = np.concatenate(vals)
-    se = float(np.std(allv) / np.sqrt(allv.size)) if allv.size > 1 else 0.0
-    return float(allv.mean()), se, float(sum(weights))
+    # the median: a rest that begins or ends with a few seconds of load (a stop's auxiliary current before the
+    # vehicle is switched off) would pull a mean; the standard error is that of the median of normal noise
+    se = float(1.2533 * robust_sd(allv) / np.sqrt(allv.size)) if allv.size > 1 else 0.0
+    return float(np.median(allv)), se, float(sum(weights))
 
 
 class Search:
@@ -195,12 +213,18 @@ class Search:
         self.soc0s = [initial_soc(base, p) for p in folds.records]
         self.groups = tuple(range(folds.k)) + (None,)  # the folds, then the all-data fit
         self.bounds = {name: EFFECTS[name]().bounds(base) for name in EFFECTS}
-        self.bias_rest = rest_current(folds.records if raw is None else raw, base.capacity_ah)
+        self.bias_rest = rest_current(folds.records if raw is None else raw, base.capacity_ah,
+                                      min_s=FIELD_REST_MIN_S)
         self.noise_sd = noise_sd
         n_all = np.concatenate([np.ones(p.n, dtype=bool) for p in folds.records])
         self.rows = {j: np.concatenate([folds.train_mask(r, j) for r in range(len(folds.records))])
                      for j in range(folds.k)}
         self.rows[None] = n_all
+        #: the evaluation records' measured temperature lies ``T_EVIDENCE_K`` or more from the fit's for a tenth of
+        #: their samples or more: direct evidence of a temperature effect (at one ambient a base refit scaling every
+        #: resistance mimics the Arrhenius factor, and would be taken for base-fit error)
+        self.temperature_measured = bool(all(p.temperature_c is not None for p in folds.records) and np.mean(
+            np.concatenate([np.abs(p.temperature_c - self.t_ref) >= T_EVIDENCE_K for p in folds.records])) >= 0.1)
         #: what the rests say about the current sensor: True (it reads an offset), False (it reads none), None (too
         #: few rests to tell)
         self.bias_measured = None
@@ -305,7 +329,7 @@ class Search:
                 out[g].append(Trajectory(p, y[b], sim.soc[b], u[b], du[b]))
         return out
 
-    def _to_fit(self, ready, r2s):
+    def _to_fit(self, ready, r2s, carried=()):
         """The candidates whose bounded fit is run: the ``max_fits`` best-supported families by signature R²
         (at least ``MIN_SIGNATURE_R2``), where the SOC-drift effects (:data:`SOC_DRIFT`, one regressor shape up to
         U(z)/U(1) and charge weighting, which their signatures cannot rank) are one family fitted together; and the
@@ -319,6 +343,9 @@ class Search:
                 group = drift if name in drift else [name]
                 chosen += group
                 families += 1
+        if self.bias_measured and "current_bias" in ready and "current_bias" not in chosen:
+            chosen.append("current_bias")  # the rests measure an offset: direct evidence, whatever the signature says
+        chosen += [n for n in carried if n in ready and n not in chosen]
         return chosen
 
     # ------------------------------------------------------------------ the search
@@ -332,7 +359,7 @@ class Search:
         rmse_now = float(np.sqrt(np.mean(r_now * r_now)))
         before = rmse_now
         self.offsets = None
-        steps, rounds = [], []
+        steps, rounds, carried = [], [], {}
         for _ in range(self.max_steps + 1):  # max_steps effects, and the base refit once
             if sum(st.effect != BASE_REFIT for st in steps) >= self.max_steps:
                 break
@@ -350,7 +377,7 @@ class Search:
                     ready.append(name)
             ready.sort(key=lambda n: sigs_all[n].r2 if n in sigs_all else 0.0, reverse=True)
             r2s = [sigs_all[n].r2 if n in sigs_all else 0.0 for n in ready]
-            fit_now = self._to_fit(ready, r2s)
+            fit_now = self._to_fit(ready, r2s, carried)
             fold_sigs = None
             for name, r2 in zip(ready, r2s):
                 sig = sigs_all.get(name)
@@ -359,7 +386,11 @@ class Search:
                         fold_sigs = {g: signatures(self.base, trajs[g], self.bounds, self.t_ref, self.rows[g])
                                      for g in self.groups if g is not None}
                         fold_sigs[None] = sigs_all
-                    cands.append(self._try(name, names, thetas, fold_sigs, sig, rmse_now, n_eff))
+                    cand = self._try(name, names, thetas, fold_sigs, sig, rmse_now, n_eff)
+                    if name in carried:  # a second start: the effect where it was alone, the refit at identity
+                        cand = self._better(cand, self._try(name, names, thetas, fold_sigs, sig, rmse_now, n_eff,
+                                                            start=self._carried_start(carried[name], names)))
+                    cands.append(cand)
                 else:
                     cands.append(Candidate(name, -np.inf, rmse_now, rmse_now, {}, r2,
                                            f"residual signature {'' if sig is None else sig.regressor} explains "
@@ -368,9 +399,18 @@ class Search:
             rounds.append({"candidates": cands, "signatures": sigs_all, "trajectory": trajs[None], "model": model})
             best = self._choose(cands)
             if best is None or not np.isfinite(best.score) or best.score <= 0 \
-                    or best.rmse_after > (1.0 - self.min_gain) * rmse_now or rmse_now <= self.floor():
+                    or best.rmse_after > (1.0 - self.min_gain) * rmse_now \
+                    or rmse_now <= self.floor(BASE_REFIT in names):
                 break
+            best = self._beyond_refit(best, cands, names, fold_sigs, sigs_all, n_eff)
             steps.append(best)
+            # after the base refit, the effects that scored best beside it are fitted again, jointly with it, whatever
+            # their signature on the refitted residual: the refit takes up part of an effect (a scaled resistance is
+            # an Arrhenius factor at one temperature, a slow branch rescaled is part of a missing one), so what is
+            # left shows little of its shape, while the joint fit says whether the effect explains more than the refit
+            carried = {c.effect: c for c in [c for c in cands if c.effect != BASE_REFIT and np.isfinite(c.score)
+                                             and c.score > 0 and c.fit is not None][:CARRY]} \
+                if best.effect == BASE_REFIT else {}
             names = [n for n, _ in best.layout]
             thetas = best.fit.thetas
             build = self.builder(names)[0]
@@ -378,15 +418,17 @@ class Search:
             rmse_now, r_now = best.rmse_after, best.held_residual
         return model, steps, rounds, before
 
-    def floor(self) -> float:
-        """No effect is added once the held-out RMSE is at or below this (see :data:`NOISE_FLOOR`)."""
-        return NOISE_FLOOR * self.noise_sd
+    def floor(self, refitted: bool = False) -> float:
+        """No effect is added once the held-out RMSE is at or below this (see :data:`NOISE_FLOOR`;
+        :data:`NOISE_FLOOR_REFIT` once the base refit is in the model)."""
+        return (NOISE_FLOOR_REFIT if refitted else NOISE_FLOOR) * self.noise_sd
 
     def _choose(self, cands):
         """The best-scoring candidate, except that an effect within :data:`PARSIMONY` of a winning base refit is
         preferred (a named effect with fewer parameters explains the same), and that a current-sensor offset the
         rests measure comes first when it explains a share of the residual of its own (:attr:`min_gain`): the rest
-        current *is* the offset (direct evidence, no model needed), while a leak or a fade reads none."""
+        current *is* the offset (direct evidence, no model needed), while a leak or a fade reads none. The same for
+        the temperature when the records' measured temperature differs from the fit's (:data:`T_EVIDENCE_K`)."""
         ok = [c for c in cands if np.isfinite(c.score)]
         if not ok:
             return cands[0] if cands else None
@@ -396,6 +438,11 @@ class Search:
                     and c.rmse_after <= (1.0 - self.min_gain) * c.rmse_before]
             if bias:
                 return bias[0]
+        if self.temperature_measured:  # likewise the measured temperature: a base refit would only mimic it
+            temp = [c for c in ok if c.effect == "temperature" and c.score > 0
+                    and c.rmse_after <= (1.0 - self.min_gain) * c.rmse_before]
+            if temp:
+                return temp[0]
         if best.effect == BASE_REFIT:
             rivals = [c for c in ok if c.effect != BASE_REFIT and c.score > 0
                       and c.rmse_after <= (1.0 + PARSIMONY) * best.rmse_after]
@@ -403,12 +450,67 @@ class Search:
                 return max(rivals, key=lambda c: c.score)
         return best
 
-    def _try(self, name, names, thetas, fold_sigs, sig, rmse_now, n_eff) -> Candidate:
+    def _beyond_refit(self, best, cands, names, fold_sigs, sigs_all, n_eff):
+        """``best``, or the base refit when ``best`` is an effect that explains no more than the refit does.
+
+        Where the base refit also cut the error this round, a base-fit error is part of the residual, and a flexible
+        effect may have taken it up instead. The effect is fitted jointly with the refit (nested): unless it cuts the
+        refit's held-out RMSE by :attr:`min_gain`, what it explained is what a better base fit explains, and the
+        refit is taken (never named; the effect is fitted again beside it in the next round). Effects whose evidence
+        is a measured input are exempt: the temperature (the measured temperature differs from the fit's) and a
+        current offset the rests measure."""
+        if best.effect in (BASE_REFIT, "temperature") or BASE_REFIT in names \
+                or (best.effect == "current_bias" and self.bias_measured):
+            return best
+        refit = next((c for c in cands if c.effect == BASE_REFIT and np.isfinite(c.score) and c.score > 0
+                      and c.rmse_after <= (1.0 - self.min_gain) * c.rmse_before), None)
+        if refit is None or fold_sigs is None:
+            return best
+        joint = self._try(best.effect, names + [BASE_REFIT], refit.fit.thetas, fold_sigs, sigs_all.get(best.effect),
+                          refit.rmse_after, n_eff)
+        best.evidence += (f"; fitted jointly with the base refit: held-out RMSE {1000 * refit.rmse_after:.1f} → "
+                          f"{1000 * joint.rmse_after:.1f} mV")
+        if np.isfinite(joint.score) and joint.rmse_after <= (1.0 - self.min_gain) * refit.rmse_after:
+            return best
+        refit.evidence += (f"; {best.effect} explained no more than this refit (jointly with it "
+                           f"{1000 * joint.rmse_after:.1f} mV)")
+        return refit
+
+    def _carried_start(self, alone: Candidate, names) -> np.ndarray:
+        """Rows ``(groups, P)`` for the joint fit of ``alone``'s effect beside the refit adopted after it: what was
+        added before and the effect as fitted without the refit, the refit at identity (zero log-scales and
+        offsets)."""
+        n_refit = len(self.params_of(BASE_REFIT)[0])
+        p_effect = len(alone.layout[-1][1])
+        rows = alone.fit.thetas
+        return np.hstack([rows[:, :rows.shape[1] - p_effect], np.zeros((rows.shape[0], n_refit)),
+                          rows[:, rows.shape[1] - p_effect:]])
+
+    def _better(self, a: Candidate, b: Candidate) -> Candidate:
+        """Of two fits of the same candidate from different starts, the one whose all-data fit has the lower training
+        error (never chosen by the held-out score)."""
+        if b.fit is None:
+            return a
+        if a.fit is None:
+            return b
+
+        def sse(c):
+            build = self.builder([n for n, _ in c.layout])[0]
+            ys = simulate_records(build, c.fit.row(None)[None], self.folds.records, self.soc0s)
+            e = np.concatenate([(y[0] - p.voltage_v) for y, p in zip(ys, self.folds.records)])
+            return float(np.sum(np.where(np.isfinite(e), e, 1.0) ** 2))
+
+        return b if sse(b) < sse(a) else a
+
+    def _try(self, name, names, thetas, fold_sigs, sig, rmse_now, n_eff, start=None) -> Candidate:
         t0 = _time.perf_counter()
         pnames, _, _, defaults = self.params_of(name)
-        start = np.array([[fold_sigs[g][name].guess.get(p, defaults[p]) if name in fold_sigs[g] else defaults[p]
-                           for p in pnames] for g in self.groups])
-        theta0 = start if thetas is None else np.hstack([thetas, start])
+        if start is not None:
+            theta0 = start
+        else:
+            start = np.array([[fold_sigs[g][name].guess.get(p, defaults[p]) if name in fold_sigs[g]
+                               else defaults[p] for p in pnames] for g in self.groups])
+            theta0 = start if thetas is None else np.hstack([thetas, start])
         r2 = 0.0 if sig is None else sig.r2
         try:
             fit, build, layout = self.fit(names + [name], theta0)
@@ -436,7 +538,7 @@ class Search:
                         f"{1000 * rmse_after:.1f} mV ({100 * (1 - rmse_after / rmse_now):.0f} % lower)")
         if name == "current_bias" and self.bias_rest is not None:
             evidence += f"; rests read {1000 * self.bias_rest[0]:.1f} mA (bounds b to it)"
-        if name == "extra_rc":
+        if name == "extra_rc" and BASE_REFIT not in names:  # with the base refit, its branches are refitted too
             twin = self.twin_branch(10.0 ** params["log10_tau"])
             if twin is not None:  # not an effect the structure lacks: a branch it has, misfitted
                 score = -np.inf
