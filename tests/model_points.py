@@ -18,6 +18,10 @@ STATE_RANGES = {
     "s": (-1.0, 1.0),
     "cap": (0.7, 1.3),  # effects.Capacity: Q_model / Q_true
     "b": (-0.1, 0.1),  # effects.CurrentBias [A]: small enough that |I − b| stays above the sign/η kinks
+    "dR0": (-2e-3, 2e-3),  # effects.ResistanceOffset [Ω]
+    "eps_slow": (-3.0, 3.0),  # effects.ModelError: unit-variance Gauss–Markov states
+    "eps_fast": (-3.0, 3.0),
+    "eps_r": (-3.0, 3.0),
 }
 
 

@@ -38,11 +38,21 @@ def test_quick_bench_writes_every_required_key_finite_and_positive(quick_json):
     m = res["machine"]
     assert m["cpu_count"] >= 1 and m["numpy_version"] == np.__version__ and m["python_version"].count(".") == 2
     assert res["repeats"] >= 3 and res["complete"] is True
-    for name in ("ekf", "ukf", "pf"):  # every repeat is kept, the figure is their median
-        reps = res[f"{name}_repeats_s"]
-        assert len(reps["batched"]) == len(reps["filterpy"]) == res["repeats"]
-        med = float(np.median(reps["batched"])) / (res["sizes"]["runs"] * res["sizes"]["steps"]) * 1e6
-        assert res[f"{name}_batched_us_per_run_step"] == pytest.approx(med, rel=1e-12)
+    for name in ("ekf", "ukf", "pf"):  # every repeat is kept, each figure is their median
+        rows = res[f"{name}_scaling_rows"]
+        engines = {r["engine"] for r in rows}
+        assert engines == {"bare filterpy", "socbench numpy", "socbench compiled"}
+        runs = res["sizes"]["pf_runs" if name == "pf" else "scale_runs"]
+        for row in rows:
+            assert len(row["repeats_s"]) == res["repeats"] and row["runs"] in runs
+            assert row["us_per_run_step"] == pytest.approx(float(np.median(row["repeats_s"])) * 1e6, rel=1e-12)
+        for engine in ("numpy", "compiled"):
+            for R, us in res[f"{name}_{engine}_us_per_run_step"].items():
+                assert res[f"{name}_{engine}_speedup_vs_bare"][R] == pytest.approx(
+                    res[f"{name}_bare_us_per_step"] / us, rel=1e-12)
+        head = str(res[f"{name}_headline_runs"])
+        assert res[f"{name}_batched_us_per_run_step"] == res[f"{name}_compiled_us_per_run_step"][head]
+        assert res[f"{name}_filterpy_us_per_step"] == res[f"{name}_bare_us_per_step"]
 
 
 def test_quick_bench_checks_identical_results(quick_json):

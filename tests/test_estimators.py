@@ -126,15 +126,20 @@ def test_matched_truth_converges_and_is_consistent(matched, name):
 
 @pytest.mark.slow
 def test_pf_matched_truth_converges_and_is_nearly_consistent(matched):
+    """Every seed converges; the NEES of 100 runs is heavy-tailed from seed to seed (one run whose 200 particles
+    miss the truth for a while dominates a seed's mean), so its median over 9 seeds is held to the band."""
     m, p = matched
     p = p.slice(0, 720)
-    est = make_estimator("pf", m, NOISE, n_particles=200).run(p, soc0=0.7, P0=_p0(m), seed=7)
-    assert not est.failed.any()
-    err = np.abs(est.soc - p.soc_ref)
-    assert err[:, 600:].max() < 0.01
-    s = score(est, p, skip_s=600.0)
+    nees = []
+    for seed in range(9):
+        est = make_estimator("pf", m, NOISE, n_particles=200).run(p, soc0=0.7, P0=_p0(m), seed=seed)
+        assert not est.failed.any()
+        err = np.abs(est.soc - p.soc_ref)
+        assert err[:, 600:].max() < 0.01
+        s = score(est, p, skip_s=600.0)
+        nees.append(s["nees_mean"])
     lo, hi = s["nees_band"]
-    assert lo / 2 <= s["nees_mean"] <= 2 * hi, s["nees_mean"]
+    assert lo / 2 <= np.median(nees) <= 2 * hi, nees
 
 
 @pytest.mark.parametrize("truth_name, filter_name", [("dp", "thevenin"), ("nrc", "rint")])

@@ -121,3 +121,12 @@ class AdaptiveEKF(Estimator):
                 settle_predict(rec, k + 1, x, P, x_good, P_good)
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold, "forgetting": opt["forgetting"],
                                          "r_hat": r_hat, "q_hat_soc": q_hat[:, 0, 0].copy()})
+
+    def _run_compiled(self, job, seed=None):
+        from ..kernels.filters import VAR_AEKF
+
+        o = self.options
+        vout = job.kalman(VAR_AEKF, (1.0 - o["forgetting"], o["r_min_ratio"], o["r_max_ratio"], float(o["adapt_r"]),
+                                     float(o["adapt_q"])))
+        return job.finish({"gate_threshold": job.threshold, "forgetting": o["forgetting"], "r_hat": vout[:, 0].copy(),
+                           "q_hat_soc": vout[:, 1].copy()})

@@ -14,7 +14,14 @@ specific to one filter:
 
 Options common to all filters (all keyword): ``Q``, ``R`` (overrides, see :class:`~.noise.NoiseModel`),
 ``gate_alpha`` (χ² gate tail probability, None = off), ``gate_release``, ``var_max``, ``nis_max``, ``psd_floor``,
-``psd_rel_floor``, ``soc0_sd``, ``state0_sd``, ``store_states``.
+``psd_rel_floor``, ``soc0_sd``, ``state0_sd``, ``store_states``, ``engine``.
+
+Engines. ``engine="numpy"`` runs the filter's numpy loop (``_run``: batched over runs, the reference every other
+engine is tested against); ``engine="compiled"`` its compiled kernel (``_run_compiled``: numba, the time loop of every
+run compiled, runs in parallel; :mod:`socbench.kernels`), raising :class:`ConfigError` if it has none for this model;
+``engine="auto"`` (default) the compiled kernel when numba is installed and the model, its parameters and the noise
+have a compiled form, else numpy. ``Estimate.info["engine"]`` says which ran, ``info["engine_note"]`` why numpy ran
+under ``auto`` (e.g. a strict-mode model). Both give the same numbers to 1e-9 (tests/test_kernels.py).
 """
 
 from __future__ import annotations
@@ -43,7 +50,9 @@ COMMON_OPTIONS: dict = {
     "soc0_sd": 0.1,
     "state0_sd": 0.01,
     "store_states": False,
+    "engine": "auto",
 }
+ENGINES = ("auto", "numpy", "compiled")
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,6 +126,9 @@ class Estimator:
                 raise ConfigError(f"{self.name}: option {key} must be > 0, got {self.options[key]!r}")
         if self.options["gate_alpha"] is not None and not 0 < self.options["gate_alpha"] < 1:
             raise ConfigError(f"{self.name}: gate_alpha must be in (0, 1) or None")
+        if self.options["engine"] not in ENGINES:
+            raise ConfigError(f"{self.name}: engine must be one of {', '.join(ENGINES)}, "
+                              f"got {self.options['engine']!r}")
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(model={getattr(self.model, 'name', '?')!r})"
@@ -142,13 +154,13 @@ class Estimator:
         if x0 is not None:
             x0 = np.ascontiguousarray(np.broadcast_to(np.asarray(x0, dtype=float), (inputs.n_runs, self.n)))
         if segs.count == 1:
-            est = self._run(inputs, self.initial_state(inputs, soc0) if x0 is None else x0, P0, seed)
+            est = self._run_engine(inputs, self.initial_state(inputs, soc0) if x0 is None else x0, P0, seed)
         else:
             parts = []
             for s, (a, b) in enumerate(segs.spans()):
                 part = inputs.slice(a, b)
                 first = self.initial_state(part, soc0 if s == 0 else None) if s or x0 is None else x0
-                parts.append(self._run(part, first, P0, segment_seed(seed, s)))
+                parts.append(self._run_engine(part, first, P0, segment_seed(seed, s)))
             est = Estimate.join(parts, inputs.time_s, segs)
         t0 = time.perf_counter()
         domain = estimate_domain(self.model, est, profile)
@@ -158,6 +170,42 @@ class Estimator:
 
     def _run(self, inputs: Inputs, x0: np.ndarray, P0: np.ndarray, seed) -> Estimate:  # pragma: no cover
         raise NotImplementedError
+
+    def _run_compiled(self, job) -> Estimate | None:
+        """The compiled form of :meth:`_run` on a :class:`socbench.kernels.engine.Job` (None: not available here,
+        or a run met a condition only the numpy engine reports). Subclasses with a kernel override this."""
+        return None
+
+    def engine_plan(self):
+        """``(lowered model or None, why not compiled)`` under this estimator's ``engine`` option."""
+        if self.options["engine"] == "numpy":
+            return None, "engine='numpy'"
+        cached = self.__dict__.get("_engine_plan")
+        if cached is None:  # the model and options are fixed at construction: lower once
+            from ..kernels.engine import plan
+
+            cached = self._engine_plan = plan(self)
+        lowered, why = cached
+        if lowered is None and self.options["engine"] == "compiled":
+            raise ConfigError(f"{self.name}: engine='compiled' is not available: {why}")
+        return lowered, why
+
+    def _run_engine(self, inputs: Inputs, x0: np.ndarray, P0: np.ndarray, seed, **extra) -> Estimate:
+        """Run the compiled kernel when the engine plan allows, else (or when it hands back) the numpy loop."""
+        lowered, why = self.engine_plan()
+        if lowered is not None:
+            from ..kernels.engine import Job
+
+            est = self._run_compiled(Job(self, lowered, inputs, x0, P0), seed=seed, **extra)
+            if est is not None:
+                est.info["engine"] = "compiled"
+                return est
+            why = "the compiled kernel handed the batch back (a model condition only numpy reports)"
+        est = self._run(inputs, x0, P0, seed, **extra)
+        est.info["engine"] = "numpy"
+        if self.options["engine"] == "auto":
+            est.info["engine_note"] = why
+        return est
 
     # ------------------------------------------------------------------ per-run bookkeeping
     def recorder(self, inputs: Inputs, x0: np.ndarray, P0: np.ndarray) -> Recorder:
@@ -321,7 +369,7 @@ def settle_update(rec: Recorder, k: int, x, P, x_good, P_good, v_pred, e, S, nis
         bad = diverged(x, var[:, 0], nis, opt["var_max"], opt["nis_max"]) | ~np.all(np.isfinite(var), axis=-1)
     else:
         P, repaired = repair_psd(symmetrise(P), opt["psd_floor"], opt["psd_rel_floor"])
-        rec.psd_repairs += repaired
+        rec.psd_repairs += repaired & ~rec.failed  # a failed run is frozen: it counts nothing more
         bad = None
     clamped = clamp_soc(x)
     if bad is None:

@@ -12,7 +12,8 @@ noise plus the drift of a current offset::
     P_{k+1} = F P_k Fᵀ + σ_I² B Bᵀ (+ walk)                 (white current noise; B[0] = −η dt/(3600 Q_d))
     soc_std_k = √(P_k[0, 0] + (σ_b · Σ_{j<k} η_j dt_j / (3600 Q_d))²)   (constant offset: exact linear growth)
 
-``innovation_var = H P Hᵀ + R_k`` makes its NIS comparable with the filters'.
+``innovation_var = H P Hᵀ + R_k`` makes its NIS comparable with the filters'. ``socbench.kernels.filters.coulomb``
+is the same loop compiled (``engine`` option).
 """
 
 from __future__ import annotations
@@ -42,6 +43,14 @@ class CoulombCounter(Estimator):
 
     def _run(self, inputs, x0, P0, seed=None) -> Estimate:
         return self._count(inputs, x0, P0, self.declared_capacity(inputs.capacity_ah))
+
+    def _run_compiled(self, job, seed=None):
+        from ..kernels.engine import parallel_runs
+        from ..kernels.filters import coulomb
+
+        cap = self.declared_capacity(job.inputs.capacity_ah)
+        parallel_runs(coulomb, job.R, *job.model_args, *job.noise_args, self.model.capacity_ah / cap, *job.out_args)
+        return job.finish({"capacity_ah": cap})
 
     def _count(self, inputs, x0, P0, capacity_ah: float) -> Estimate:
         m, noise = self.model, self.noise

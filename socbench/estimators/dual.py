@@ -142,3 +142,10 @@ class JointEKF(JointParameters, EKF):
 
     def process_cov(self, x, B, dt):
         return self.noise.Q(B, dt) + self.param_cov(dt)
+
+    def _run_compiled(self, job, seed=None):
+        """The EKF kernel on the augmented model, the parameters' walk added to Q (:meth:`param_cov`)."""
+        job.keep_states()
+        job.add_walk(self.param_walk)
+        est = EKF._run_compiled(self, job, seed)
+        return None if est is None else self.finish_joint(est, job.inputs)

@@ -12,7 +12,8 @@ For each sample k (prior ``x⁻, P⁻``; the first prior is ``x0, P0``)::
              Q_k = σ_I² B Bᵀ (+ walk)   P⁻ = F P⁺ Fᵀ + Q_k
 
 This is filterpy's ``ExtendedKalmanFilter`` with a nonlinear ``predict_x``; ``reference.ReferenceEKF`` runs exactly
-that class one trajectory at a time and the two agree to 1e-9.
+that class one trajectory at a time and the two agree to 1e-9. ``socbench.kernels.filters.ekf`` is the same loop
+compiled (``engine`` option, :mod:`~socbench.estimators.base`).
 """
 
 from __future__ import annotations
@@ -44,6 +45,8 @@ class EKF(Estimator):
     """Batched extended Kalman filter on any :class:`~socbench.models.base.Model`."""
 
     name = "ekf"
+    #: methods the compiled kernel implements: a subclass overriding one runs numpy (kernels.engine.plan)
+    kernel_hooks = ("process_cov",)
 
     def _run(self, inputs, x0, P0, seed=None) -> Estimate:
         m, opt, noise = self.model, self.options, self.noise
@@ -76,3 +79,9 @@ class EKF(Estimator):
     def process_cov(self, x, B, dt):
         """``Q_k`` of the step from the posterior: the sensor model's (subclasses add their own terms)."""
         return self.noise.Q(B, dt)
+
+    def _run_compiled(self, job, seed=None):
+        from ..kernels.filters import VAR_EKF
+
+        job.kalman(VAR_EKF)
+        return job.finish({"gate_threshold": job.threshold})

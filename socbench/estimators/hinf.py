@@ -96,7 +96,7 @@ class HInfinityFilter(Estimator):
                 no_gate = np.zeros(R, dtype=bool)
                 _, PK, _ = kalman_update(x, P, H, Rk, S, e, no_gate)
                 Pp, th = hinf_posterior(symmetrise(PK), opt["theta"], opt["feasibility_margin"])
-                capped += (th < opt["theta"]) & ~gated
+                capped += (th < opt["theta"]) & ~gated & ~rec.failed  # a failed run is frozen: it counts nothing more
                 K = np.where(gated[:, None], 0.0, np.einsum("rij,rj->ri", Pp, H) / Rk[:, None])
                 x = x + K * e[:, None]
                 P = np.where(gated[:, None, None], P, Pp)
@@ -110,3 +110,11 @@ class HInfinityFilter(Estimator):
                 settle_predict(rec, k + 1, x, P, x_good, P_good)
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold, "theta": opt["theta"],
                                          "theta_capped": capped})
+
+    def _run_compiled(self, job, seed=None):
+        from ..kernels.filters import VAR_HINF
+
+        o = self.options
+        vout = job.kalman(VAR_HINF, (o["theta"], o["feasibility_margin"]))
+        return job.finish({"gate_threshold": job.threshold, "theta": o["theta"],
+                           "theta_capped": vout[:, 0].astype(int)})

@@ -16,10 +16,11 @@ Each run carries ``N`` particles ``X_j`` with weights ``w_j`` (Gordon, Salmond &
 The current-noise draw ``ε_j`` makes the process noise exactly the one the sensor spec describes (no Gaussian
 approximation of B·σ_I). With a ``Q`` override the process noise is additive ``N(0, Q)`` instead.
 
-Random numbers are counter-based: everything sample k needs comes from ``default_rng([seed, k + 1])`` in a fixed
-order (u (R,), ε_I (R, N), ε_Q (R, N, n) if additive noise, ε_rough (R, N, n) if any run resamples — always last), the
-initial particles from ``default_rng([seed, 0])``. So a per-run reference (``reference.ReferencePF``) can regenerate
-exactly the numbers of its run without replaying the others.
+Random numbers are counter-based (:mod:`socbench.estimators.draws`): each is a hash of (seed, stream, sample, run,
+counter), with one stream each for the initial cloud, the resampling offset u, the current noise ε_I, the additive
+noise ε_Q, the roughening and the tempering stages. So any engine computes exactly the numbers of any run without
+replaying the others: the batched PF, the compiled PF (``socbench.kernels.pf``) and a per-run reference
+(``reference.ReferencePF``) see the same numbers, whatever the batch shape.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from .base import Estimator, restore
+from .draws import StepDraws, seed_u64
 from .estimate import Estimate
 from .safety import diverged
 
@@ -108,38 +110,6 @@ def shrink(X: np.ndarray, mean: np.ndarray, root: np.ndarray, h: float, eps: np.
     return a * X + (1.0 - a) * mean[..., None, :] + h * np.einsum("...ij,...pj->...pi", root, eps)
 
 
-class StepDraws:
-    """Counter-based random numbers of the particle filter (see the module docstring for the order)."""
-
-    def __init__(self, seed, n_runs: int, n_particles: int, n_states: int, perturb_current: bool, additive: bool):
-        if seed is None:
-            seed = int(np.random.SeedSequence().entropy % (2**63))
-        self.seed = int(seed)
-        self.shape = (n_runs, n_particles)
-        self.n = n_states
-        self.perturb_current = perturb_current
-        self.additive = additive
-
-    def initial(self) -> np.ndarray:
-        return np.random.default_rng([self.seed, 0]).standard_normal(self.shape + (self.n,))
-
-    def step(self, k: int):
-        """``(generator, u, eps_current, eps_additive)`` of sample k; draw ε_rough from the generator last."""
-        g = np.random.default_rng([self.seed, k + 1])
-        u = g.random(self.shape[0])
-        eps_i = g.standard_normal(self.shape) if self.perturb_current else None
-        eps_q = g.standard_normal(self.shape + (self.n,)) if self.additive else None
-        return g, u, eps_i, eps_q
-
-    def roughening(self, g) -> np.ndarray:
-        return g.standard_normal(self.shape + (self.n,))
-
-    def stage(self, k: int, s: int):
-        """``(u (R,), ε (R, N, n))`` of tempering stage ``s`` at sample ``k`` (a stream of its own)."""
-        g = np.random.default_rng([self.seed, k + 1, s + 1])
-        return g.random(self.shape[0]), g.standard_normal(self.shape + (self.n,))
-
-
 class ParticleFilter(Estimator):
     """Batched bootstrap particle filter."""
 
@@ -175,9 +145,9 @@ class ParticleFilter(Estimator):
             return sd_i, (lambda dt: np.diag(np.sqrt(sensor.walk_var(self.n, dt))))
         return sd_i, None
 
-    def draws(self, seed, n_runs: int) -> StepDraws:
+    def draws(self, seed, n_runs: int, runs=None) -> StepDraws:
         sd_i, additive = self.process_noise()
-        return StepDraws(seed, n_runs, self.n_particles, self.n, sd_i is not None, additive is not None)
+        return StepDraws(seed, n_runs, self.n_particles, self.n, sd_i is not None, additive is not None, runs)
 
     # ------------------------------------------------------------------ measurement update with tempering
     def assimilate(self, X, w, ll, gated, v, i, temp, stage_draws):
@@ -243,7 +213,7 @@ class ParticleFilter(Estimator):
         staged = np.zeros(R, dtype=int)
         with np.errstate(all="ignore"):
             for k in range(T):
-                g, u, eps_i, eps_q = draws.step(k)
+                u, eps_i, eps_q = draws.step(k)
                 ik, tk = inputs.current[:, k], inputs.temp_at(k)
                 tk_p = None if tk is None else tk[:, None]
                 # ---------------------------------------------------------------- update
@@ -257,7 +227,7 @@ class ParticleFilter(Estimator):
                 gated = gate(nis)
                 X, w, n_stages = self.assimilate(X, w, log_likelihood(vk[:, None], Y, Rk), gated, vk, ik, tk,
                                                  lambda s, k=k: draws.stage(k, s))
-                staged += n_stages > 1
+                staged += (n_stages > 1) & ~rec.failed  # runs failed earlier are frozen: they count nothing
                 mean = np.einsum("rp,rpi->ri", w, X)
                 var = np.einsum("rp,rpi->ri", w, (X - mean[:, None, :]) ** 2)
                 failed = rec.fail(k, diverged(mean, var[:, 0], nis, opt["var_max"], opt["nis_max"]))
@@ -278,9 +248,9 @@ class ParticleFilter(Estimator):
                     w[rs] = 1.0 / N
                     resampled += rs
                     if h > 0:
-                        Xr = shrink(Xr, mean_r, root_r, h, draws.roughening(g)[rs])
+                        Xr = shrink(Xr, mean_r, root_r, h, draws.roughening(k, rs))
                     elif K_rough > 0:
-                        Xr += roughening_sd(Xr, K_rough)[:, None, :] * draws.roughening(g)[rs]
+                        Xr += roughening_sd(Xr, K_rough)[:, None, :] * draws.roughening(k, rs)
                     X[rs] = Xr
                 # ---------------------------------------------------------------- predict
                 i_p = ik[:, None] if sd_i is None else ik[:, None] + sd_i * eps_i
@@ -294,6 +264,32 @@ class ParticleFilter(Estimator):
                 np.copyto(w_good, w, where=~failed[:, None])
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold, "n_particles": N,
                                          "resampled": resampled, "tempered": staged, "seed": draws.seed})
+
+
+    def _run_compiled(self, job, seed=None):
+        from ..kernels import pf as kpf
+        from ..kernels.engine import parallel_runs, sensor_walk
+
+        o, N, n = self.options, self.n_particles, self.n
+        sd_i, additive = self.process_noise()
+        Qroot = np.zeros((n, n))
+        mode = kpf.ADD_NONE
+        if self.noise.Q_override is not None:
+            Qroot, mode = np.ascontiguousarray(additive(1.0), dtype=float), kpf.ADD_ROOT
+        elif additive is not None:
+            mode = kpf.ADD_WALK
+        draws = self.draws(seed, job.R)
+        pfopt = np.array([N, o["resample_threshold"], o["roughening"], o["kernel_h"], o["max_stages"],
+                          o["temper_threshold"], o["temper_h"], 0.0 if sd_i is None else sd_i, mode,
+                          N ** (-1.0 / n), 1.0 if self.noise.needs_D else 0.0], dtype=float)
+        L0 = np.ascontiguousarray(np.linalg.cholesky(job.P0))
+        std0 = np.sqrt(job.P0[:, 0, 0])
+        counts = np.zeros((job.R, 2), dtype=np.int64)
+        parallel_runs(kpf.pf, job.R, job.im, job.fm, job.x0, L0, std0, job.cur, job.volt, job.temp, job.has_temp,
+                      job.dts, job.nz, sensor_walk(self.noise.sensor, n), Qroot, job.opt, pfopt, seed_u64(draws.seed),
+                      *job.out_args, counts, min_runs=1)  # the particles' walk: the sensor's (process_noise)
+        return job.finish({"gate_threshold": job.threshold, "n_particles": N, "resampled": counts[:, 0].copy(),
+                           "tempered": counts[:, 1].copy(), "seed": draws.seed})
 
 
 def _clamp_particles(X: np.ndarray) -> np.ndarray:

@@ -209,26 +209,25 @@ class ReferencePF(ParticleFilter):
 
     def _run(self, inputs, x0, P0, seed=None) -> Estimate:
         R = inputs.n_runs
-        draws = self.draws(seed, R)
-        eps0 = draws.initial()
+        seed = self.draws(seed, R).seed  # one seed for every run (drawn here when None)
         parts = []
         for r in range(R):
             one = _one_run(inputs, r)
             rec = self.recorder(one, x0[r:r + 1], P0[r:r + 1])
-            self._filter_one(one, x0[r], P0[r], eps0[r], draws, r, rec)
+            self._filter_one(one, x0[r], P0[r], self.draws(seed, 1, runs=[r]), rec)  # exactly run r's numbers
             parts.append(rec.finish(self.name, self.model))
-        return _stack(parts, {"reference": "filterpy.monte_carlo.systematic_resample", "seed": draws.seed})
+        return _stack(parts, {"reference": "filterpy.monte_carlo.systematic_resample", "seed": seed})
 
-    def _filter_one(self, inputs, x0, P0, eps0, draws, r, rec):
+    def _filter_one(self, inputs, x0, P0, draws, rec):
         m, opt, noise = self.model, self.options, self.noise
         T, N = inputs.n, self.n_particles
         sd_i, additive = self.process_noise()
-        X = x0 + eps0 @ np.linalg.cholesky(P0).T
+        X = x0 + draws.initial()[0] @ np.linalg.cholesky(P0).T
         clamp = _clamp_one(X)
         w = np.full(N, 1.0 / N)
         gate = self.gate(1)
         for k in range(T):
-            g, u, eps_i, eps_q = draws.step(k)
+            u, eps_i, eps_q = draws.step(k)
             i, v = inputs.current[0, k], inputs.voltage[0, k]
             temp = None if inputs.temp is None else inputs.temp[0, k]
             Y, _, D = m.output(X, i, temp, jac=noise.needs_D)
@@ -240,7 +239,7 @@ class ReferencePF(ParticleFilter):
             temp_1 = None if temp is None else np.array([temp])
             Xs, ws, _ = self.assimilate(X[None], w[None], log_likelihood(v, Y, Rk)[None], gated, np.array([v]),
                                         np.array([i]), temp_1,
-                                        lambda s, k=k: tuple(a[r:r + 1] for a in draws.stage(k, s)))
+                                        lambda s, k=k: draws.stage(k, s))
             X, w = Xs[0], ws[0]
             mean = w @ X
             var = w @ (X - mean) ** 2
@@ -255,17 +254,17 @@ class ReferencePF(ParticleFilter):
             if 1.0 / np.sum(w * w) < opt["resample_threshold"] * N:
                 if opt["kernel_h"] > 0:
                     mean_w, root_w = weighted_mean_root(X, w)
-                with mock.patch.object(fp_resampling, "random", lambda u_r=u[r]: u_r):
+                with mock.patch.object(fp_resampling, "random", lambda u_r=u[0]: u_r):
                     idx = fp_resampling.systematic_resample(w)
                 X = X[idx]
                 w = np.full(N, 1.0 / N)
                 if opt["kernel_h"] > 0:
-                    X = shrink(X, mean_w, root_w, opt["kernel_h"], draws.roughening(g)[r])
+                    X = shrink(X, mean_w, root_w, opt["kernel_h"], draws.roughening(k)[0])
                 elif opt["roughening"] > 0:
-                    X = X + roughening_sd(X, opt["roughening"]) * draws.roughening(g)[r]
-            X = m.step(X, i if sd_i is None else i + sd_i * eps_i[r], inputs.dt[k], temp)[0]
+                    X = X + roughening_sd(X, opt["roughening"]) * draws.roughening(k)[0]
+            X = m.step(X, i if sd_i is None else i + sd_i * eps_i[0], inputs.dt[k], temp)[0]
             if additive is not None:
-                X = X + eps_q[r] @ additive(inputs.dt[k]).T
+                X = X + eps_q[0] @ additive(inputs.dt[k]).T
             clamp = _clamp_one(X)
             if not np.all(np.isfinite(X)):
                 rec.fail(k + 1, np.ones(1, bool))

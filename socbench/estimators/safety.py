@@ -1,8 +1,11 @@
 """Numerical safety shared by the filters: symmetric PSD covariances, SOC clamp, innovation gate, divergence.
 
 * symmetrise      ``P ← (P + Pᵀ)/2`` after every update and prediction (round-off makes P drift asymmetric);
-* PSD repair      where ``λ_min(P) < floor`` rebuild ``P = V max(Λ, floor) Vᵀ`` with
-                  ``floor = max(abs_floor, rel_floor·λ_max)``; matrices that are fine are left bit-for-bit alone;
+* PSD repair      where ``λ_min(P) < (1 − s)·floor`` rebuild ``P = V max(Λ, floor) Vᵀ`` with
+                  ``floor = max(abs_floor, rel_floor·λ_max)``; matrices that are fine are left bit-for-bit alone. The
+                  slack ``s`` = :data:`REPAIR_SLACK` keeps a matrix that sits at the floor (repaired before, to
+                  rounding: the eigenvalues of two implementations differ by ~ε·λ_max, i.e. ~1e-4 of a 1e-12·λ_max
+                  floor) from being "repaired" again, which would change nothing but the repair count;
 * SOC clamp       ``z ← clip(z, 0, 1)``, flagged per sample;
 * innovation gate skip the update when ``NIS = e²/S > χ²_{1−α}(1)``, counted; after ``release`` consecutive skips the
                   next update is taken anyway, so a filter that started far off is never locked out for good;
@@ -13,6 +16,8 @@
 """
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 from scipy import stats
@@ -44,6 +49,10 @@ def psd_certified(P: np.ndarray, abs_floor: float = 1e-15, rel_floor: float = 1e
     return ok
 
 
+#: relative slack below the floor before a matrix counts as needing the repair (module docstring)
+REPAIR_SLACK = 1e-2
+
+
 def repair_psd(P: np.ndarray, abs_floor: float = 1e-15, rel_floor: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
     """``(P', repaired (…,) bool)``: eigenvalues below the floor raised to it (only where needed).
 
@@ -60,7 +69,7 @@ def repair_psd(P: np.ndarray, abs_floor: float = 1e-15, rel_floor: float = 1e-12
     Qf = np.where(finite[..., None, None], Q, 0.0)
     w = np.linalg.eigvalsh(Qf)
     floor = np.maximum(abs_floor, rel_floor * np.abs(w[..., -1]))
-    sub = finite & (w[..., 0] < floor)
+    sub = finite & (w[..., 0] < (1.0 - REPAIR_SLACK) * floor)
     if not sub.any():
         return P, need
     need[rows] = sub
@@ -80,6 +89,7 @@ def clamp_soc(x: np.ndarray) -> np.ndarray:
     return out
 
 
+@functools.lru_cache(maxsize=64)
 def gate_threshold(alpha: float | None) -> float:
     """NIS threshold of a χ²(1) gate with tail probability ``alpha`` (None: no gate)."""
     if alpha is None:

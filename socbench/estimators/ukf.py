@@ -15,7 +15,8 @@ For each sample k::
     predict  X = σ(x⁺, P⁺),  X_i⁻ = f(X_i, I_k, dt_k)   x⁻ = Σ Wm_i X_i⁻
              P⁻ = Σ Wc_i (X_i⁻ − x⁻)(X_i⁻ − x⁻)ᵀ + Q_k,  symmetrise, PSD repair
 
-``R_k`` and ``Q_k`` come from ``D`` and ``B`` at the mean (sigma point 0), as in the EKF. The update draws fresh sigma
+``R_k`` and ``Q_k`` come from ``D`` and ``B`` at the mean (sigma point 0), as in the EKF;
+``socbench.kernels.filters.ukf`` is the same loop compiled (``engine`` option). The update draws fresh sigma
 points from the prior, exactly as filterpy's ``UnscentedKalmanFilter.predict`` leaves them. Defaults α = 1, β = 2,
 κ = 0 keep every weight but Wm_0 positive (small α makes Wc_0 ≈ −1/α², which breaks PSD on 2–5 state models).
 """
@@ -61,6 +62,8 @@ class UKF(Estimator):
     """Batched unscented Kalman filter (Merwe scaled sigma points α, β, κ)."""
 
     name = "ukf"
+    #: methods the compiled kernel implements (weights() only feeds it λ, Wm, Wc: a subclass may change those)
+    kernel_hooks = ("points",)
     defaults = {"alpha": 1.0, "beta": 2.0, "kappa": 0.0}
 
     def __init__(self, model, noise=None, **options):
@@ -114,10 +117,18 @@ class UKF(Estimator):
                 dX = Xf - x[:, None, :]
                 P = np.einsum("rsi,rsj->rij", dX * Wc[:, None], dX) + Q
                 P, repaired = repair_psd(symmetrise(P), *floors)
-                rec.psd_repairs += repaired
+                rec.psd_repairs += repaired & ~rec.failed
                 settle_predict(rec, k + 1, x, P, x_good, P_good)
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold, "lambda": self.lam})
 
     def points(self, x, P):
         """The sigma points of ``(x, P)``, ``(R, 2n+1, n)``: point 0 is the mean (``R_k``, ``Q_k`` are taken there)."""
         return sigma_points(x, P, self.lam)
+
+    def _run_compiled(self, job, seed=None):
+        from ..kernels.engine import parallel_runs
+        from ..kernels.filters import ukf
+
+        parallel_runs(ukf, job.R, *job.model_args, *job.noise_args, job.opt, self.Wm, self.Wc, float(self.lam),
+                      bool(self.noise.needs_D), bool(self.noise.needs_B), *job.out_args)
+        return job.finish({"gate_threshold": job.threshold, "lambda": self.lam})

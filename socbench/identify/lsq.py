@@ -24,6 +24,7 @@ confidence intervals.
 
 from __future__ import annotations
 
+import contextlib
 import time as _time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -73,25 +74,61 @@ class LsqResult:
         return dict(zip(self.names, self.theta.tolist()))
 
 
-def simulate_voltage(model, time_s, current, temp=None, x0=None, soc_jumps=None, restarts=None) -> np.ndarray:
-    """Open-loop voltage ``(…, T)`` of ``model`` from state ``x0 (…, n)``: :meth:`~socbench.models.base.Model.open_loop`
-    (``soc_jumps[k]`` is added to the SOC after the step into sample ``k``). ``restarts`` ``[(k, z), ...]``: the
-    record is simulated in segments, the one starting at sample ``k`` from rest at SOC ``z`` (socbench.segments)."""
-    return open_loop_segments(model, time_s, current, temp, x0, soc_jumps, restarts)[1]
+def one_blas_thread():
+    """A context in which BLAS/LAPACK run on one thread (``threadpoolctl``; a no-op without it).
+
+    The optimiser factors a small Jacobian (a few hundred rows × tens of parameters) by SVD on every iteration: far
+    too small to gain from threads, and on a busy machine (or next to other worker processes) OpenBLAS's threads
+    wait on each other — an SVD that takes 2 ms on one thread took 0.3 s with two (``improved_rc``'s paper fit: 31 s
+    → 1.4 s at load 8, benchmarks/default_leaderboard.py and docs/performance.md).
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - a declared dependency
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
 
 
-def open_loop_segments(model, time_s, current, temp=None, x0=None, soc_jumps=None, restarts=None, guards=None):
-    """``(states, voltage)`` of :meth:`~socbench.models.base.Model.open_loop`, segment by segment when ``restarts``
-    (see :func:`simulate_voltage`) is given: no current is integrated across a restart."""
+def simulate_voltage(model, time_s, current, temp=None, x0=None, soc_jumps=None, restarts=None,
+                     engine: str = "auto") -> np.ndarray:
+    """Open-loop voltage ``(…, T)`` of ``model`` from state ``x0 (…, n)`` (``soc_jumps[k]`` is added to the SOC after
+    the step into sample ``k``). ``restarts`` ``[(k, z), ...]``: the record is simulated in segments, the one starting
+    at sample ``k`` from rest at SOC ``z`` (socbench.segments). See :func:`open_loop_segments` for ``engine``."""
+    return open_loop_segments(model, time_s, current, temp, x0, soc_jumps, restarts, engine=engine, states=False)[1]
+
+
+def _open_loop(model, x0, time_s, current, temp, soc_jumps, guards, engine, states):
+    """One segment: the compiled step loop (:func:`socbench.kernels.openloop.open_loop`, one parameter variant per
+    row) when ``engine`` is not "numpy", numba is installed, the model lowers and no guard log is asked for (the
+    compiled loop does not count guards); else :meth:`~socbench.models.base.Model.open_loop`. The two agree to
+    ~1e-15 relative (tests/test_kernels.py)."""
+    if engine != "numpy" and guards is None:
+        from ..kernels import jit
+
+        if jit.available():
+            from ..kernels.openloop import open_loop
+
+            out = open_loop(model, x0, time_s, current, temp, soc_jumps, states=states)
+            if out is not None:
+                return out
+    return model.open_loop(x0, time_s, current, temp, soc_jumps, guards=guards)
+
+
+def open_loop_segments(model, time_s, current, temp=None, x0=None, soc_jumps=None, restarts=None, guards=None,
+                       engine: str = "auto", states: bool = True):
+    """``(states, voltage)`` of the open loop, segment by segment when ``restarts`` (see :func:`simulate_voltage`) is
+    given: no current is integrated across a restart. ``states=False``: the states may come back None (the compiled
+    loop then does not store them)."""
     if not restarts:
-        return model.open_loop(x0, time_s, current, temp, soc_jumps, guards=guards)
+        return _open_loop(model, x0, time_s, current, temp, soc_jumps, guards, engine, states)
     bounds = [0] + [int(k) for k, _ in restarts] + [np.size(time_s)]
     parts = []
     for s, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
         xs = x0 if s == 0 else model.x0(np.broadcast_to(float(restarts[s - 1][1]), np.shape(x0)[:-1]))
-        parts.append(model.open_loop(xs, time_s[a:b], current[..., a:b], None if temp is None else temp[..., a:b],
-                                     None if soc_jumps is None else soc_jumps[a:b], guards=guards))
-    return np.concatenate([p[0] for p in parts], axis=-2), np.concatenate([p[1] for p in parts], axis=-1)
+        parts.append(_open_loop(model, xs, time_s[a:b], current[..., a:b], None if temp is None else temp[..., a:b],
+                                None if soc_jumps is None else soc_jumps[a:b], guards, engine, states))
+    xs_all = None if any(p[0] is None for p in parts) else np.concatenate([p[0] for p in parts], axis=-2)
+    return xs_all, np.concatenate([p[1] for p in parts], axis=-1)
 
 
 def _initial_soc(model, profile: Profile, soc0):
@@ -315,17 +352,18 @@ def fit_parameters(
 
     r0 = fun(theta0)
     rmse_start = float(np.sqrt(np.mean(r0 * r0))) if r0.size else float("nan")
-    if P == 0:
-        r = fun(theta0)
-        J = np.zeros((r.size, 0))
-        res_x, success, message, nfev = theta0, True, "no parameters", 1
-    else:
-        sol = least_squares(fun, theta0, jac=jac, bounds=(lower, upper), method="trf", x_scale="jac", loss=loss,
-                            f_scale=f_scale, ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev)
-        res_x, success, message, nfev = sol.x, bool(sol.success), str(sol.message), int(sol.nfev)
-        r = fun(res_x)
-        J = jac(res_x)
-    cov, stderr, corr = covariance(J, r, P)
+    with one_blas_thread():
+        if P == 0:
+            r = fun(theta0)
+            J = np.zeros((r.size, 0))
+            res_x, success, message, nfev = theta0, True, "no parameters", 1
+        else:
+            sol = least_squares(fun, theta0, jac=jac, bounds=(lower, upper), method="trf", x_scale="jac", loss=loss,
+                                f_scale=f_scale, ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev)
+            res_x, success, message, nfev = sol.x, bool(sol.success), str(sol.message), int(sol.nfev)
+            r = fun(res_x)
+            J = jac(res_x)
+        cov, stderr, corr = covariance(J, r, P)
     domain = _domain(build, res_x, t, cur, temp, start_state, jumps, restarts)
     domain["segments"] = segs.count
     rmse = float(np.sqrt(np.mean(r * r))) if r.size else float("nan")

@@ -37,7 +37,8 @@ from .blocks import ROBUST, STRICT, GuardLog, soc_step
 from .params import ModelParams, Polynomial
 from .recurrence import running_sum
 
-__all__ = ["Model", "Simulation", "T_REF_C"]  # T_REF_C: the reference temperature when a profile carries none
+# T_REF_C: the reference temperature when a profile carries none
+__all__ = ["KernelSpec", "Model", "Simulation", "T_REF_C"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -58,6 +59,22 @@ class Simulation:
     @property
     def soc(self) -> np.ndarray:
         return self.states[..., 0]
+
+
+@dataclass(frozen=True)
+class KernelSpec:
+    """How a model lowers to the compiled interpreter (:mod:`socbench.kernels`): its ``family`` (a key of
+    ``socbench.kernels.lowering.FAMILIES``), its parameters in the order the family's compiled code reads them, the
+    index ranges ``[j0, j1)`` of them that ``step`` and ``output`` read (evaluated once per call, before the family's
+    code runs), and two small integers the family interprets (``sub``: e.g. the number of RC branches; ``flags``:
+    options)."""
+
+    family: str
+    params: tuple
+    step: tuple
+    output: tuple
+    sub: int = 0
+    flags: int = 0
 
 
 class Model(ABC):
@@ -129,6 +146,18 @@ class Model(ABC):
 
     #: states with no continuous-time counterpart (excluded from the discretisation check)
     discrete_states: ClassVar[tuple] = ()
+
+    # ------------------------------------------------------------------ compiled form
+    def kernel_spec(self) -> KernelSpec | None:
+        """The compiled family this model lowers to, or None (numpy only). See :mod:`socbench.kernels`."""
+        return None
+
+    def lower(self):
+        """This model as plain arrays for the compiled kernels (:func:`socbench.kernels.lowering.lower`); raises
+        :class:`~socbench.kernels.lowering.NotLowerable` when it has no compiled form."""
+        from ..kernels.lowering import lower
+
+        return lower(self)
 
     # ------------------------------------------------------------------ protocol views
     def x0(self, soc, batch=()) -> np.ndarray:

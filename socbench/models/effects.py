@@ -156,6 +156,10 @@ class Effect:
         """``(Δy, ∂Δy/∂e (…, ne), ∂Δy/∂z, ∂Δy/∂I)`` added to the output, or None."""
         return None
 
+    #: ``kernel_values(base) -> tuple``: the numbers the effect's compiled hooks read (socbench.kernels.evaluate),
+    #: each a scalar or a ``(V,)`` parameter batch; None: the effect has no compiled form (numpy engine only)
+    kernel_values = None
+
 
 def _constant_states(self, e0, i, dt, base):
     """A random-walk state without process noise stays at its initial value over the record (open loop)."""
@@ -191,6 +195,9 @@ class Temperature(Effect):
     def bounds(self, model):
         n = n_cells(model)
         return {"Ea": (0.0, 100e3), "dUdT": (-1e-3 * n, 1e-3 * n)}
+
+    def kernel_values(self, base):
+        return (self["Ea"], self["dUdT"], self["t_ref"])
 
     def factor(self, temp, shape):
         tk = _temp_k(temp, self["t_ref"], shape)
@@ -238,6 +245,9 @@ class Hysteresis(Effect):
 
     def initial(self):
         return np.stack([self["h0"], np.zeros_like(self["h0"])], axis=-1)
+
+    def kernel_values(self, base):
+        return (self["M"], self["M0"], self["gamma"], self["h_ref"])
 
     def _decay(self, i, dt, base):
         eta = np.where(i >= 0.0, 1.0, base.eta_charge)
@@ -301,6 +311,9 @@ class Capacity(Effect):
     def initial(self):
         return self["cap0"][..., None]
 
+    def kernel_values(self, base):
+        return ()
+
     def soc_gain(self, e, i, base):
         return e[..., 0], np.ones(e.shape)
 
@@ -336,6 +349,9 @@ class CurrentBias(Effect):
     def initial(self):
         return self["b0"][..., None]
 
+    def kernel_values(self, base):
+        return ()
+
     def current_offset(self, e):
         return e[..., 0]
 
@@ -365,6 +381,9 @@ class ResistanceOffset(Effect):
 
     def initial(self):
         return self["dR0"][..., None]
+
+    def kernel_values(self, base):
+        return ()
 
     def advance(self, e, z, i, dt, temp, base, jac):
         if not jac:
@@ -397,11 +416,18 @@ class ExtraRC(Effect):
     def bounds(self, model):
         return {"R": (1e-6, resistance_scale(model)), "log10_tau": (0.5, 4.0)}
 
-    def _coef(self, dt, base):
+    def _rc(self):
+        """``(R, C)`` of the branch: ``R ≥ 1e-9`` Ω, ``C = τ/R``."""
         R = np.maximum(self["R"], 1e-9)
-        tau = 10.0 ** self["log10_tau"]
-        a, b, _, _ = rc_coefficients(R, 0.0, tau / R, 0.0, dt, base.mode, name="RCx")
+        return R, 10.0 ** self["log10_tau"] / R
+
+    def _coef(self, dt, base):
+        R, C = self._rc()
+        a, b, _, _ = rc_coefficients(R, 0.0, C, 0.0, dt, base.mode, name="RCx")
         return a, b
+
+    def kernel_values(self, base):
+        return self._rc()
 
     def advance(self, e, z, i, dt, temp, base, jac):
         a, b = self._coef(dt, base)
@@ -443,6 +469,9 @@ class ButlerVolmer(Effect):
         q = model.capacity_ah
         return {"I0": (0.01 * q, 10.0 * q), "dR": (-resistance_scale(model), resistance_scale(model))}
 
+    def kernel_values(self, base):
+        return (self["I0"], self["dR"], float(n_cells(base)))
+
     def output_term(self, e, z, i, temp, base, jac):
         tk = _temp_k(temp, T_REF_C, np.shape(i))
         g = n_cells(base) * 2.0 * R_GAS * tk / FARADAY
@@ -470,6 +499,9 @@ class CoulombicEfficiency(Effect):
     def soc_gain(self, e, i, base):
         return np.where(i < 0.0, self["eta_c"], 1.0), np.zeros(e.shape)
 
+    def kernel_values(self, base):
+        return (self["eta_c"],)
+
 
 class SelfDischarge(Effect):
     """Self-discharge through a leak (ECM_SPEC §9.8): ``ż = −r_sd·U_oc(z)/U_oc(1)/3600`` (per hour at full charge).
@@ -490,6 +522,9 @@ class SelfDischarge(Effect):
 
     def _c(self, base):
         return self["rate"] / (3600.0 * float(base.ocv(1.0)))
+
+    def kernel_values(self, base):
+        return (self._c(base),)
 
     def soc_leak(self, z, e, dt, base):
         u, du = base.ocv.value_and_slope(z)
@@ -535,6 +570,16 @@ class ModelError(Effect):
 
     def bounds(self, model):
         return {}
+
+    def kernel_values(self, base):
+        """``τ_slow, τ_fast, τ_r, K_T, K_z``, the temperatures, the SOC grid, then the three scale grids (row-major
+        ``(K_T, K_z)``) — the layout socbench.kernels.evaluate.model_error_scale reads."""
+        temps = np.atleast_1d(np.asarray(self["temps"], dtype=float))
+        soc = np.atleast_1d(np.asarray(self["soc"], dtype=float))
+        grids = [np.asarray(self[k], dtype=float) for k in self.KEYS]
+        if temps.ndim != 1 or soc.ndim != 1 or any(g.size != temps.size * soc.size for g in grids):
+            return None  # a batch of settings: no compiled form (the lowering says so)
+        return (*self.taus, float(temps.size), float(soc.size), *temps, *soc, *(v for g in grids for v in g.ravel()))
 
     @property
     def taus(self) -> np.ndarray:

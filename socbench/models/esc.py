@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Model
+from .base import KernelSpec, Model
 from .blocks import R_FLOOR, eta, floor_value, lowpass_coefficients, soc_rate, soc_step
 from .recurrence import hysteresis_path, lowpass_path
 
@@ -59,6 +59,12 @@ class ESC(Model):
     @property
     def state_names(self):
         return ("z",) + tuple(f"iR{j}" for j in range(1, self._n + 1)) + ("h", "s")
+
+    def kernel_spec(self):
+        n = self._n
+        params = (("R0",) + tuple(f"R{j}" for j in range(1, n + 1)) + ("M", "M0")
+                  + tuple(f"tau{j}" for j in range(1, n + 1)) + ("gamma",))
+        return KernelSpec("esc", params, step=(n + 3, 2 * n + 4), output=(0, n + 3), sub=n)
 
     def _hysteresis_rate(self, i, z, temp=None):
         """``(r, ∂r/∂z, ∂r/∂I)`` of the hysteresis rate ``r = η(I) I γ(z)/(3600 Q)`` [1/s]; ``u = r·dt``."""

@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ModelError
-from .base import Model
+from .base import KernelSpec, Model
 from .blocks import C_FLOOR, R_FLOOR, STRICT, coupled_rc_coefficients, floor_value, soc_rate, soc_step
 from .recurrence import matrix_affine_scan
 
@@ -48,6 +48,9 @@ class ImprovedRC(Model):
     @property
     def state_names(self):
         return ("z", "Ue", "Uc")
+
+    def kernel_spec(self):
+        return KernelSpec("improved_rc", ("R0", "R1", "R2", "C1", "C2"), step=(1, 5), output=(0, 3))
 
     # ------------------------------------------------------------------ guarded parameters
     def _capacitance(self, name, c, dc, z, guards):

@@ -24,7 +24,7 @@ from typing import ClassVar
 import numpy as np
 
 from ..errors import ConfigError
-from .base import Model
+from .base import KernelSpec, Model
 from .blocks import R_FLOOR, floor_value, integrator_coefficients, rc_coefficients, soc_rate, soc_step
 from .recurrence import affine_scan, running_sum
 
@@ -73,6 +73,13 @@ class RCNetwork(Model):
     @property
     def state_names(self):
         return ("z",) + (("U0",) if self.has_integrator else ()) + tuple(f"U{j}" for j in range(1, self._n + 1))
+
+    def kernel_spec(self):
+        printed = self.has_integrator and self.c0_mode == C0_AS_PRINTED
+        # kernels.lowering RC_INTEGRATOR, RC_C0_PRINTED
+        flags = (1 if self.has_integrator else 0) | (2 if printed else 0)
+        params = ("R0",) + self._branch_params + (("C0",) if printed else ())
+        return KernelSpec("rc_network", params, step=(1, len(params)), output=(0, 1), sub=self._n, flags=flags)
 
     @property
     def _first_branch(self) -> int:

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Model
+from .base import KernelSpec, Model
 from .blocks import (
     R_FLOOR,
     clipped_exp,
@@ -63,6 +63,14 @@ class StaticTermModel(Model):
     def term(self, z, temp=None, guards=None):
         """``(g, dg/dz)`` at SOC ``z`` and cell temperature ``temp``."""
         raise NotImplementedError
+
+    def kernel_spec(self):
+        from ..kernels.lowering import STATIC_TERMS  # the compiled term of each model (kernels/evaluate.py)
+
+        if self.name not in STATIC_TERMS:
+            return None
+        params = ("R0",) + tuple(p for p in self.param_names if p != "R0")
+        return KernelSpec("static_terms", params, step=(0, 0), output=(0, len(params)), sub=STATIC_TERMS[self.name])
 
     def step(self, x, i, dt, temp=None, jac=False, guards=None):
         x, (i, dt) = self._broadcast(x, i, dt)

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Model
+from .base import KernelSpec, Model
 from .blocks import EPS_SINGULAR, R_FLOOR, floor_value, guarded_inv, lowpass_coefficients, soc_rate, soc_step
 from .recurrence import lowpass_path
 from .static_terms import exponential_zone
@@ -42,6 +42,9 @@ class TremblayGeneric(Model):
     @property
     def state_names(self):
         return ("z", "Istar")
+
+    def kernel_spec(self):
+        return KernelSpec("tremblay", ("tc", "K", "A", "B", "R0"), step=(0, 1), output=(1, 5))
 
     def step(self, x, i, dt, temp=None, jac=False, guards=None):
         x, (i, dt) = self._broadcast(x, i, dt)

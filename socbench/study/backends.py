@@ -56,11 +56,14 @@ class SerialBackend:
         pass
 
 
-def _worker_signals() -> None:
+def _worker_signals(threads: int = 0) -> None:
     # Workers leave Ctrl-C to the runner, which stops them itself after the store is consistent; SIGTERM (how the
     # runner stops them) must kill them outright, whatever handler a forked worker inherited from its parent.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if threads and "SOCBENCH_THREADS" not in os.environ:
+        # the compiled filters split a batch over threads (socbench.kernels.engine): the workers share the cores
+        os.environ["SOCBENCH_THREADS"] = str(threads)
 
 
 class ProcessBackend:
@@ -70,7 +73,8 @@ class ProcessBackend:
 
     def __init__(self, jobs: int | None = None):
         self.jobs = int(jobs or os.cpu_count() or 1)
-        self.pool = cf.ProcessPoolExecutor(max_workers=self.jobs, initializer=_worker_signals)
+        threads = max(1, (os.cpu_count() or 1) // self.jobs)
+        self.pool = cf.ProcessPoolExecutor(max_workers=self.jobs, initializer=_worker_signals, initargs=(threads,))
 
     def submit(self, fn, *args):
         return self.pool.submit(fn, *args)
