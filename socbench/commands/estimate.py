@@ -106,7 +106,8 @@ def run(args) -> int:
             warnings.warn(f"{args.params} has no measured model error (fit it with `socbench fit` to get one): the "
                           "filter uses the sensor noise alone", SocbenchWarning, stacklevel=2)
         noise_mode = "sensor"
-    run_model, noise = recipe.apply(model, sensor, stats, profile, noise=noise_mode)
+    run_model, noise = recipe.apply(model, sensor, stats, profile, noise=noise_mode,
+                                    form=estimator_class(args.estimator).model_error_form)
     options = {"soc0_sd": args.soc0_sd, "store_states": True}  # states: the domain report counts guards along them
     if args.estimator == "pf":
         options["n_particles"] = args.particles

@@ -107,6 +107,9 @@ class Estimator:
     name: ClassVar[str] = ""
     #: filter-specific options and their defaults (the common ones are in COMMON_OPTIONS)
     defaults: ClassVar[dict] = {}
+    #: how the noise recipe's model error enters this filter (:func:`socbench.estimators.model_error.apply`):
+    #: "states" (coloured-noise states in the model) or "inflated" (one white R)
+    model_error_form: ClassVar[str] = "states"
 
     def __init__(self, model, noise: SensorNoise | None = None, **options):
         for attr in ("step", "output", "n_states", "x0"):

@@ -71,6 +71,16 @@ Filter noise, inside the form every filter (and the compiled kernels) take, ``R_
   polarisation's shape far more precisely than the model allows.
 
 With ``noise="sensor"`` the model and the sensor covariance are used as they are (the covariance without model error).
+
+**Inflated form** (``form="inflated"``, for an estimator that cannot carry the coloured states: the bootstrap particle
+filter, whose particles would have to sample five near-deterministic dimensions through a likelihood narrower than the
+error they explain, and collapse): no states are added and the whole error goes into a white ``R``::
+
+    σ_V² = σ_extra² + mean_k [σ_0²(T_k) + s̄_slow²(T_k) + s̄_fast²(T_k) + s̄_r²(T_k)·I_k²]
+
+``s̄`` the RMS over SOC of each scale. White where the error is coloured, so it overstates the information a long
+record holds (the filter is consistent per sample, not over minutes), but it never lets the likelihood be narrower
+than the model's error. Estimators declare which form they take (``Estimator.model_error_form``).
 """
 
 from __future__ import annotations
@@ -97,6 +107,8 @@ FAST_MAX_LAG_S = 60.0
 RESISTANCE_WINDOW_S = 60.0
 #: noise settings of socbench estimate and the leaderboard
 NOISE_MODES = ("model", "sensor")
+#: how the recipe enters a filter: coloured-noise states in the model, or one inflated white R (module docstring)
+FORMS = ("states", "inflated")
 
 
 #: SOC grid of the model-error scales (the error is largest near the ends: knee, hysteresis after a charge)
@@ -434,15 +446,20 @@ def estimate(model, records, temps=None, window_s: float = WINDOW_S, soc=SOC_GRI
 
 # ------------------------------------------------------------------------------------------------ the recipe
 def apply(model, sensor: SensorNoise, stats: ModelErrorStats | None, profile: Profile | None = None,
-          extra_voltage_sd: float = 0.0, noise: str = "model"):
+          extra_voltage_sd: float = 0.0, noise: str = "model", form: str = "states"):
     """``(model, SensorNoise)`` a filter runs with: ``noise="model"`` the recipe (module docstring) for ``profile``'s
-    temperatures, ``"sensor"`` (or no ``stats``) the model and the sensor noise unchanged."""
+    temperatures, ``"sensor"`` (or no ``stats``) the model and the sensor noise unchanged. ``form``: ``"states"``
+    (the model augmented with the coloured error) or ``"inflated"`` (the model unchanged, the error in a white R)."""
     from ..models.effects import augment
 
     if noise not in NOISE_MODES:
         raise ConfigError(f"unknown noise setting '{noise}'; known: {', '.join(NOISE_MODES)}")
+    if form not in FORMS:
+        raise ConfigError(f"unknown model-error form '{form}'; known: {', '.join(FORMS)}")
     if noise == "sensor" or stats is None:
         return model, sensor
+    if form == "inflated":
+        return model, inflated_noise(sensor, stats, profile, extra_voltage_sd)
     aug = augment(model, [stats.effect()])
     aug.schedule_soc = True  # the dynamics' parameter slopes over SOC are model error too, not SOC information
     temp = None if profile is None else profile.temperature_c
@@ -455,3 +472,23 @@ def apply(model, sensor: SensorNoise, stats: ModelErrorStats | None, profile: Pr
     tuned = replace(sensor, dt=dt0, voltage_sd=float(np.sqrt(max(var, sensor.voltage_sd ** 2))),
                     walk_sd=tuple(walk), soc_walk_sd=0.0, state_walk_sd=0.0)
     return aug, tuned
+
+
+def inflated_noise(sensor: SensorNoise, stats: ModelErrorStats, profile: Profile | None = None,
+                   extra_voltage_sd: float = 0.0) -> SensorNoise:
+    """The sensor noise with the whole model error in a white ``σ_V`` (the recipe's inflated form, module docstring):
+    the white, slow, fast and resistive parts' variances at the record's temperatures (RMS over SOC), the resistive
+    one at the record's mean square current; at least the sensor's ``σ_V``."""
+    sm = stats.summary()
+    temps = np.asarray(stats.temps, dtype=float)
+    t = np.asarray(T_REF_C if profile is None or profile.temperature_c is None else profile.temperature_c,
+                   dtype=float)
+
+    def at(values):
+        v = np.asarray(values, dtype=float) ** 2
+        return float(np.mean(np.interp(t, temps, v))) if len(v) > 1 else float(v[0])
+
+    i2 = float(np.mean(np.square(profile.current_a))) if profile is not None else 0.0
+    var = extra_voltage_sd ** 2 + stats.white_var(None if profile is None else profile.temperature_c)
+    var += at(sm["slow"]) + at(sm["fast"]) + at(sm["r"]) * i2
+    return replace(sensor, voltage_sd=float(np.sqrt(max(var, sensor.voltage_sd ** 2))))

@@ -121,8 +121,11 @@ class Toolkit:
                 if len(_MODEL_ERROR) >= 64:
                     _MODEL_ERROR.pop(next(iter(_MODEL_ERROR)))
                 _MODEL_ERROR[key] = stats
+        from ..estimators import estimator_class
+
         run_model, tuned = model_error.apply(model, sensor, stats, profile,
-                                             extra_voltage_sd=getattr(scenario, "added_voltage_sd", 0.0))
+                                             extra_voltage_sd=getattr(scenario, "added_voltage_sd", 0.0),
+                                             form=estimator_class(estimator).model_error_form)
         return run_model, tuned, stats.to_dict()
 
     def run_estimator(self, estimator, profile, soc0, params, seed):
