@@ -36,7 +36,7 @@ from ..errors import ConfigError, DataError
 from ..profile import Profile
 from .estimate import Estimate
 from .noise import NoiseModel, SensorNoise
-from .safety import Gate, clamp_soc, diverged, repair_psd, symmetrise
+from .safety import Gate, diverged, project_soc, repair_psd, symmetrise
 
 COMMON_OPTIONS: dict = {
     "Q": None,
@@ -361,7 +361,8 @@ def restore(values: np.ndarray, good: np.ndarray, failed: np.ndarray) -> None:
 
 
 def settle_update(rec: Recorder, k: int, x, P, x_good, P_good, v_pred, e, S, nis, gated, opt: dict, factor=False):
-    """The safety tail every Kalman update shares, in order: symmetrise and PSD-repair ``P``, clamp SOC (flagged),
+    """The safety tail every Kalman update shares, in order: symmetrise and PSD-repair ``P``, bring the SOC back into
+    [0, 1] by projecting the state onto the bound (:func:`~.safety.project_soc`, flagged),
     detect divergence, put failed runs back on their last good state, record sample ``k``. Returns ``(x, P)``.
 
     ``factor=True``: ``P`` is a lower-triangular square root ``L`` of the covariance (``L Lᵀ``, the square-root
@@ -374,7 +375,7 @@ def settle_update(rec: Recorder, k: int, x, P, x_good, P_good, v_pred, e, S, nis
         P, repaired = repair_psd(symmetrise(P), opt["psd_floor"], opt["psd_rel_floor"])
         rec.psd_repairs += repaired & ~rec.failed  # a failed run is frozen: it counts nothing more
         bad = None
-    clamped = clamp_soc(x)
+    clamped = project_soc(x, P, factor)
     if bad is None:
         bad = diverged(x, P, nis, opt["var_max"], opt["nis_max"])
     failed = rec.fail(k, bad)

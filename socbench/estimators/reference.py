@@ -39,7 +39,7 @@ from .dual import JointParameters
 from .estimate import Estimate
 from .hinf import HInfinityFilter
 from .pf import ParticleFilter, log_likelihood, roughening_sd, shrink, weighted_mean_root
-from .safety import clamp_soc, diverged, repair_psd, symmetrise
+from .safety import diverged, project_soc, repair_psd, symmetrise
 from .ukf import UKF, merwe_weights
 
 
@@ -76,7 +76,7 @@ class _KalmanReference(Estimator):
         """Symmetrise + repair P, clamp x (in place); returns (P, clamped, failed)."""
         opt = self.options
         P = repair_psd(symmetrise(P)[None], opt["psd_floor"], opt["psd_rel_floor"])[0][0]
-        clamped = clamp_soc(x[None])  # x is a view of the filter's state: clamped in place
+        clamped = project_soc(x[None], P[None])  # x is a view of the filter's state: projected in place
         failed = rec.fail(k, diverged(x[None], P[None], np.atleast_1d(nis), opt["var_max"], opt["nis_max"]))
         return P, clamped, bool(failed[0])
 
@@ -482,7 +482,7 @@ class ReferenceSRUKF(_KalmanReference):
                 K = Pxy / S
                 x = x + K * e
                 L = cholupdate_one(L, K * np.sqrt(S), -1.0, floor)
-            clamped = clamp_soc(x[None])
+            clamped = project_soc(x[None], L[None], factor=True)
             var = np.sum(L * L, axis=1)
             if rec.fail(k, diverged(x[None], var[:1], np.array([e * e / S]), opt["var_max"], opt["nis_max"])
                         | ~np.all(np.isfinite(var)))[0]:

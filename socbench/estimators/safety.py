@@ -80,6 +80,35 @@ def repair_psd(P: np.ndarray, abs_floor: float = 1e-15, rel_floor: float = 1e-12
     return P, need
 
 
+def project_soc(x: np.ndarray, P: np.ndarray, factor: bool = False) -> np.ndarray:
+    """Put ``x[..., 0]`` back into [0, 1] by projecting the whole state onto the bound (in place); returns the
+    (…,) flag of where it acted. ``P`` (…, n, n) the covariance, or its lower-triangular root with ``factor=True``.
+
+    Estimate projection (Simon & Chia, "Kalman filtering with state equality constraints", IEEE TAES 38(1), 2002,
+    with the weight ``W = P⁻¹``): for a run whose SOC left the range, with ``b`` the nearer bound and
+    ``d = z − b``::
+
+        x ← x − P[:, 0] · d / P[0, 0]        (so z = b exactly; the other states move as P correlates them)
+
+    ``P`` is kept. Clipping the SOC alone throws away the part of the update that the SOC could not take while the
+    states correlated with it keep theirs; at a bound the filter meets again and again (a full-charge rest) that
+    difference accumulates in the unobservable combinations (an RC voltage against a model-error state) until the
+    filter diverges. Where ``P[0, 0]`` is not positive and finite the SOC alone is clipped.
+    """
+    z = x[..., 0]
+    out = (z < 0.0) | (z > 1.0)
+    if not out.any():
+        return out
+    col = np.einsum("...ij,...j->...i", P, P[..., 0, :]) if factor else P[..., :, 0]
+    pzz = col[..., 0]
+    ok = out & np.isfinite(pzz) & (pzz > 0.0) & np.all(np.isfinite(col), axis=-1)
+    bound = np.clip(z, 0.0, 1.0)
+    if ok.any():  # only the runs that crossed: another run's infinite covariance must not touch its state
+        x[ok] -= col[ok] * ((z[ok] - bound[ok]) / pzz[ok])[..., None]
+    x[..., 0] = np.where(out, bound, x[..., 0])
+    return out
+
+
 def clamp_soc(x: np.ndarray) -> np.ndarray:
     """Clip ``x[..., 0]`` into [0, 1] in place; returns the (…,) flag of where it acted."""
     z = x[..., 0]

@@ -147,12 +147,34 @@ def clamp_soc(x):
 
 
 @kernel(inline=True)
+def project_soc(x, P, n):
+    """``estimators.safety.project_soc`` on one run (pointers ``x``, ``P`` n × n): the state projected onto the
+    SOC bound it crossed, ``x ← x − P[:, 0]·(z − b)/P[0, 0]``; the SOC alone clipped where ``P[0, 0]`` is not a
+    positive finite number."""
+    z = x[0]
+    if 0.0 <= z <= 1.0:
+        return False
+    b = 0.0 if z < 0.0 else 1.0
+    pzz = P[0]
+    ok = math.isfinite(pzz) and pzz > 0.0
+    for a in range(n):
+        if not math.isfinite(P[a * n]):
+            ok = False
+    if ok:
+        d = z - b
+        for a in range(n):
+            x[a] = x[a] - P[a * n] * (d / pzz)
+    x[0] = b
+    return True
+
+
+@kernel(inline=True)
 def settle(x, P, n, nis, opt, w, V, work):
     """The update's safety tail (``estimators.base.settle_update``) up to recording: ``(clamped, failed,
     repaired)`` (pointers: ``x``, ``P`` n × n, ``opt``, scratch ``w``, ``V``, ``work``)."""
     symmetrise(P, n)
     repaired = repair_psd(P, n, opt[PSD_ABS], opt[PSD_REL], w, V, work)
-    clamped = clamp_soc(x)
+    clamped = project_soc(x, P, n)
     return clamped, diverged_cov(x, n, P, nis, opt[VAR_MAX], opt[NIS_MAX]), repaired
 
 
