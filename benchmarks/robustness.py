@@ -143,8 +143,9 @@ def analyse(result, store: Store) -> dict:
                     "invocations": len(logs), "this_invocation": result.seconds},
         "stale": len(result.stale),
         "stale_cells": sum(c["stale"] for c in cells),
-        "backend": result.backend,
-        "jobs": result.jobs,
+        # of the invocations that computed cells (a --report-only one computes none and has no workers)
+        "backend": next((g.get("backend") for g in reversed(logs) if g.get("computed")), result.backend),
+        "jobs": max([int(g.get("jobs") or 0) for g in logs if g.get("computed")] or [result.jobs]),
         "cells_detail": cells,
     }
 
