@@ -245,3 +245,20 @@ def test_particle_filter_takes_the_recipe_as_an_inflated_white_r(cfg):
     assert pf["soc_rmse"] < max(2.5 * ekf["soc_rmse"], 0.01), (pf["soc_rmse"], ekf["soc_rmse"])
     with pytest.raises(ConfigError):
         recipe.apply(model, sensor, stats, test, form="bands")
+
+
+def test_inflated_form_counts_the_white_part_at_the_measured_resolution():
+    """A 10 Hz record gets the white part ten times per-sample variance (the same information per second as the
+    states form); the coloured parts are per-sample variances and do not scale."""
+    rng = np.random.default_rng(5)
+    model = make_model("thevenin", paper_params("thevenin"))
+    err = {"slow_sd": 0.03, "tau": 300.0, "r_sd": 0.0, "white_sd": 0.005}
+    validation = _draws(model, rng, 4, err)
+    stats = recipe.estimate(model, [validation.run(r) for r in range(validation.n_runs)])
+    sensor = SensorNoise(voltage_sd=0.001, current_sd=0.01)
+    slow = _draws(model, rng, 1, err)
+    fast = Profile(slow.time_s / 10.0, slow.current_a, slow.voltage_v, None, slow.soc_ref, slow.meta)
+    v1 = recipe.inflated_noise(sensor, stats, slow).voltage_sd ** 2
+    v10 = recipe.inflated_noise(sensor, stats, fast).voltage_sd ** 2
+    white = stats.white_var(None)
+    assert v10 - v1 == pytest.approx(9.0 * white, rel=1e-9)

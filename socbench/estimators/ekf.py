@@ -7,7 +7,7 @@ For each sample k (prior ``x⁻, P⁻``; the first prior is ``x0, P0``)::
              K = P⁻ Hᵀ / S               (K := 0 when the χ² gate rejects the sample)
              x⁺ = x⁻ + K e
              P⁺ = (I − K H) P⁻ (I − K H)ᵀ + K R_k Kᵀ                 (Joseph form: PSD for any K)
-             symmetrise, PSD repair, clamp z to [0, 1], divergence check
+             symmetrise, PSD repair, SOC bound (project_soc), divergence check
     predict  x⁻ = f(x⁺, I_k, dt_k)      F = ∂f/∂x,  B = ∂f/∂I       (one model.step(jac=True), zero-order hold)
              Q_k = σ_I² B Bᵀ (+ walk)   P⁻ = F P⁺ Fᵀ + Q_k
 

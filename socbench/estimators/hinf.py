@@ -13,7 +13,7 @@ For each sample k
     update   e = v_k − h(x⁻, I_k),   R_k = σ_V² + σ_I² D²,   S = H P⁻ Hᵀ + R_k,   NIS = e²/S   (χ² gate as the EKF)
              A = I − θ_k S̄ P⁻ + Hᵀ R_k⁻¹ H P⁻,   P⁺ = P⁻ A⁻¹      (θ_k ≤ θ: the feasibility cap below)
              K = P⁻ A⁻¹ Hᵀ R_k⁻¹ = P⁺ Hᵀ / R_k  (0 when gated),   x⁺ = x⁻ + K e
-             symmetrise, PSD repair, clamp z to [0, 1], divergence check   (the EKF's safety tail)
+             symmetrise, PSD repair, SOC bound (project_soc), divergence check   (the EKF's safety tail)
     predict  x⁻ = f(x⁺, I_k, dt_k),   P⁻ = F P⁺ Fᵀ + Q_k                   (Q_k from the sensor model, as the EKF)
 
 With ``θ = 0`` this is exactly the EKF (``P⁺ = (P⁻⁻¹ + HᵀR⁻¹H)⁻¹``, ``K`` the Kalman gain). ``θ > 0`` keeps ``P``,

@@ -76,7 +76,7 @@ With ``noise="sensor"`` the model and the sensor covariance are used as they are
 filter, whose particles would have to sample five near-deterministic dimensions through a likelihood narrower than the
 error they explain, and collapse): no states are added and the whole error goes into a white ``R``::
 
-    σ_V² = σ_extra² + mean_k [σ_0²(T_k) + s̄_slow²(T_k) + s̄_fast²(T_k) + s̄_r²(T_k)·I_k²]
+    σ_V² = σ_extra² + mean_k [σ_0²(T_k)·max(1, 1 s/dt₀) + s̄_slow²(T_k) + s̄_fast²(T_k) + s̄_r²(T_k)·I_k²]
 
 ``s̄`` the RMS over SOC of each scale. White where the error is coloured, so it overstates the information a long
 record holds (the filter is consistent per sample, not over minutes), but it never lets the likelihood be narrower
@@ -489,6 +489,9 @@ def inflated_noise(sensor: SensorNoise, stats: ModelErrorStats, profile: Profile
         return float(np.mean(np.interp(t, temps, v))) if len(v) > 1 else float(v[0])
 
     i2 = float(np.mean(np.square(profile.current_a))) if profile is not None else 0.0
-    var = extra_voltage_sd ** 2 + stats.white_var(None if profile is None else profile.temperature_c)
+    dt0 = float(np.median(profile.dt)) if profile is not None and profile.n > 1 else sensor.dt
+    # the white part at the measured resolution, as in the states form: the same information per second
+    var = extra_voltage_sd ** 2 + stats.white_var(None if profile is None else profile.temperature_c) * max(
+        1.0, RESOLUTION_S / dt0)
     var += at(sm["slow"]) + at(sm["fast"]) + at(sm["r"]) * i2
     return replace(sensor, voltage_sd=float(np.sqrt(max(var, sensor.voltage_sd ** 2))))

@@ -6,7 +6,8 @@
                   slack ``s`` = :data:`REPAIR_SLACK` keeps a matrix that sits at the floor (repaired before, to
                   rounding: the eigenvalues of two implementations differ by ~ε·λ_max, i.e. ~1e-4 of a 1e-12·λ_max
                   floor) from being "repaired" again, which would change nothing but the repair count;
-* SOC clamp       ``z ← clip(z, 0, 1)``, flagged per sample;
+* SOC bound       a Kalman update that leaves [0, 1] is projected onto the bound with the whole state
+                  (:func:`project_soc`); the counter and the particles clip ``z ← clip(z, 0, 1)``; flagged per sample;
 * innovation gate skip the update when ``NIS = e²/S > χ²_{1−α}(1)``, counted; after ``release`` consecutive skips the
                   next update is taken anyway, so a filter that started far off is never locked out for good;
 * divergence      a run whose state, covariance or NIS is not finite, whose SOC variance exceeds ``var_max`` or whose

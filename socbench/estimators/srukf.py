@@ -13,7 +13,7 @@ For each sample k (prior ``x⁻, L⁻``; the first is ``x0, chol(P0)``)::
              S = Σ Wc_i (Y_i − ŷ)² + R_k        (the square of the scalar qr/cholupdate of the paper: s_y = √S)
              P_xy = Σ Wc_i (X_i − x⁻)(Y_i − ŷ),  K = P_xy / S  (0 when gated),  x⁺ = x⁻ + K e
              L⁺ = cholupdate(L⁻, K √S, −1)                               (rank-one downdate: L⁺L⁺ᵀ = P⁻ − K S Kᵀ)
-             clamp z, divergence check, record                           (settle_update with factor=True)
+             SOC bound (project_soc), divergence check, record          (settle_update with factor=True)
     predict  X = σ(x⁺, L⁺),  X_i⁻ = f(X_i, I_k, dt_k),  x⁻ = Σ Wm_i X_i⁻
              L⁻ = qr([√Wc_1 (X_1⁻ − x⁻) … √Wc_2n (X_2n⁻ − x⁻) | √Q_k])ᵀ   (triangular factor of the stacked rows,
                                                                           diagonal made ≥ 0)
