@@ -165,10 +165,15 @@ class ModelErrorStats:
     # ---------------------------------------------------------------- use
     def white_var(self, temperature_c=None) -> float:
         """Mean of ``σ_0²(T_k)`` over the temperatures of a record (None: at :data:`T_REF_C`)."""
-        var = np.asarray(self.white_sd) ** 2
-        t = np.asarray(T_REF_C if temperature_c is None else temperature_c, dtype=float)
+        return self.mean_var(self.white_sd, temperature_c)
+
+    def mean_var(self, sd_per_temperature, temperature_c=None) -> float:
+        """Mean of ``σ²(T_k)`` over the temperatures of a record (None: at :data:`T_REF_C`), ``σ`` given one value per
+        temperature of :attr:`temps` (linear between them, held outside)."""
+        var = np.asarray(sd_per_temperature, dtype=float) ** 2
         if len(self.temps) == 1:
             return float(var[0])
+        t = np.asarray(T_REF_C if temperature_c is None else temperature_c, dtype=float)
         return float(np.mean(np.interp(t, self.temps, var)))
 
     def effect(self):
@@ -462,16 +467,30 @@ def apply(model, sensor: SensorNoise, stats: ModelErrorStats | None, profile: Pr
         return model, inflated_noise(sensor, stats, profile, extra_voltage_sd)
     aug = augment(model, [stats.effect()])
     aug.schedule_soc = True  # the dynamics' parameter slopes over SOC are model error too, not SOC information
-    temp = None if profile is None else profile.temperature_c
     # the walk variances are exact at the record's typical step dt₀ (first order in dt_k/dt₀ around it)
-    dt0 = float(np.median(profile.dt)) if profile is not None and profile.n > 1 else sensor.dt
-    # white at the measured resolution: a faster record gets the same information per second, not more
-    var = extra_voltage_sd ** 2 + stats.white_var(temp) * max(1.0, RESOLUTION_S / dt0)
+    dt0 = _typical_step(profile, sensor)
     walk = np.zeros(aug.n_states)
     walk[-3:] = np.sqrt(aug.effects[-1].walk_var(dt0))
-    tuned = replace(sensor, dt=dt0, voltage_sd=float(np.sqrt(max(var, sensor.voltage_sd ** 2))),
+    tuned = replace(sensor, dt=dt0, voltage_sd=_voltage_sd(sensor, _white_var(stats, profile, dt0, extra_voltage_sd)),
                     walk_sd=tuple(walk), soc_walk_sd=0.0, state_walk_sd=0.0)
     return aug, tuned
+
+
+def _typical_step(profile: Profile | None, sensor: SensorNoise) -> float:
+    """The record's median sample period (the sensor's ``dt`` without a record)."""
+    return float(np.median(profile.dt)) if profile is not None and profile.n > 1 else sensor.dt
+
+
+def _white_var(stats: ModelErrorStats, profile: Profile | None, dt0: float, extra_voltage_sd: float) -> float:
+    """``σ_extra² + mean_k σ_0²(T_k)·max(1, 1 s/dt₀)``: white at the measured resolution, so a faster record gets the
+    same information per second, not more."""
+    temp = None if profile is None else profile.temperature_c
+    return extra_voltage_sd ** 2 + stats.white_var(temp) * max(1.0, RESOLUTION_S / dt0)
+
+
+def _voltage_sd(sensor: SensorNoise, var: float) -> float:
+    """The filter's voltage SD from a variance: never below the sensor's."""
+    return float(np.sqrt(max(var, sensor.voltage_sd ** 2)))
 
 
 def inflated_noise(sensor: SensorNoise, stats: ModelErrorStats, profile: Profile | None = None,
@@ -480,18 +499,8 @@ def inflated_noise(sensor: SensorNoise, stats: ModelErrorStats, profile: Profile
     the white, slow, fast and resistive parts' variances at the record's temperatures (RMS over SOC), the resistive
     one at the record's mean square current; at least the sensor's ``σ_V``."""
     sm = stats.summary()
-    temps = np.asarray(stats.temps, dtype=float)
-    t = np.asarray(T_REF_C if profile is None or profile.temperature_c is None else profile.temperature_c,
-                   dtype=float)
-
-    def at(values):
-        v = np.asarray(values, dtype=float) ** 2
-        return float(np.mean(np.interp(t, temps, v))) if len(v) > 1 else float(v[0])
-
+    temp = None if profile is None else profile.temperature_c
     i2 = float(np.mean(np.square(profile.current_a))) if profile is not None else 0.0
-    dt0 = float(np.median(profile.dt)) if profile is not None and profile.n > 1 else sensor.dt
-    # the white part at the measured resolution, as in the states form: the same information per second
-    var = extra_voltage_sd ** 2 + stats.white_var(None if profile is None else profile.temperature_c) * max(
-        1.0, RESOLUTION_S / dt0)
-    var += at(sm["slow"]) + at(sm["fast"]) + at(sm["r"]) * i2
-    return replace(sensor, voltage_sd=float(np.sqrt(max(var, sensor.voltage_sd ** 2))))
+    var = _white_var(stats, profile, _typical_step(profile, sensor), extra_voltage_sd)
+    var += stats.mean_var(sm["slow"], temp) + stats.mean_var(sm["fast"], temp) + stats.mean_var(sm["r"], temp) * i2
+    return replace(sensor, voltage_sd=_voltage_sd(sensor, var))
