@@ -173,11 +173,10 @@ HOW = (
     f"{NOISE_FLOOR:g} × the voltage noise of the averaged records (measured from the second difference of the "
     "residual on the records as recorded, and again on the residual of the model as it grows, since a model far off "
     f"reads its own error at the current's edges as noise; {NOISE_FLOOR_REFIT:g} × once the base refit is in the "
-    "model, every later candidate being fitted jointly with it). Time constants (an extra branch's τ, Plett's γ, "
-    "Butler–Volmer's I₀) are also started from a grid, each fold keeping the start of least training error. At the "
-    "end, an SOC drift named is swapped for another one when that one, fitted beside everything else added, cuts the "
-    "held-out RMSE by a further 10 % (a fade that comes with grown resistances loses its round alone to a leak at "
-    "its bound, and wins once the base refit is beside it).")
+    "model, every later candidate being fitted jointly with it). At the end, an SOC drift named is swapped for "
+    "another one when that one, fitted beside everything else added, cuts the held-out RMSE by a further 10 % (a "
+    "fade that comes with grown resistances loses its round alone to a leak at its bound, and wins once the base "
+    "refit is beside it).")
 SOC_HOW = (
     "SOC: the EKF and the UKF run on every record once per fold (records averaged to at most 1500 bins), block j "
     "scored with fold j's model; each fold's filter voltage noise is the held-out residual outside block j (each "

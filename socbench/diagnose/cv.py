@@ -76,17 +76,12 @@ def simulate_records(build, thetas, records, soc0s) -> list:
 
 
 def fit_folds(build, folds: Folds, theta0, lower, upper, soc0s, *, groups=None, names=None, compress=None,
-              max_nfev: int = 15, diff_step: float = 1e-6, starts=None) -> FoldFit:
+              max_nfev: int = 15, diff_step: float = 1e-6) -> FoldFit:
     """Fit θ for every group of ``groups`` (default: the folds ``0 … k − 1``; ``None`` in it = all data) at once.
 
     ``build(θ (B, P)) -> model`` with the parameter batch on the leading axis; ``theta0`` is ``(P,)`` (one start for
     every group) or ``(G, P)``; ``soc0s`` the initial SOC of each record; ``compress`` the options of
     :func:`~socbench.identify.compress.compress_profile` (None: fit every binned sample).
-
-    ``starts (S, P)`` or ``(G, S, P)``: further starting points (multi-start against local minima of the time
-    constants). Each group's training error is evaluated at its ``theta0`` row and at every start (one batched
-    simulation, on that group's training samples only), and the optimiser starts from the lowest: the choice never
-    sees a group's held-out block.
     """
     t0 = _time.perf_counter()
     groups = tuple(range(folds.k)) if groups is None else tuple(groups)
@@ -94,12 +89,9 @@ def fit_folds(build, folds: Folds, theta0, lower, upper, soc0s, *, groups=None, 
     lower = np.asarray(lower, dtype=float)
     upper = np.asarray(upper, dtype=float)
     P = lower.size
-    th0 = np.array(np.broadcast_to(np.asarray(theta0, dtype=float), (G, P)))
+    th0 = np.broadcast_to(np.asarray(theta0, dtype=float), (G, P))
     inner = 1e-9 * (upper - lower)
     th0 = np.clip(th0, lower + inner, upper - inner)
-    if starts is not None:
-        starts = np.asarray(starts, dtype=float)
-        starts = np.clip(np.broadcast_to(starts, (G,) + starts.shape[-2:]), lower + inner, upper - inner)
     names = tuple(names) if names is not None else tuple(f"theta{j}" for j in range(P))
     # the fitting view of every record: compressed, with each group's training mask on the kept samples
     recs, masks = [], []
@@ -128,12 +120,6 @@ def fit_folds(build, folds: Folds, theta0, lower, upper, soc0s, *, groups=None, 
         return np.concatenate(parts, axis=1)
 
     counts = {"nfev": 0, "njev": 0}
-    if starts is not None:  # each group starts from its best point (training error only)
-        for g in range(G):
-            cand = np.vstack([th0[g:g + 1], starts[g]])
-            cost = np.sum(residuals(cand, [g] * cand.shape[0]) ** 2, axis=1)
-            counts["nfev"] += 1
-            th0[g] = cand[int(np.argmin(cost))]
     out = np.empty((G, P))
     for g in range(G):
         cache = {}

@@ -9,8 +9,7 @@ One round, on the current model ``m`` (the base model, then the base model with 
 2. for the candidates (below), fit their parameters — **together with the parameters of what was added before** (the
    refit) — inside their physical bounds (:meth:`~socbench.models.effects.Effect.bounds`), once per fold and once
    on all data (:func:`socbench.diagnose.cv.fit_folds`; the base model's parameters stay as fitted on the fit data
-   unless the base refit was added); a time constant (extra RC's τ, Plett's γ, Butler–Volmer's I₀) is also started
-   from a grid (:data:`START_GRIDS`), each fold keeping the start of least *training* error;
+   unless the base refit was added);
 3. judge each on its held-out residual (:func:`~socbench.diagnose.cv.cv_residual`: every block scored by the fold that
    did not see it): ``score = ln(MSE_before / MSE_after) − 2·p / n_eff`` (AIC per effective sample, ``p`` the
    parameters the candidate adds, ``n_eff = N·(1 − ρ)/(1 + ρ)`` from the lag-1 autocorrelation ρ of the residual, at
@@ -98,11 +97,6 @@ TWIN_TAU = 3.0
 T_EVIDENCE_K = 5.0
 #: effects fitted again beside the base refit in the round after it was adopted (the best-scoring ones)
 CARRY = 2
-#: further starting points of the non-linear parameters (:meth:`Search.start_grid`): each group of a fit starts from
-#: the point of least training error among its signature guess and these
-START_GRIDS = {"extra_rc_log10_tau": (1.0, 1.5, 2.0, 2.5, 3.0, 3.5), "extra_rc_R_over_R0": (0.3, 1.0),
-               "hysteresis_M_V": 0.005, "hysteresis_gamma": (3.0, 10.0, 30.0, 100.0, 300.0),
-               "hysteresis_h0": (-1.0, 0.0, 1.0), "butler_volmer_I0_over_Q": (0.1, 0.3, 1.0, 3.0)}
 #: compression of the training record for the fits (the held-out part is scored on every sample)
 FIT_COMPRESS = {"max_step_s": 60.0}
 
@@ -326,42 +320,12 @@ class Search:
 
     def fit(self, names, theta0):
         """Fit the effects ``names`` once per fold and once on all data; ``theta0`` is ``(P,)`` or one row per
-        group (:attr:`groups`). The last effect's non-linear parameters are also started from the grid of
-        :meth:`start_grid` (each group keeps the start of least training error,
-        :func:`~socbench.diagnose.cv.fit_folds`).
-        Returns ``(FoldFit, build, layout)``."""
+        group (:attr:`groups`). Returns ``(FoldFit, build, layout)``."""
         build, layout, lo, hi = self.builder(names)
-        theta0 = np.array(np.broadcast_to(np.asarray(theta0, dtype=float), (len(self.groups), lo.size)))
-        grid = self.start_grid(names[-1])
-        starts = None
-        if grid:
-            j = lo.size - len(layout[-1][1])
-            cols = [j + layout[-1][1].index(k) for k in grid[0]]
-            starts = np.repeat(theta0[:, None, :], len(grid), axis=1)
-            for s, point in enumerate(grid):
-                for c, v in zip(cols, point.values()):
-                    starts[:, s, c] = v
         fit = fit_folds(build, self.folds, theta0, lo, hi, self.soc0s, groups=self.groups,
                         names=[f"{n}.{p}" for n, ps in layout for p in ps], compress=FIT_COMPRESS,
-                        max_nfev=self.max_nfev, starts=starts)
+                        max_nfev=self.max_nfev)
         return fit, build, layout
-
-    def start_grid(self, name) -> list:
-        """Further starting points of ``name``'s non-linear parameters (:data:`START_GRIDS`), as dicts; the linear
-        ones keep their guess. A bounded fit of a time constant from one start lands in a local minimum (a branch at
-        τ's bound, Plett's γ at 1) where the signature's grid guess lies on the wrong side of a ridge."""
-        q = self.base.capacity_ah
-        r0 = float(np.ravel(self.base.params.values["R0"](0.5))[0]) if "R0" in self.base.params.values else 0.0
-        if name == "extra_rc" and r0 > 0:
-            return [{"R": f * r0, "log10_tau": t} for t in START_GRIDS["extra_rc_log10_tau"]
-                    for f in START_GRIDS["extra_rc_R_over_R0"]]
-        if name == "hysteresis":
-            m = START_GRIDS["hysteresis_M_V"] * self.n_cells
-            return [{"M": m, "gamma": g, "h0": h} for g in START_GRIDS["hysteresis_gamma"]
-                    for h in START_GRIDS["hysteresis_h0"]]
-        if name == "butler_volmer":
-            return [{"I0": f * q} for f in START_GRIDS["butler_volmer_I0_over_Q"]]
-        return []
 
     def trajectories(self, build, thetas):
         """``{group: [Trajectory per record]}`` of the current model of every group (``build`` None: the base)."""
