@@ -1008,11 +1008,11 @@ def output_loaded(im, fm, x, i, temp, has_temp, jac, H, work):
             tk = (temp if has_temp else t_ref) + KELVIN
             k = math.exp(fm[v] / R_GAS * (1.0 / tk - 1.0 / (t_ref + KELVIN)))
             y = (1.0 - k) * u + k * y + fm[v + 1] * (tk - KELVIN - t_ref)
+            D = k * D  # D is returned with or without the Jacobians (the particle filter's R reads it)
             if jac:
                 for c in range(nb):
                     H[c] = k * H[c]
                 H[0] += (1.0 - k) * du
-                D = k * D
     for e in range(neff):  # additive terms
         code = im[tab + EFFECT_WIDTH * e]
         s0 = im[tab + EFFECT_WIDTH * e + 1]
@@ -1130,3 +1130,21 @@ def eval_points(im, fm2, X, I, DT, TEMP, has_temp, jac, XN, F, B, Y, H, D, statu
         Y[p] = y
         D[p] = d
         status[p] = max(s1, s2)
+
+
+@kernel
+def eval_cloud(im, fm, X, I, i_out, dt, temp, has_temp, XN, Y, D):
+    """:func:`model_step_points` (point ``p`` at current ``I[p]``) and :func:`model_output_points` (at ``i_out``) on
+    the cloud ``X`` (npts × n) at one ``dt`` and temperature: the particle filter's path, for the equality tests;
+    returns the status."""
+    npts, n = X.shape
+    work = np.empty(WORK_SIZE)
+    PW = np.empty(points_scratch(npts))
+    F = np.empty(n * n)
+    B = np.empty(n)
+    H = np.empty(n)
+    s1 = model_step_points(ptr(im), ptr(fm), ptr(X), npts, ptr(I), dt, temp, has_temp, ptr(XN), ptr(F), ptr(B),
+                           ptr(work), ptr(PW))
+    s2 = model_output_points(ptr(im), ptr(fm), ptr(X), npts, i_out, temp, has_temp, ptr(Y), ptr(D), ptr(H),
+                             ptr(work), ptr(PW))
+    return max(s1, s2)

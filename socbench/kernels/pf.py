@@ -27,8 +27,8 @@ absorb = kernel(D.absorb)
 sin_cos_reduced = kernel(inline=True)(D.sin_cos_reduced)
 
 PF_FIELDS = ("n_particles", "resample_threshold", "roughening", "kernel_h", "max_stages", "temper_threshold",
-             "temper_h", "current_sd", "additive", "rough_factor", "needs_D")
-N_P, RS_THR, ROUGH, KERNEL_H, MAX_STAGES, TEMPER_THR, TEMPER_H, SD_I, ADDITIVE, ROUGH_C, NEEDS_D = range(11)
+             "temper_h", "current_sd", "additive", "rough_factor")
+N_P, RS_THR, ROUGH, KERNEL_H, MAX_STAGES, TEMPER_THR, TEMPER_H, SD_I, ADDITIVE, ROUGH_C = range(10)
 #: additive noise modes
 ADD_NONE, ADD_WALK, ADD_ROOT = 0, 1, 2
 TEMPER_ITERS = 24
