@@ -179,6 +179,16 @@ def settle(x, P, n, nis, opt, w, V, work):
 
 
 @kernel(inline=True)
+def kalman_buffers(n):
+    """The work arrays of a Kalman-type kernel, allocated once per kernel call (never in its time loop): vectors
+    ``x, H, K, B, w`` ``(n,)``, matrices ``P, F, Q, M, V, work`` ``(n, n)`` and the evaluator's scratch (roles: state,
+    output Jacobian, gain, input column of the step, eigenvalues; covariance, step Jacobian, process noise, product
+    scratch, eigenvectors, linalg scratch)."""
+    return (np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty((n, n)), np.empty((n, n)),
+            np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty(WORK_SIZE))
+
+
+@kernel(inline=True)
 def load_run(x0, P0, r, n, x, P):
     for a in range(n):
         x[a] = x0[r, a]
@@ -225,24 +235,13 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
     T = cur.shape[1]
     n = x0.shape[1]
     jac = n > 0  # True, as a run-time value: a literal would make numba compile a copy of every callee
-    x = np.empty(n)
+    x, H, K, B, w, P, F, Q, M, V, work, scratch = kalman_buffers(n)
     xn = np.empty(n)
-    H = np.empty(n)
-    K = np.empty(n)
     PHt = np.empty(n)
-    B = np.empty(n)
-    w = np.empty(n)
     col = np.empty(n)
-    P = np.empty((n, n))
-    F = np.empty((n, n))
     A = np.empty((n, n))
-    Q = np.empty((n, n))
-    M = np.empty((n, n))
-    V = np.empty((n, n))
     G = np.empty((n, n))
     qh = np.empty((n, n))
-    work = np.empty((n, n))
-    scratch = np.empty(WORK_SIZE)
     imp, fmp, xp, xnp, Hp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(x), ptr(xn), ptr(H), ptr(B), ptr(F), ptr(scratch)
     Pp, Qp, Mp, Vp, wp, workp, Ap, Kp = ptr(P), ptr(Q), ptr(M), ptr(V), ptr(w), ptr(work), ptr(A), ptr(K)
     nzp, walkp, Qop, optp = ptr(nz), ptr(walk), ptr(Qo), ptr(opt)
@@ -402,23 +401,12 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
     T = cur.shape[1]
     n = x0.shape[1]
     ns = 2 * n + 1
-    x = np.empty(n)
-    H = np.empty(n)
-    K = np.empty(n)
+    x, H, K, B, w, P, F, Q, M, V, work, scratch = kalman_buffers(n)
     Pxy = np.empty(n)
-    B = np.empty(n)
-    w = np.empty(n)
     Y = np.empty(ns)
     X = np.empty((ns, n))
     Xf = np.empty((ns, n))
-    P = np.empty((n, n))
-    F = np.empty((n, n))
     L = np.empty((n, n))
-    M = np.empty((n, n))
-    Q = np.empty((n, n))
-    V = np.empty((n, n))
-    work = np.empty((n, n))
-    scratch = np.empty(WORK_SIZE)
     imp, fmp, Hp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(H), ptr(B), ptr(F), ptr(scratch)
     xp, Pp, Xp, Lp, Mp, Qp, Vp, wp, workp = ptr(x), ptr(P), ptr(X), ptr(L), ptr(M), ptr(Q), ptr(V), ptr(w), ptr(work)
     nzp, walkp, Qop, optp = ptr(nz), ptr(walk), ptr(Qo), ptr(opt)
@@ -529,16 +517,8 @@ def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo
     n = x0.shape[1]
     jac = n > 0  # run-time True and False (literals would make numba compile copies of every callee)
     never = n < 0
-    x = np.empty(n)
+    x, H, _, B, w, P, F, Q, M, _, _, scratch = kalman_buffers(n)
     xn = np.empty(n)
-    H = np.empty(n)
-    B = np.empty(n)
-    w = np.empty(n)
-    P = np.empty((n, n))
-    F = np.empty((n, n))
-    Q = np.empty((n, n))
-    M = np.empty((n, n))
-    scratch = np.empty(WORK_SIZE)
     imp, fmp, xp, xnp, Hp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(x), ptr(xn), ptr(H), ptr(B), ptr(F), ptr(scratch)
     Pp, Qp, Mp, wp = ptr(P), ptr(Q), ptr(M), ptr(w)
     nzp, walkp, Qop = ptr(nz), ptr(walk), ptr(Qo)
