@@ -769,8 +769,8 @@ def write_doc(path: Path, v: dict):
     w("## 4. The US06 at each temperature (the must-show)\n")
     res = v["args"].resolution
     w(f"{best}, a guess {-100 * SOC0_ERROR:.0f} SOC points below the reference (SD {SOC0_SD:g}), "
-      + (f"the record bin-averaged to {res:g} s (the noise recipe's resolution; the filters at the records' own 10 Hz "
-         "take 60–190 s a run on the numpy engine here)" if res > 0 else "the record at its own 10 Hz")
+      + (f"the record bin-averaged to {res:g} s (the noise recipe's resolution; `--resolution 0` runs the records' "
+         "own 10 Hz)" if res > 0 else "the record at its own 10 Hz")
       + ", the recipe's noise. Targets: SOC RMSE ≤ 1.5 %, within 3σ ≥ 0.9, EKF and UKF within 0.5 points.\n")
     w("| US06 | fit | EKF SOC RMSE % | EKF within 3σ | EKF NIS [95 % band] | UKF SOC RMSE % | UKF within 3σ | "
       "UKF NIS | \\|EKF − UKF\\| points | targets met |")
