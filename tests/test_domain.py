@@ -167,3 +167,36 @@ def test_a_clamp_counts_as_outside_only_once_the_record_has_gone_a_band_beyond_i
     d_hi = domain_report(m, soc=np.ones(T), current=-i, time_s=t, clamped=np.ones(T, bool))
     assert d_hi["soc_pinned"] == np.count_nonzero(np.arange(T) * amps * dt / (3600.0 * q) > EXCURSION_FLAG)
     assert domain_report(m, soc=soc, clamped=clamped)["outside"] == 0
+
+
+@pytest.mark.parametrize("store_states", [False, True])
+def test_the_domain_report_of_a_batch_in_blocks_equals_the_whole_batch_report(store_states, monkeypatch):
+    """estimate_domain evaluates a batch in blocks of runs (cache-sized); whatever the block size, the report is the
+    one the whole batch gives in one call: counters, SOC range, guards and key order. Randomised: batches that run
+    past empty or full on some runs (clamps, pinned samples, held OCV, implausible voltages), block sizes that do
+    and do not divide the runs."""
+    import socbench.domain as dom
+
+    rng = np.random.default_rng(17)
+    for _ in range(6):
+        name = rng.choice(["thevenin", "dp", "shepherd", "esc"])
+        m = make_model(name, paper_params(name))
+        R, T = int(rng.integers(3, 12)), int(rng.integers(40, 200))
+        dt = float(rng.choice([1.0, 10.0, 30.0]))
+        t = np.arange(T) * dt
+        # each run moves 0.3–1.8 capacities of charge, discharging or charging: many go past empty or full
+        sign = rng.choice([-1.0, 1.0, 1.0], size=(R, 1))
+        i = sign * rng.uniform(0.3, 1.8, (R, 1)) * 3600.0 * m.capacity_ah / (T * dt) * rng.uniform(0.5, 1.5, (R, T))
+        v = m.ocv.voltage[-1] * rng.uniform(0.8, 1.1, (R, T))
+        prof = Profile(t, i, voltage_v=v, meta=ProfileMeta(name="blocks", capacity_ah=m.capacity_ah))
+        est = make_estimator("coulomb", m, store_states=bool(store_states)).run(
+            prof, soc0=rng.uniform(0.0, 1.0, R), segments=False)
+        monkeypatch.setattr(dom, "DOMAIN_BLOCK", 1 << 40)
+        whole = dom.estimate_domain(m, est, prof)
+        assert whole["soc_clamped"] > 0 and whole["outside"] > 0, whole
+        for rows in (1, 2, int(rng.integers(3, R + 1))):
+            monkeypatch.setattr(dom, "DOMAIN_BLOCK", rows * T)
+            blocks = dom.estimate_domain(m, est, prof)
+            assert blocks == whole
+            assert list(blocks) == list(whole)
+            assert list(blocks["guards"]) == list(whole["guards"])

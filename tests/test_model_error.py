@@ -199,6 +199,41 @@ def test_scheduling_drops_the_soc_slope_of_the_dynamics_in_ekf_and_ukf_alike():
         (25.0,), (0.0, 1.0), [[0.02, 0.01]], [[0.0, 0.0]], [[0.0, 0.0]], (0.004,), 400.0, 2.0, 600.0))[0].schedule_soc
 
 
+def test_scheduling_reads_the_soc_off_the_equilibrium_curve_alone_in_ekf_and_ukf_alike():
+    """The output counterpart: under scheduling the SOC column of H is the OCV slope (an RC model's equilibrium
+    curve), not OCV' − R0'(z)·I; sigma points take the output at the mean SOC plus their own OCV difference, so their
+    spread follows that same H."""
+    from socbench.estimators.base import scheduled_output, scheduled_points_output
+
+    rng = np.random.default_rng(3)
+    model = make_model("dp", paper_params("dp"))  # R0, R1, C1… are SOC polynomials (R0'(z) ≠ 0)
+    sched = make_model("dp", paper_params("dp"))
+    sched.schedule_soc = True
+    x = model.x0(rng.uniform(0.2, 0.8, 5), (5,))
+    x[:, 1:] = rng.normal(0, 0.05, (5, model.n_states - 1))
+    i = rng.uniform(20.0, 60.0, 5)
+    y, H, D = model.output(x, i, None, jac=True)
+    ys, Hs, Ds = scheduled_output(sched, x, i, None)
+    np.testing.assert_array_equal(ys, y)
+    np.testing.assert_array_equal(Ds, D)
+    np.testing.assert_array_equal(Hs[:, 1:], H[:, 1:])
+    z, dz = x[:, 0], 1e-6
+    ocv_slope = (model.ocv.value(z + dz) - model.ocv.value(z - dz)) / (2 * dz)
+    np.testing.assert_allclose(Hs[:, 0], ocv_slope, rtol=1e-5)
+    assert np.max(np.abs(H[:, 0] - ocv_slope)) > 1e-3  # the full Jacobian has R0'(z)·I: a different column
+    assert np.all(scheduled_output(model, x, i, None)[1] == H)  # off by default
+    # sigma points around each mean (point 0 the mean): output differences follow the scheduled H to first order
+    dX = rng.normal(0, 1e-5, (5, 6, model.n_states))
+    dX[:, 0] = 0.0
+    X = x[:, None, :] + dX
+    Y, _, _ = scheduled_points_output(sched, X, i[:, None], None, False)
+    np.testing.assert_allclose(Y[:, 0], y, rtol=1e-14)  # y + E(z̄) − E(z̄)
+    np.testing.assert_allclose(Y - y[:, None], np.einsum("rsi,ri->rs", dX, Hs), rtol=1e-4, atol=1e-12)
+    Yfull, _, _ = scheduled_points_output(model, X, i[:, None], None, False)
+    np.testing.assert_allclose(Yfull - y[:, None], np.einsum("rsi,ri->rs", dX, H), rtol=1e-4, atol=1e-12)
+    assert np.max(np.abs(Y - Yfull)) > 1e-3 * np.max(np.abs(Y - y[:, None]))  # the two forms differ
+
+
 def test_correlation_time_beyond_the_record_and_robust_cell_scales():
     # a Gauss–Markov correlation measured to 1200 s gives its τ even when τ is longer than the lags (persistence)
     lags = np.arange(1201.0)

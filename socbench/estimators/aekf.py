@@ -47,7 +47,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from .base import Estimator, scheduled_jacobian, settle_predict, settle_update
+from .base import Estimator, scheduled_jacobian, scheduled_output, settle_predict, settle_update
 from .ekf import innovation_var, kalman_update
 from .estimate import Estimate
 from .safety import symmetrise
@@ -90,7 +90,7 @@ class AdaptiveEKF(Estimator):
             for k in range(T):
                 ik, tk = inputs.current[:, k], inputs.temp_at(k)
                 # ---------------------------------------------------------------- update
-                y, H, D = m.output(x, ik, tk, jac=True)
+                y, H, D = scheduled_output(m, x, ik, tk)
                 r_nom = noise.R(D, (R,))
                 if r_hat is None:
                     r_hat = r_nom.copy()

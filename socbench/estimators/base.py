@@ -403,6 +403,47 @@ def scheduled_jacobian(model, F):
     return F
 
 
+def equilibrium(model, z, temp=None, jac: bool = False):
+    """The model's equilibrium voltage ``E(z, T) = h([z, 0, …, 0], I = 0, T)`` and, with ``jac``, ``∂E/∂z``.
+
+    Every state but the SOC at zero and no current: the OCV of an RC model, ``U(z) + g(z)`` of a static-term model,
+    the augmented states' terms gone (their rest values are zero). What of the output a filter may read the SOC off
+    under parameter scheduling (:func:`scheduled_output`)."""
+    z = np.asarray(z, dtype=float)
+    xe = np.zeros(z.shape + (model.n_states,))
+    xe[..., 0] = z
+    y, H, _ = model.output(xe, np.zeros(z.shape), temp, jac=jac)
+    return (y, H[..., 0]) if jac else (y, None)
+
+
+def scheduled_output(model, x, i, temp, jac: bool = True):
+    """``model.output`` of the means ``x (R, n)`` for the EKF family; with ``model.schedule_soc`` the output's SOC
+    column is the equilibrium slope, ``H_z = ∂E/∂z`` (:func:`equilibrium`).
+
+    The output counterpart of :func:`scheduled_jacobian`: the SOC tables of the output's parameters (``R0(z)``, the
+    recipe's error scales σ(z)…) are looked up at the estimated SOC but their slopes are not SOC information; the
+    SOC is read off the voltage through the equilibrium curve alone."""
+    y, H, D = model.output(x, i, temp, jac=jac)
+    if jac and getattr(model, "schedule_soc", False):
+        H = np.array(H, dtype=float, copy=True)
+        H[..., 0] = equilibrium(model, x[..., 0], temp, jac=True)[1]
+    return y, H, D
+
+
+def scheduled_points_output(model, X, i, temp, jac: bool):
+    """``model.output`` of sigma points ``X (R, S, n)`` whose point 0 is the mean; with ``model.schedule_soc`` the
+    sigma-point form of :func:`scheduled_output`: every point's output is taken at the mean SOC and its own SOC
+    deviation enters through the equilibrium curve alone, ``y_s = h(X_s|z=z̄) + E(z_s) − E(z̄)``."""
+    if not getattr(model, "schedule_soc", False):
+        return model.output(X, i, temp, jac=jac)
+    zs = X[..., 0]
+    zbar = np.broadcast_to(X[:, :1, 0], zs.shape)
+    Xs = np.array(X, dtype=float, copy=True)
+    Xs[..., 0] = zbar
+    Y, H, D = model.output(Xs, i, temp, jac=jac)
+    return Y + equilibrium(model, zs, temp)[0] - equilibrium(model, zbar, temp)[0], H, D
+
+
 def scheduled_step(model, X, x, i, dt, temp, jac):
     """``model.step`` of sigma points ``X (R, S, n)`` around the mean ``x (R, n)``; with ``model.schedule_soc`` the
     sigma-point form of :func:`scheduled_jacobian`: every point steps at the mean SOC (so its other states see the

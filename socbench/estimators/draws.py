@@ -13,13 +13,22 @@ with ``mix64`` the splitmix64 finaliser (Steele, Lea & Flood 2014: multiply–xo
     normal            Box–Muller on pairs: counters 2q and 2q + 1 share u₁ = (⌊h(2q) / 2¹¹⌋ + 1)·2⁻⁵³ ∈ (0, 1] and
                       u₂ = ⌊h(2q + 1) / 2¹¹⌋·2⁻⁵³: ε_2q = √(−2 ln u₁)·cos(2π u₂), ε_2q+1 = √(−2 ln u₁)·sin(2π u₂)
 
-:func:`absorb` is the one primitive: written with operators only, it runs on numpy ``uint64`` arrays here and is
-compiled as is by :mod:`socbench.kernels.pf` (the two implementations of the few lines that compose it are checked
-against each other by the tests). Streams of the particle filter (``pf.py`` docstring): the initial cloud, the
-resampling offset, the current noise, the additive process noise, the roughening, and two per tempering stage.
+``cos(2π u₂)`` and ``sin(2π u₂)`` are reduced in turns, ``u₂ = q/4 + f`` with ``q = round(4 u₂)`` and
+``|f| ≤ 1/8`` (exact in floating point), then taken from the Taylor series of ``sin r`` and ``cos r`` at ``r = 2π f``,
+``|r| ≤ π/4`` (:func:`sin_cos_reduced`; the first term left out is below 1e-19) and the quadrant ``q``: accurate to a
+few units in the last place, and plain arithmetic, which a compiled loop vectorises (the compiled particle filter
+draws a normal in ~5 ns instead of ~18 with libm's ``cos``/``sin``).
+
+:func:`absorb` and :func:`sin_cos_reduced` are the primitives: written with operators only, they run on numpy arrays
+here and are compiled as is by :mod:`socbench.kernels.pf` (the two implementations of the few lines that compose
+them are checked against each other by the tests). Streams of the particle filter (``pf.py`` docstring): the initial
+cloud, the resampling offset, the current noise, the additive process noise, the roughening, and two per tempering
+stage.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -30,6 +39,9 @@ S11, S27, S30, S31 = np.uint64(11), np.uint64(27), np.uint64(30), np.uint64(31)
 ONE = np.uint64(1)
 TWO_M53 = 2.0**-53
 TWO_PI = 2.0 * np.pi
+#: Taylor coefficients in r² of sin(r)/r and of cos(r): (−1)ᵏ/(2k + 1)! and (−1)ᵏ/(2k)!, highest first
+SIN_C = tuple((-1.0) ** k / math.factorial(2 * k + 1) for k in range(8, -1, -1))
+COS_C = tuple((-1.0) ** k / math.factorial(2 * k) for k in range(9, -1, -1))
 
 #: stream numbers
 INITIAL, RESAMPLE, CURRENT, ADDITIVE, ROUGHEN = 0, 1, 2, 3, 4
@@ -43,6 +55,27 @@ def absorb(h, v):
     h = (h ^ (h >> S30)) * M1
     h = (h ^ (h >> S27)) * M2
     return h ^ (h >> S31)
+
+
+def sin_cos_reduced(r):
+    """``(sin r, cos r)`` for ``|r| ≤ π/4`` from their Taylor series in ``r²`` (Horner; scalars or arrays)."""
+    r2 = r * r
+    s = SIN_C[0]
+    for c in SIN_C[1:]:
+        s = s * r2 + c
+    co = COS_C[0]
+    for c in COS_C[1:]:
+        co = co * r2 + c
+    return s * r, co
+
+
+def cos_sin_turn(u):
+    """``(cos 2πu, sin 2πu)`` of uniforms ``u ∈ [0, 1)`` (arrays): quadrant ``q = round(4u)``, remainder
+    ``r = 2π(u − q/4)`` (module docstring)."""
+    q = np.floor(4.0 * u + 0.5)
+    s, c = sin_cos_reduced((u - 0.25 * q) * TWO_PI)
+    quadrant = q.astype(np.int64) & 3
+    return np.choose(quadrant, [c, -s, -c, s]), np.choose(quadrant, [s, c, -s, -c])
 
 
 def seed_u64(seed: int) -> np.uint64:
@@ -69,10 +102,10 @@ def normals(pre: np.ndarray, count: int) -> np.ndarray:
     u1 = ((absorb(p, q) >> S11) + ONE).astype(np.float64) * TWO_M53
     u2 = (absorb(p, q + ONE) >> S11).astype(np.float64) * TWO_M53
     rho = np.sqrt(-2.0 * np.log(u1))
-    theta = TWO_PI * u2
+    cos, sin = cos_sin_turn(u2)
     out = np.empty((pre.shape[0], 2 * q.size))
-    out[:, 0::2] = rho * np.cos(theta)
-    out[:, 1::2] = rho * np.sin(theta)
+    out[:, 0::2] = rho * cos
+    out[:, 1::2] = rho * sin
     return out[:, :count]
 
 

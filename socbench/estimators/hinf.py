@@ -46,7 +46,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from .base import Estimator, scheduled_jacobian, settle_predict, settle_update
+from .base import Estimator, scheduled_jacobian, scheduled_output, settle_predict, settle_update
 from .ekf import innovation_var, kalman_update
 from .estimate import Estimate
 from .safety import symmetrise
@@ -87,7 +87,7 @@ class HInfinityFilter(Estimator):
             for k in range(T):
                 ik, tk = inputs.current[:, k], inputs.temp_at(k)
                 # ---------------------------------------------------------------- update
-                y, H, D = m.output(x, ik, tk, jac=True)
+                y, H, D = scheduled_output(m, x, ik, tk)
                 Rk = noise.R(D, (R,))
                 e = inputs.voltage[:, k] - y
                 S = innovation_var(P, H, Rk)

@@ -65,10 +65,15 @@ Filter noise, inside the form every filter (and the compiled kernels) take, ``R_
   sensor noise of the residual records; ``σ_extra`` is noise added on top of the filtered record afterwards (a
   measured scenario's optional sensor noise);
 * ``σ_I`` stays the current sensor's (model error is not current noise), and the SOC gets no random walk;
-* the augmented model is *scheduled* (``schedule_soc``): a filter looks the dynamics' parameters up at the estimated
-  SOC without differentiating them (:func:`~socbench.estimators.base.scheduled_jacobian`, ``scheduled_step``). The
-  fitted tables' slopes over SOC are model error too; differentiated, they let a filter read the SOC off the
-  polarisation's shape far more precisely than the model allows.
+* the augmented model is *scheduled* (``schedule_soc``): a filter looks the parameters up at the estimated SOC
+  without differentiating them, the dynamics' (:func:`~socbench.estimators.base.scheduled_jacobian`,
+  ``scheduled_step``) and the output's alike: the SOC enters the output's linearisation only through the equilibrium
+  curve ``E(z, T)`` (the OCV of an RC model; :func:`~socbench.estimators.base.scheduled_output`,
+  ``scheduled_points_output``). The fitted tables' slopes over SOC (``R1(z)``, ``R0(z)``, the error scales σ(z)) are
+  model error too; differentiated, they let a filter read the SOC off the polarisation's shape or the resistance's
+  SOC profile far more precisely than the model allows: on the cold Panasonic US06 runs an EKF with ``R0'(z)·I`` in
+  ``H`` walked away from the truth while its band shrank, and the UKF, whose spread samples those slopes, parted
+  from the EKF by up to 30 points (``docs/real_data.md``).
 
 With ``noise="sensor"`` the model and the sensor covariance are used as they are (the covariance without model error).
 
@@ -466,7 +471,7 @@ def apply(model, sensor: SensorNoise, stats: ModelErrorStats | None, profile: Pr
     if form == "inflated":
         return model, inflated_noise(sensor, stats, profile, extra_voltage_sd)
     aug = augment(model, [stats.effect()])
-    aug.schedule_soc = True  # the dynamics' parameter slopes over SOC are model error too, not SOC information
+    aug.schedule_soc = True  # the parameters' slopes over SOC are model error too, not SOC information
     # the walk variances are exact at the record's typical step dt₀ (first order in dt_k/dt₀ around it)
     dt0 = _typical_step(profile, sensor)
     walk = np.zeros(aug.n_states)

@@ -285,7 +285,7 @@ class ParticleFilter(Estimator):
         draws = self.draws(seed, job.R)
         pfopt = np.array([N, o["resample_threshold"], o["roughening"], o["kernel_h"], o["max_stages"],
                           o["temper_threshold"], o["temper_h"], 0.0 if sd_i is None else sd_i, mode,
-                          N ** (-1.0 / n), 1.0 if self.noise.needs_D else 0.0], dtype=float)
+                          N ** (-1.0 / n)], dtype=float)  # (no needs_D: the kernel's model output always gives D)
         L0 = np.ascontiguousarray(np.linalg.cholesky(job.P0))
         std0 = np.sqrt(job.P0[:, 0, 0])
         counts = np.zeros((job.R, 2), dtype=np.int64)

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import scheduled_step, settle_predict, settle_update
+from .base import scheduled_points_output, scheduled_step, settle_predict, settle_update
 from .estimate import Estimate
 from .ukf import UKF
 
@@ -128,7 +128,7 @@ class SRUKF(UKF):
                 tk_s = None if tk is None else tk[:, None]
                 # ---------------------------------------------------------------- update
                 X = sqrt_sigma_points(x, L, gamma)
-                Y, _, D = m.output(X, ik_s, tk_s, jac=noise.needs_D)
+                Y, _, D = scheduled_points_output(m, X, ik_s, tk_s, noise.needs_D)
                 Rk = noise.R(None if D is None else D[:, 0], (R,))
                 yhat = Y @ Wm
                 dY = Y - yhat[:, None]

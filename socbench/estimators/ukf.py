@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from .base import Estimator, scheduled_step, settle_predict, settle_update
+from .base import Estimator, scheduled_points_output, scheduled_step, settle_predict, settle_update
 from .estimate import Estimate
 from .safety import repair_psd, symmetrise
 
@@ -94,7 +94,7 @@ class UKF(Estimator):
                 tk_s = None if tk is None else tk[:, None]
                 # ---------------------------------------------------------------- update
                 X = self.points(x, P)
-                Y, _, D = m.output(X, ik_s, tk_s, jac=noise.needs_D)
+                Y, _, D = scheduled_points_output(m, X, ik_s, tk_s, noise.needs_D)
                 Rk = noise.R(None if D is None else D[:, 0], (R,))
                 yhat = Y @ Wm
                 dY = Y - yhat[:, None]

@@ -6,6 +6,8 @@ interpreter evaluates any lowered model; each filter's time loop is one compiled
     model ──lower()──▶ Lowered(im: int64 structure, fm: float64 numbers)          lowering.py (pure numpy)
                           │
     evaluate.py   model_step(im, fm, x, I, dt, T…) / model_output(…)              one interpreter, every model
+                   ├─ model_step_points / model_output_points: a particle cloud at once (the parameters of every
+                   │  point evaluated together, points innermost), the same step/output per point
                    ├─ SOC functions (Constant, Polynomial, Lookup, TemperatureTable) and OCV curves
                    ├─ the blocks B1–B6 of models/blocks.py, once each
                    ├─ one step/output pair per model *family* (rc_network, improved_rc, static_terms, tremblay, esc)

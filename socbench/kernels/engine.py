@@ -24,14 +24,24 @@ def n_threads() -> int:
     return max(1, int(env)) if env else max(1, os.cpu_count() or 1)
 
 
+#: slices of a batch per thread (parallel_runs)
+SLICES_PER_THREAD = 4
+
+
 def parallel_runs(kernel, n_runs: int, *args, min_runs: int = 4) -> None:
     """``kernel(r0, r1, *args)`` over slices of ``0 … n_runs − 1`` on threads (the kernels release the GIL); one
-    call when the batch is small or one thread is asked for."""
+    call when the batch is small or one thread is asked for.
+
+    A batch is cut into a few slices per thread (:data:`SLICES_PER_THREAD`, each of at least ``min_runs`` runs),
+    handed out as the threads free up: on a machine shared with other jobs, a thread that is preempted no longer holds
+    the whole batch up while the other one idles (with one slice per thread, the batch took as long as its slowest
+    thread)."""
     threads = min(n_threads(), max(1, n_runs // min_runs))
     if threads <= 1:
         kernel(0, n_runs, *args)
         return
-    bounds = np.linspace(0, n_runs, threads + 1).round().astype(int)
+    slices = min(threads * SLICES_PER_THREAD, max(threads, n_runs // min_runs))
+    bounds = np.linspace(0, n_runs, slices + 1).round().astype(int)
     with ThreadPoolExecutor(threads) as pool:
         for f in [pool.submit(kernel, int(a), int(b), *args) for a, b in zip(bounds[:-1], bounds[1:])]:
             f.result()

@@ -144,6 +144,24 @@ def _interp(fm, off, K, z):
 
 
 @kernel(inline=True)
+def unit_clip(z):
+    """``clip(z, 0, 1)`` with NaN kept (a polynomial parameter is evaluated on the clipped SOC)."""
+    if z < 0.0:
+        return 0.0
+    if z > 1.0:
+        return 1.0
+    return z
+
+
+@kernel(inline=True)
+def horner_step(v, d, z, c):
+    """One Horner step of a polynomial's value and derivative together (params.Polynomial): ``(v z + c, d z + v)``.
+    The one recurrence of a polynomial parameter, one point at a time (:func:`plain_fn`) or every point of a batch
+    together (:func:`load_params`)."""
+    return v * z + c, d * z + v
+
+
+@kernel(inline=True)
 def plain_fn(im, fm, rec, z):
     """``(p, dp/dz)`` of a Constant, Polynomial or Lookup record."""
     kind = im[rec]
@@ -152,19 +170,12 @@ def plain_fn(im, fm, rec, z):
     if kind == FN_CONST:
         return fm[off], 0.0
     if kind == FN_POLY:
-        zp = z
-        if z < 0.0:
-            zp = 0.0
-        elif z > 1.0:
-            zp = 1.0
+        zp = unit_clip(z)
         v = fm[off]
         d = 0.0
-        for j in range(1, n):  # Horner for the value and the derivative together (params.Polynomial)
-            d = d * zp + v
-            v = v * zp + fm[off + j]
-        if z < 0.0 or z > 1.0:
-            d = 0.0
-        return v, d
+        for j in range(1, n):
+            v, d = horner_step(v, d, zp, fm[off + j])
+        return v, (0.0 if z < 0.0 or z > 1.0 else d)
     # FN_LOOKUP: piecewise linear, flat outside
     K = n
     j = _count_le(fm, off, K, z) - 1
@@ -205,23 +216,40 @@ def temperature_weight(fm, off, K, t):
 
 
 @kernel(inline=True)
-def soc_fn(im, fm, rec, z, t):
-    """``(p, dp/dz)`` of any function record at SOC ``z`` and cell temperature ``t``."""
-    if im[rec] != FN_TABLE:
-        return plain_fn(im, fm, rec, z)
+def table_nodes(im, fm, rec, t):
+    """The temperature blend of every table (parameter tables and OCV curves alike, as params.temperature_weights
+    serves both in numpy): ``(lower node's record, upper node's record, w)`` of the table record ``rec`` at cell
+    temperature ``t``; a one-node table gives ``(node, node, 0)``."""
     K = im[rec + 2]
     if K == 1:
-        return plain_fn(im, fm, im[rec + 4], z)
+        return im[rec + 4], im[rec + 4], 0.0
     k, w = temperature_weight(fm, im[rec + 1], K, t)
-    lv, ld = plain_fn(im, fm, im[rec + 4 + k], z)
-    hv, hd = plain_fn(im, fm, im[rec + 5 + k], z)
+    return im[rec + 4 + k], im[rec + 5 + k], w
+
+
+@kernel(inline=True)
+def linear_blend(w, lv, ld, hv, hd):
+    """``(1 − w)·lo + w·hi`` of a value and its derivative; at a node (``w`` 0 or 1) that node's own numbers."""
     if w == 0.0:
         return lv, ld
     if w == 1.0:
         return hv, hd
-    if im[rec + 3] == 0:
-        return (1.0 - w) * lv + w * hv, (1.0 - w) * ld + w * hd
-    v = math.exp((1.0 - w) * math.log(lv) + w * math.log(hv))
+    return (1.0 - w) * lv + w * hv, (1.0 - w) * ld + w * hd
+
+
+@kernel(inline=True)
+def soc_fn(im, fm, rec, z, t):
+    """``(p, dp/dz)`` of any function record at SOC ``z`` and cell temperature ``t``."""
+    if im[rec] != FN_TABLE:
+        return plain_fn(im, fm, rec, z)
+    lo, hi, w = table_nodes(im, fm, rec, t)
+    lv, ld = plain_fn(im, fm, lo, z)
+    if w == 0.0:
+        return lv, ld
+    hv, hd = plain_fn(im, fm, hi, z)
+    if im[rec + 3] == 0 or w == 1.0:
+        return linear_blend(w, lv, ld, hv, hd)
+    v = math.exp((1.0 - w) * math.log(lv) + w * math.log(hv))  # the log scale (params.TemperatureTable)
     return v, v * ((1.0 - w) * ld / lv + w * hd / hv)
 
 
@@ -260,13 +288,12 @@ def ocv_eval(im, fm, z, t):
     rec = im[H_OCV]
     if im[rec] == OCV_PCHIP:
         return _pchip(im, fm, rec, z)
-    K = im[rec + 2]
-    if K == 1:
-        return _pchip(im, fm, im[rec + 4], z)
-    k, w = temperature_weight(fm, im[rec + 1], K, t)
-    v0, d0 = _pchip(im, fm, im[rec + 4 + k], z)
-    v1, d1 = _pchip(im, fm, im[rec + 5 + k], z)
-    return (1.0 - w) * v0 + w * v1, (1.0 - w) * d0 + w * d1
+    lo, hi, w = table_nodes(im, fm, rec, t)
+    v0, d0 = _pchip(im, fm, lo, z)
+    if w == 0.0:
+        return v0, d0
+    v1, d1 = _pchip(im, fm, hi, z)
+    return linear_blend(w, v0, d0, v1, d1)
 
 
 # ================================================================================================ blocks B1–B6
@@ -448,13 +475,51 @@ def coupled_rc(Re, dRe, Rc, dRc, Ce, dCe, Cc, dCc, dt, out):
 # the family declared (KernelSpec.step / .output) once, in one loop (one call site of soc_fn), before calling it.
 @kernel(inline=True)
 def load_params(im, fm, z, t, j0, j1, work):
-    """Parameters ``j0 … j1 − 1`` of the family's list at ``(z, t)``: values into ``work[W_VAL + j]``, z-derivatives
-    into ``work[W_DER + j]``."""
+    """Parameters ``j0 … j1 − 1`` of the family's list at ``(z, t)`` for one point: values into ``work[W_VAL + j]``,
+    z-derivatives into ``work[W_DER + j]``, where the families read them."""
     pl = im[H_PARAMS]
     for j in range(j0, j1):
         v, d = soc_fn(im, fm, im[pl + j], z, t)
         work[W_VAL + j] = v
         work[W_DER + j] = d
+
+
+@kernel
+def load_params_points(im, fm, X, ld, npts, t, j0, j1, PV, ZP):
+    """:func:`load_params` for the SOC ``X[p·ld]`` of each point ``p < npts``: the value of parameter ``j`` at point
+    ``p`` into ``PV[j·npts + p]``, its z-derivative into ``PV[(MAX_PARAMS + j)·npts + p]`` (``ZP``: ``npts`` floats of
+    scratch).
+
+    Polynomials (the common form) run with the points innermost: one Horner step (:func:`horner_step`) for every
+    point, then the next, over contiguous memory (SIMD, and no chain of dependent multiply-adds per point); the
+    other forms point by point (:func:`soc_fn`).
+    """
+    pl = im[H_PARAMS]
+    for p in range(npts):
+        ZP[p] = unit_clip(X[p * ld])
+    for j in range(j0, j1):
+        rec = im[pl + j]
+        V = j * npts
+        Dv = (MAX_PARAMS + j) * npts
+        if im[rec] == FN_POLY:
+            off = im[rec + 1]
+            c0 = fm[off]
+            for p in range(npts):
+                PV[V + p] = c0
+                PV[Dv + p] = 0.0
+            for q in range(1, im[rec + 2]):
+                c = fm[off + q]
+                for p in range(npts):
+                    PV[V + p], PV[Dv + p] = horner_step(PV[V + p], PV[Dv + p], ZP[p], c)
+            for p in range(npts):
+                z = X[p * ld]
+                if z < 0.0 or z > 1.0:
+                    PV[Dv + p] = 0.0
+        else:
+            for p in range(npts):
+                v, d = soc_fn(im, fm, rec, X[p * ld], t)
+                PV[V + p] = v
+                PV[Dv + p] = d
 
 
 # ---------------------------------------------------------------------------------------- rc_network (rc_network.py)
@@ -810,14 +875,21 @@ def model_error_scale(fm, v, j, z, t):
 
 @kernel
 def model_step(im, fm, x, i, dt, temp, has_temp, jac, xn, F, B, work):
-    """``x⁺`` into ``xn`` (and ``F``, ``B`` when ``jac``) of any lowered model; returns the status (0: fine).
+    """``x⁺`` into ``xn`` (and ``F``, ``B`` when ``jac``) of any lowered model; returns the status (0: fine)."""
+    t = temp if has_temp else T_REF_C
+    load_params(im, fm, x[0], t, im[H_STEP0], im[H_STEP1], work)
+    return step_loaded(im, fm, x, i, dt, temp, has_temp, jac, xn, F, B, work)
+
+
+@kernel(inline=True)
+def step_loaded(im, fm, x, i, dt, temp, has_temp, jac, xn, F, B, work):
+    """:func:`model_step` with the step's parameters already in ``work`` (:func:`load_params`).
 
     With effects, the composition of :class:`~socbench.models.effects.AugmentedModel.step`: base step on the
     effective current, SOC gain and leak, the effects' own states, then ``∂/∂b = −∂/∂I`` for a current bias.
     """
     nn = im[H_N]  # row length of F
     t = temp if has_temp else T_REF_C
-    load_params(im, fm, x[0], t, im[H_STEP0], im[H_STEP1], work)
     n = im[H_N]
     if jac:
         for r in range(n):
@@ -903,10 +975,18 @@ def model_step(im, fm, x, i, dt, temp, has_temp, jac, xn, F, B, work):
 
 @kernel
 def model_output(im, fm, x, i, temp, has_temp, jac, H, work):
-    """``(y, D, status)`` of any lowered model, ``H`` filled when ``jac`` (AugmentedModel.output with effects)."""
+    """``(y, D, status)`` of any lowered model, ``H`` filled when ``jac``."""
+    t = temp if has_temp else T_REF_C
+    load_params(im, fm, x[0], t, im[H_OUT0], im[H_OUT1], work)
+    return output_loaded(im, fm, x, i, temp, has_temp, jac, H, work)
+
+
+@kernel(inline=True)
+def output_loaded(im, fm, x, i, temp, has_temp, jac, H, work):
+    """:func:`model_output` with the output's parameters already in ``work`` (:func:`load_params`); the
+    composition of AugmentedModel.output with effects."""
     t = temp if has_temp else T_REF_C
     u, du = ocv_eval(im, fm, x[0], t)
-    load_params(im, fm, x[0], t, im[H_OUT0], im[H_OUT1], work)
     neff = im[H_NEFF]
     if neff == 0:
         return base_output(im, fm, x, i, u, du, t, jac, H, work)
@@ -928,11 +1008,11 @@ def model_output(im, fm, x, i, temp, has_temp, jac, H, work):
             tk = (temp if has_temp else t_ref) + KELVIN
             k = math.exp(fm[v] / R_GAS * (1.0 / tk - 1.0 / (t_ref + KELVIN)))
             y = (1.0 - k) * u + k * y + fm[v + 1] * (tk - KELVIN - t_ref)
+            D = k * D  # D is returned with or without the Jacobians (the particle filter's R reads it)
             if jac:
                 for c in range(nb):
                     H[c] = k * H[c]
                 H[0] += (1.0 - k) * du
-                D = k * D
     for e in range(neff):  # additive terms
         code = im[tab + EFFECT_WIDTH * e]
         s0 = im[tab + EFFECT_WIDTH * e + 1]
@@ -977,6 +1057,61 @@ def model_output(im, fm, x, i, temp, has_temp, jac, H, work):
     return y, D, 0
 
 
+# ================================================================================================ many points
+# A particle cloud or the sigma points of a run: ``npts`` points row-major in ``X`` (point ``p`` at ``X + p·n``). The
+# parameters of every point are evaluated together (load_params: points innermost), then each point's step or output
+# reads its own from ``work``. ``PW``: :func:`points_scratch` floats.
+@kernel(inline=True)
+def points_scratch(npts):
+    """Floats of scratch the ``*_points`` functions need for ``npts`` points."""
+    return (2 * MAX_PARAMS + 1) * npts
+
+
+@kernel(inline=True)
+def _point_params(PW, npts, p, j0, j1, work):
+    for j in range(j0, j1):
+        work[W_VAL + j] = PW[j * npts + p]
+        work[W_DER + j] = PW[(MAX_PARAMS + j) * npts + p]
+
+
+@kernel
+def model_step_points(im, fm, X, npts, I, dt, temp, has_temp, XN, F, B, work, PW):
+    """:func:`model_step` without Jacobians of ``npts`` points (point ``p`` at current ``I[p]``) into ``XN``; returns
+    the first nonzero status (0: fine)."""
+    n = im[H_N]
+    t = temp if has_temp else T_REF_C
+    j0 = im[H_STEP0]
+    j1 = im[H_STEP1]
+    load_params_points(im, fm, X, n, npts, t, j0, j1, PW, ptr_off(PW, 2 * MAX_PARAMS * npts))
+    jac = n < 0  # run-time False: a literal would make numba compile a copy of every callee
+    for p in range(npts):
+        _point_params(PW, npts, p, j0, j1, work)
+        st = step_loaded(im, fm, ptr_off(X, p * n), I[p], dt, temp, has_temp, jac, ptr_off(XN, p * n), F, B, work)
+        if st != 0:
+            return st
+    return 0
+
+
+@kernel
+def model_output_points(im, fm, X, npts, i, temp, has_temp, Y, D, H, work, PW):
+    """:func:`model_output` without Jacobians of ``npts`` points at current ``i``: ``Y[p]``, ``D[p]``; returns the
+    first nonzero status (0: fine)."""
+    n = im[H_N]
+    t = temp if has_temp else T_REF_C
+    j0 = im[H_OUT0]
+    j1 = im[H_OUT1]
+    load_params_points(im, fm, X, n, npts, t, j0, j1, PW, ptr_off(PW, 2 * MAX_PARAMS * npts))
+    jac = n < 0
+    for p in range(npts):
+        _point_params(PW, npts, p, j0, j1, work)
+        y, d, st = output_loaded(im, fm, ptr_off(X, p * n), i, temp, has_temp, jac, H, work)
+        if st != 0:
+            return st
+        Y[p] = y
+        D[p] = d
+    return 0
+
+
 # ================================================================================================ batch entry
 @kernel
 def eval_points(im, fm2, X, I, DT, TEMP, has_temp, jac, XN, F, B, Y, H, D, status):
@@ -995,3 +1130,21 @@ def eval_points(im, fm2, X, I, DT, TEMP, has_temp, jac, XN, F, B, Y, H, D, statu
         Y[p] = y
         D[p] = d
         status[p] = max(s1, s2)
+
+
+@kernel
+def eval_cloud(im, fm, X, I, i_out, dt, temp, has_temp, XN, Y, D):
+    """:func:`model_step_points` (point ``p`` at current ``I[p]``) and :func:`model_output_points` (at ``i_out``) on
+    the cloud ``X`` (npts × n) at one ``dt`` and temperature: the particle filter's path, for the equality tests;
+    returns the status."""
+    npts, n = X.shape
+    work = np.empty(WORK_SIZE)
+    PW = np.empty(points_scratch(npts))
+    F = np.empty(n * n)
+    B = np.empty(n)
+    H = np.empty(n)
+    s1 = model_step_points(ptr(im), ptr(fm), ptr(X), npts, ptr(I), dt, temp, has_temp, ptr(XN), ptr(F), ptr(B),
+                           ptr(work), ptr(PW))
+    s2 = model_output_points(ptr(im), ptr(fm), ptr(X), npts, i_out, temp, has_temp, ptr(Y), ptr(D), ptr(H),
+                             ptr(work), ptr(PW))
+    return max(s1, s2)

@@ -57,6 +57,17 @@ def measurement_var(nz, D):
 
 
 @kernel(inline=True)
+def equilibrium(im, fm, z, t, has_temp, jac, xe, He, n, work):
+    """``(E, status)``: the equilibrium voltage ``E(z, T) = h([z, 0, …, 0], 0, T)``, ``∂E/∂z`` into ``He[0]`` when
+    ``jac`` (estimators.base.equilibrium: what a filter reads the SOC off under parameter scheduling)."""
+    xe[0] = z
+    for a in range(1, n):
+        xe[a] = 0.0
+    y, D, st = model_output(im, fm, xe, 0.0, t, has_temp, jac, He, work)
+    return y, st
+
+
+@kernel(inline=True)
 def process_cov(nz, walk, Qo, B, n, dt, var, Q):
     """``Q_k`` into ``Q`` (n × n): the sensor-noise form with input variance ``var`` (noise.SensorNoise.process_cov)
     or the override matrix, plus ``diag(walk)·dt/dt0`` where ``nz[HAS_WALK]`` (the sensor's and the model's random
@@ -179,6 +190,16 @@ def settle(x, P, n, nis, opt, w, V, work):
 
 
 @kernel(inline=True)
+def kalman_buffers(n):
+    """The work arrays of a Kalman-type kernel, allocated once per kernel call (never in its time loop): vectors
+    ``x, H, K, B, w`` ``(n,)``, matrices ``P, F, Q, M, V, work`` ``(n, n)`` and the evaluator's scratch (roles: state,
+    output Jacobian, gain, input column of the step, eigenvalues; covariance, step Jacobian, process noise, product
+    scratch, eigenvectors, linalg scratch)."""
+    return (np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty((n, n)), np.empty((n, n)),
+            np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty(WORK_SIZE))
+
+
+@kernel(inline=True)
 def load_run(x0, P0, r, n, x, P):
     for a in range(n):
         x[a] = x0[r, a]
@@ -225,26 +246,18 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
     T = cur.shape[1]
     n = x0.shape[1]
     jac = n > 0  # True, as a run-time value: a literal would make numba compile a copy of every callee
-    x = np.empty(n)
+    x, H, K, B, w, P, F, Q, M, V, work, scratch = kalman_buffers(n)
     xn = np.empty(n)
-    H = np.empty(n)
-    K = np.empty(n)
+    xe = np.empty(n)  # the equilibrium point and its output Jacobian (parameter scheduling of the output)
+    He = np.empty(n)
     PHt = np.empty(n)
-    B = np.empty(n)
-    w = np.empty(n)
     col = np.empty(n)
-    P = np.empty((n, n))
-    F = np.empty((n, n))
     A = np.empty((n, n))
-    Q = np.empty((n, n))
-    M = np.empty((n, n))
-    V = np.empty((n, n))
     G = np.empty((n, n))
     qh = np.empty((n, n))
-    work = np.empty((n, n))
-    scratch = np.empty(WORK_SIZE)
     imp, fmp, xp, xnp, Hp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(x), ptr(xn), ptr(H), ptr(B), ptr(F), ptr(scratch)
     Pp, Qp, Mp, Vp, wp, workp, Ap, Kp = ptr(P), ptr(Q), ptr(M), ptr(V), ptr(w), ptr(work), ptr(A), ptr(K)
+    xep, Hep = ptr(xe), ptr(He)
     nzp, walkp, Qop, optp = ptr(nz), ptr(walk), ptr(Qo), ptr(opt)
     outfp, outbp, xsp, pdp = ptr(outf), ptr(outb), ptr(xs), ptr(pd)
     R_all = outf.shape[1]
@@ -267,6 +280,12 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             if st != 0:
                 status[r] = st
                 break
+            if opt[SCHEDULE] != 0.0:  # the output's SOC column is the equilibrium slope (base.scheduled_output)
+                _, st = equilibrium(imp, fmp, x[0], tk, has_temp, jac, xep, Hep, n, sp)
+                if st != 0:
+                    status[r] = st
+                    break
+                H[0] = He[0]
             Rk = measurement_var(nzp, D)
             r_nom = Rk
             if aekf:
@@ -402,25 +421,17 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
     T = cur.shape[1]
     n = x0.shape[1]
     ns = 2 * n + 1
-    x = np.empty(n)
-    H = np.empty(n)
-    K = np.empty(n)
+    nojac = n < 0  # False, as a run-time value (see ekf)
+    x, H, K, B, w, P, F, Q, M, V, work, scratch = kalman_buffers(n)
+    xe = np.empty(n)  # the equilibrium point (parameter scheduling of the output)
     Pxy = np.empty(n)
-    B = np.empty(n)
-    w = np.empty(n)
     Y = np.empty(ns)
     X = np.empty((ns, n))
     Xf = np.empty((ns, n))
-    P = np.empty((n, n))
-    F = np.empty((n, n))
     L = np.empty((n, n))
-    M = np.empty((n, n))
-    Q = np.empty((n, n))
-    V = np.empty((n, n))
-    work = np.empty((n, n))
-    scratch = np.empty(WORK_SIZE)
     imp, fmp, Hp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(H), ptr(B), ptr(F), ptr(scratch)
     xp, Pp, Xp, Lp, Mp, Qp, Vp, wp, workp = ptr(x), ptr(P), ptr(X), ptr(L), ptr(M), ptr(Q), ptr(V), ptr(w), ptr(work)
+    xep = ptr(xe)
     nzp, walkp, Qop, optp = ptr(nz), ptr(walk), ptr(Qo), ptr(opt)
     outfp, outbp, xsp, pdp = ptr(outf), ptr(outb), ptr(xs), ptr(pd)
     R_all = outf.shape[1]
@@ -434,10 +445,23 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             sigma_points(xp, Pp, n, lam, Xp, Lp, Mp, wp, Vp, workp)
             D0 = 0.0
             st = 0
+            schedule = opt[SCHEDULE] != 0.0
+            zbar = X[0, 0]
+            ebar = 0.0
+            if schedule:  # y_s = h(X_s|z=z̄) + E(z_s) − E(z̄) (base.scheduled_points_output)
+                ebar, st = equilibrium(imp, fmp, zbar, tk, has_temp, nojac, xep, Hp, n, sp)
             for s in range(ns):
-                y, D, st = model_output(imp, fmp, ptr_at(X, s * n), ik, tk, has_temp, needs_D and s == 0, Hp, sp)
                 if st != 0:
                     break
+                zs = X[s, 0]
+                X[s, 0] = zbar if schedule else zs
+                y, D, st = model_output(imp, fmp, ptr_at(X, s * n), ik, tk, has_temp, needs_D and s == 0, Hp, sp)
+                X[s, 0] = zs
+                if st != 0:
+                    break
+                if schedule:
+                    es, st = equilibrium(imp, fmp, zs, tk, has_temp, nojac, xep, Hp, n, sp)
+                    y = (y + es) - ebar
                 Y[s] = y
                 if s == 0:
                     D0 = D
@@ -482,7 +506,6 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                 break
             # ---------------------------------------------------------------- predict
             sigma_points(xp, Pp, n, lam, Xp, Lp, Mp, wp, Vp, workp)
-            schedule = opt[SCHEDULE] != 0.0
             for s in range(ns):
                 dz = 0.0
                 if schedule:  # every point steps at the mean SOC and keeps its own SOC deviation (base.scheduled_step)
@@ -529,16 +552,8 @@ def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo
     n = x0.shape[1]
     jac = n > 0  # run-time True and False (literals would make numba compile copies of every callee)
     never = n < 0
-    x = np.empty(n)
+    x, H, _, B, w, P, F, Q, M, _, _, scratch = kalman_buffers(n)
     xn = np.empty(n)
-    H = np.empty(n)
-    B = np.empty(n)
-    w = np.empty(n)
-    P = np.empty((n, n))
-    F = np.empty((n, n))
-    Q = np.empty((n, n))
-    M = np.empty((n, n))
-    scratch = np.empty(WORK_SIZE)
     imp, fmp, xp, xnp, Hp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(x), ptr(xn), ptr(H), ptr(B), ptr(F), ptr(scratch)
     Pp, Qp, Mp, wp = ptr(P), ptr(Q), ptr(M), ptr(w)
     nzp, walkp, Qop = ptr(nz), ptr(walk), ptr(Qo)

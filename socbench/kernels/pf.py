@@ -18,16 +18,17 @@ import math
 import numpy as np
 
 from ..estimators import draws as D
-from .evaluate import WORK_SIZE, model_output, model_step, ptr, ptr_off
+from .evaluate import WORK_SIZE, model_output_points, model_step_points, points_scratch, ptr
 from .filters import DT0, freeze, measurement_var, record
 from .jit import kernel
 from .linalg import diverged_var, eigh_jacobi, gate
 
 absorb = kernel(D.absorb)
+sin_cos_reduced = kernel(inline=True)(D.sin_cos_reduced)
 
 PF_FIELDS = ("n_particles", "resample_threshold", "roughening", "kernel_h", "max_stages", "temper_threshold",
-             "temper_h", "current_sd", "additive", "rough_factor", "needs_D")
-N_P, RS_THR, ROUGH, KERNEL_H, MAX_STAGES, TEMPER_THR, TEMPER_H, SD_I, ADDITIVE, ROUGH_C, NEEDS_D = range(11)
+             "temper_h", "current_sd", "additive", "rough_factor")
+N_P, RS_THR, ROUGH, KERNEL_H, MAX_STAGES, TEMPER_THR, TEMPER_H, SD_I, ADDITIVE, ROUGH_C = range(10)
 #: additive noise modes
 ADD_NONE, ADD_WALK, ADD_ROOT = 0, 1, 2
 TEMPER_ITERS = 24
@@ -47,29 +48,61 @@ def uniform0(pre):
     return float(absorb(np.uint64(pre), np.uint64(0)) >> D.S11) * D.TWO_M53
 
 
+@kernel(inline=True)
+def cos_sin_turn(u):
+    """draws.cos_sin_turn for one uniform: ``(cos 2πu, sin 2πu)`` (the quadrant by selects, not branches: it is
+    random, and a loop of them vectorises)."""
+    q = math.floor(4.0 * u + 0.5)
+    s, c = sin_cos_reduced((u - 0.25 * q) * D.TWO_PI)
+    quadrant = np.int64(q) & 3
+    odd = (quadrant & 1) == 1
+    cos = s if odd else c
+    sin = c if odd else s
+    return (-cos if quadrant == 1 or quadrant == 2 else cos), (-sin if quadrant >= 2 else sin)
+
+
+@kernel(inline=True)
+def pair_uniforms(pre, j):
+    """``(u₁ ∈ (0, 1], u₂ ∈ [0, 1))`` of the Box–Muller pair ``j`` (counters 2j, 2j + 1) of a prefix."""
+    q = np.uint64(2 * j)
+    u1 = float((absorb(pre, q) >> D.S11) + D.ONE) * D.TWO_M53
+    u2 = float(absorb(pre, q + D.ONE) >> D.S11) * D.TWO_M53
+    return u1, u2
+
+
 @kernel
 def normal(pre, c):
     """The standard normal at counter ``c`` of a prefix (draws.normals: Box–Muller on the pair ⌊c/2⌋)."""
-    pre = np.uint64(pre)
-    q = 2 * (c // 2)
-    u1 = float((absorb(pre, np.uint64(q)) >> D.S11) + D.ONE) * D.TWO_M53
-    u2 = float(absorb(pre, np.uint64(q + 1)) >> D.S11) * D.TWO_M53
+    u1, u2 = pair_uniforms(np.uint64(pre), c // 2)
+    cos, sin = cos_sin_turn(u2)
     rho = math.sqrt(-2.0 * math.log(u1))
-    return rho * math.cos(D.TWO_PI * u2) if c % 2 == 0 else rho * math.sin(D.TWO_PI * u2)
+    return rho * cos if c % 2 == 0 else rho * sin
 
 
 @kernel
-def normals_into(pre, out, count):
-    """``out[0 … count − 1]``: the normals at counters ``0 … count − 1`` of a prefix, a Box–Muller pair at a time."""
+def normals_into(pre, out, count, scratch):
+    """``out[0 … count − 1]``: the normals at counters ``0 … count − 1`` of a prefix (``scratch``: 3·⌈count/2⌉
+    floats). Two passes over the pairs: the hashes and the turn's cos/sin (plain arithmetic: SIMD), then the radius
+    (log and sqrt: libm calls, which would keep the first pass from vectorising)."""
     pre = np.uint64(pre)
-    for q in range(0, count, 2):
-        u1 = float((absorb(pre, np.uint64(q)) >> D.S11) + D.ONE) * D.TWO_M53
-        u2 = float(absorb(pre, np.uint64(q + 1)) >> D.S11) * D.TWO_M53
-        rho = math.sqrt(-2.0 * math.log(u1))
-        theta = D.TWO_PI * u2
-        out[q] = rho * math.cos(theta)
-        if q + 1 < count:
-            out[q + 1] = rho * math.sin(theta)
+    pairs = (count + 1) // 2
+    for j in range(pairs):
+        u1, u2 = pair_uniforms(pre, j)
+        cos, sin = cos_sin_turn(u2)
+        scratch[j] = u1
+        scratch[pairs + j] = cos
+        scratch[2 * pairs + j] = sin
+    for j in range(pairs):
+        rho = math.sqrt(-2.0 * math.log(scratch[j]))
+        out[2 * j] = rho * scratch[pairs + j]
+        if 2 * j + 1 < count:
+            out[2 * j + 1] = rho * scratch[2 * pairs + j]
+
+
+@kernel(inline=True)
+def normals_scratch(count):
+    """Floats of scratch :func:`normals_into` needs for ``count`` normals."""
+    return 3 * ((count + 1) // 2)
 
 
 # ================================================================================================ PF pieces
@@ -164,10 +197,11 @@ def resample_into(X, idx, N, n, Xr):
 
 
 @kernel(inline=True)
-def shrink_with(Xr, mean, root, h, pre, N, n, X, E):
-    """``X = a·Xr + (1 − a)·mean + h·root·ε`` (pf.shrink), ε from the stream prefix ``pre`` (``E``: N·n scratch)."""
+def shrink_with(Xr, mean, root, h, pre, N, n, X, E, Es):
+    """``X = a·Xr + (1 − a)·mean + h·root·ε`` (pf.shrink), ε from the stream prefix ``pre`` (``E``: N·n scratch,
+    ``Es``: normals_into's)."""
     a_ = math.sqrt(1.0 - h * h)
-    normals_into(pre, E, N * n)
+    normals_into(pre, E, N * n, Es)
     for p in range(N):
         for a in range(n):
             s = 0.0
@@ -190,16 +224,18 @@ def clamp_particles(X, N, n):
 
 
 @kernel
-def likelihoods(imp, fmp, X, v, i, temp, has_temp, needs_D, nz, N, n, Y, Rk, ll, Hp, sp):
-    """``Y, R`` and ``log N(v; Y, R)`` (up to the constant) of every particle; returns the model status."""
+def likelihoods(imp, fmp, X, v, i, temp, has_temp, nz, N, Y, Rk, ll, Hp, sp, PW):
+    """``Y, R`` and ``log N(v; Y, R)`` (up to the constant) of every particle (the model on the whole cloud at once,
+    :func:`~.evaluate.model_output_points`; ``Rk`` holds the feedthroughs ``D`` in between); returns the model
+    status."""
+    st = model_output_points(imp, fmp, X, N, i, temp, has_temp, Y, Rk, Hp, sp, PW)
+    if st != 0:
+        return st
     for p in range(N):
-        y, d, st = model_output(imp, fmp, ptr_off(X, p * n), i, temp, has_temp, needs_D, Hp, sp)
-        if st != 0:
-            return st
-        Y[p] = y
-        Rk[p] = measurement_var(nz, d)
-        res = v - y
-        ll[p] = -0.5 * res * res / Rk[p] - 0.5 * math.log(Rk[p])
+        r = measurement_var(nz, Rk[p])
+        Rk[p] = r
+        res = v - Y[p]
+        ll[p] = -0.5 * res * res / r - 0.5 * math.log(r)
     return 0
 
 
@@ -219,8 +255,6 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
     h = pfopt[KERNEL_H]
     sd_i = pfopt[SD_I]
     additive = int(pfopt[ADDITIVE])
-    needs_D = pfopt[NEEDS_D] != 0.0
-    jac = n < 0  # run-time False (literals make numba compile copies of every callee)
     stream_initial = np.int64(D.INITIAL)  # the streams as run-time integers, for the same reason
     stream_resample = np.int64(D.RESAMPLE)
     stream_current = np.int64(D.CURRENT)
@@ -237,7 +271,9 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
     cum = np.empty(N)
     idx = np.empty(N, dtype=np.int64)
     H = np.empty(n)
-    xn = np.empty(n)
+    Xn = np.empty((N, n))
+    Ip = np.empty(N)  # the particles' currents
+    PW = np.empty(points_scratch(N))
     Bv = np.empty(n)
     mean = np.empty(n)
     var = np.empty(n)
@@ -245,22 +281,24 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
     ev = np.empty(n)
     E = np.empty(N * n)  # normals of one stream
     Ei = np.empty(N)  # the current-noise normals
+    Es = np.empty(normals_scratch(N * n))
     F = np.empty((n, n))
     root = np.empty((n, n))
     Vm = np.empty((n, n))
     U = np.empty((n, n))
     work = np.empty((n, n))
     scratch = np.empty(WORK_SIZE)
-    imp, fmp, Hp, xnp, Bp, Fp, sp = ptr(im), ptr(fm), ptr(H), ptr(xn), ptr(Bv), ptr(F), ptr(scratch)
+    imp, fmp, Hp, Xnp, Ipp, PWp, Bp, Fp, sp = (ptr(im), ptr(fm), ptr(H), ptr(Xn), ptr(Ip), ptr(PW), ptr(Bv), ptr(F),
+                                               ptr(scratch))
     Xp, Xrp, wp, lwp, llp, tmpp, Yp, Rkp, cump, idxp = (ptr(X), ptr(Xr), ptr(w), ptr(lw), ptr(ll), ptr(tmp), ptr(Y),
                                                        ptr(Rk), ptr(cum), ptr(idx))
     meanp, varp, mean_rp, evp, rootp, Vmp, Up, workp = (ptr(mean), ptr(var), ptr(mean_r), ptr(ev), ptr(root), ptr(Vm),
                                                         ptr(U), ptr(work))
-    Ep, Eip, nzp = ptr(E), ptr(Ei), ptr(nz)
+    Ep, Eip, Esp, nzp = ptr(E), ptr(Ei), ptr(Es), ptr(nz)
     outfp, outbp, xsp, pdp = ptr(outf), ptr(outb), ptr(xs), ptr(pd)
     R_all = outf.shape[1]
     for r in range(r0, r1):
-        normals_into(prefix(seed, stream_initial, stream_initial, r), Ep, N * n)  # stream 0, sample 0
+        normals_into(prefix(seed, stream_initial, stream_initial, r), Ep, N * n, Esp)  # stream 0, sample 0
         for p in range(N):
             for a in range(n):
                 s = 0.0
@@ -277,7 +315,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
             tk = temp[r, k]
             vk = volt[r, k]
             # ---------------------------------------------------------------- update
-            st = likelihoods(imp, fmp, Xp, vk, ik, tk, has_temp, needs_D, nzp, N, n, Yp, Rkp, llp, Hp, sp)
+            st = likelihoods(imp, fmp, Xp, vk, ik, tk, has_temp, nzp, N, Yp, Rkp, llp, Hp, sp, PWp)
             if st != 0:
                 status[r] = st
                 break
@@ -318,11 +356,11 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                     systematic(wp, uniform0(prefix(seed, D.STAGE + 2 * s_, k, r)), N, cump, idxp)
                     resample_into(Xp, idxp, N, n, Xrp)
                     shrink_with(Xrp, mean_rp, rootp, pfopt[TEMPER_H], prefix(seed, D.STAGE + 2 * s_ + 1, k, r), N, n,
-                                Xp, Ep)
+                                Xp, Ep, Esp)
                     clamp_particles(Xp, N, n)
                     for p in range(N):
                         lw[p] = -math.log(N)
-                    st = likelihoods(imp, fmp, Xp, vk, ik, tk, has_temp, needs_D, nzp, N, n, Yp, Rkp, llp, Hp, sp)
+                    st = likelihoods(imp, fmp, Xp, vk, ik, tk, has_temp, nzp, N, Yp, Rkp, llp, Hp, sp, PWp)
                     if st != 0:
                         break
             if st != 0:
@@ -369,7 +407,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                 counts[r, 0] += 1
                 pre = prefix(seed, stream_roughen, k, r)
                 if h > 0.0:
-                    shrink_with(Xrp, mean_rp, rootp, h, pre, N, n, Xp, Ep)
+                    shrink_with(Xrp, mean_rp, rootp, h, pre, N, n, Xp, Ep, Esp)
                 else:
                     if K_rough > 0.0:
                         for a in range(n):  # roughening_sd: K (max − min) N^(−1/d), on the resampled cloud
@@ -379,7 +417,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                                 lo = min(lo, Xr[p, a])
                                 hi = max(hi, Xr[p, a])
                             ev[a] = K_rough * (hi - lo) * pfopt[ROUGH_C]
-                        normals_into(pre, Ep, N * n)
+                        normals_into(pre, Ep, N * n, Esp)
                         for p in range(N):
                             for a in range(n):
                                 Xr[p, a] += ev[a] * E[p * n + a]
@@ -389,16 +427,18 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
             # ---------------------------------------------------------------- predict
             dt = dts[k]
             if sd_i > 0.0:
-                normals_into(prefix(seed, stream_current, k, r), Eip, N)
+                normals_into(prefix(seed, stream_current, k, r), Eip, N, Esp)
             if additive != ADD_NONE:
-                normals_into(prefix(seed, stream_additive, k, r), Ep, N * n)
+                normals_into(prefix(seed, stream_additive, k, r), Ep, N * n, Esp)
             for p in range(N):
-                i_p = ik + sd_i * Ei[p] if sd_i > 0.0 else ik
-                st = model_step(imp, fmp, ptr_off(Xp, p * n), i_p, dt, tk, has_temp, jac, xnp, Fp, Bp, sp)
-                if st != 0:
-                    break
+                Ip[p] = ik + sd_i * Ei[p] if sd_i > 0.0 else ik
+            st = model_step_points(imp, fmp, Xp, N, Ipp, dt, tk, has_temp, Xnp, Fp, Bp, sp, PWp)
+            if st != 0:
+                status[r] = st
+                break
+            for p in range(N):
                 for a in range(n):
-                    X[p, a] = xn[a]
+                    X[p, a] = Xn[p, a]
                 if additive == ADD_WALK:
                     for a in range(n):
                         X[p, a] += math.sqrt(walk[a] * (dt / nz[DT0])) * E[p * n + a]
@@ -408,9 +448,6 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                         for d in range(n):
                             s += Qroot[a, d] * E[p * n + d]
                         X[p, a] += s
-            if st != 0:
-                status[r] = st
-                break
             pending_clamp = clamp_particles(Xp, N, n)
             bad = False
             for p in range(N):
