@@ -166,12 +166,17 @@ HOW = (
     "offset per record) that stands for base-fit error and is never named an effect; an effect within "
     f"{100 * PARSIMONY:.0f} % of a winning base refit is preferred to it. Rests of the evaluation records of at least "
     f"{FIELD_REST_MIN_S / 60:.0f} min (a vehicle's stop draws a small steady current for a minute or two) measure the "
-    "current sensor (the median current there): an offset they read is fitted first and decides the SOC-drift "
-    "family, a null one rules the offset out. The winner is added and refitted with what was added before while the "
+    "current sensor (the median current there): an offset they read is added first as a measurement (fitted within "
+    "the rests' bounds, whatever it does to the voltage error while another effect dominates it), a null one rules "
+    "the offset out. The winner is added and refitted with what was added before while the "
     "held-out RMSE falls by ≥ 10 %, scores above the AIC-like penalty and stays above "
     f"{NOISE_FLOOR:g} × the voltage noise of the averaged records (measured from the second difference of the "
-    f"residual on the records as recorded; {NOISE_FLOOR_REFIT:g} × once the base refit is in the model, every later "
-    "candidate being fitted jointly with it).")
+    "residual on the records as recorded, and again on the residual of the model as it grows, since a model far off "
+    f"reads its own error at the current's edges as noise; {NOISE_FLOOR_REFIT:g} × once the base refit is in the "
+    "model, every later candidate being fitted jointly with it). At the end, an SOC drift named is swapped for "
+    "another one when that one, fitted beside everything else added, cuts the held-out RMSE by a further 10 % (a "
+    "fade that comes with grown resistances loses its round alone to a leak at its bound, and wins once the base "
+    "refit is beside it).")
 SOC_HOW = (
     "SOC: the EKF and the UKF run on every record once per fold (records averaged to at most 1500 bins), block j "
     "scored with fold j's model; each fold's filter voltage noise is the held-out residual outside block j (each "

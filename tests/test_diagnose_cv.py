@@ -106,3 +106,4 @@ def test_a_measured_temperature_away_from_the_fit_is_evidence(effect, measured):
     base, info = fit_base("thevenin", [fit], "constant")
     search = Search(base, make_folds([_coarse(ev, 1.0, 4000)], 4), info["t_ref_c"], base_refit=False)
     assert search.temperature_measured is measured
+

@@ -16,9 +16,11 @@ from scipy.stats import binom
 from socbench.diagnose.randomized import case_kind, draw_case, run_case, soc_not_worse
 
 SEED = 7
-#: rates of the 200-case run (seed 2026), docs/undeclared_effects.json (rates; pair_first from its cases)
-RATES_200 = {"named_first_single": 71 / 120, "cut_30_single": 86 / 120, "nothing_added_null": 36 / 40,
-             "pair_first": 32 / 40, "soc_not_worse": 188 / 200}
+#: rates of the 200-case run (seed 2026), docs/undeclared_effects.json (rates; pair_first from its cases); a rate the
+#: latest run measured lower than an earlier one keeps the earlier (the floors are never lowered): soc_not_worse was
+#: 188/200, the run of 2026-11-23 09:13 measured 184/200
+RATES_200 = {"named_first_single": 74 / 120, "cut_30_single": 87 / 120, "nothing_added_null": 36 / 40,
+             "pair_first": 33 / 40, "soc_not_worse": 188 / 200}
 
 
 def floor(rate: float, n: int) -> int:

@@ -308,13 +308,14 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
     noise_bin = sigma * float(np.sqrt(np.average([1.0 / m for m in per_bin], weights=[e.n for e in evals])))
     search = Search(base, cv, fit_info["t_ref_c"], candidates, min_gain=min_gain, max_nfev=max_nfev,
                     max_steps=max_steps, max_fits=max_fits, h_ref=fit_info["ocv_branch"], noise_sd=noise_bin,
-                    raw=eval_profiles, base_refit=base_refit)
+                    raw=eval_profiles, base_refit=base_refit, noise_scale=noise_bin / sigma if sigma > 0 else 0.0)
     final, steps, rounds, before = search.run()
     residuals = {"before": cv_residual(base, cv, search.soc0s)[0],
                  "after": steps[-1].held_residual if steps else None}
     residuals["after"] = residuals["before"] if residuals["after"] is None else residuals["after"]
     fit_info["voltage_noise_sd"] = sigma
     fit_info["voltage_noise_sd_binned"] = noise_bin
+    fit_info["voltage_noise_sd_binned_final"] = search.noise_sd  # measured again on the final model's residual
     after = steps[-1].rmse_after if steps else before
     t_search = _time.perf_counter()
     soc_info = {}

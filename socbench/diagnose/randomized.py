@@ -496,7 +496,8 @@ def run_case(case: Case, **diagnose_options) -> dict:
            "seconds": d.seconds, "footprint": footprint(case),
            "footprints": {n: footprint(case, only=n) for n in case.effects},
            "steps": [s.effect for s in d.steps],
-           "rounds": [[[c.effect, round(float(c.score), 4), round(1000 * c.rmse_after, 3)]
+           "rounds": [[[c.effect, round(float(c.score), 4), round(1000 * c.rmse_after, 3),
+                        round(float(c.fold_ratio), 3) if np.isfinite(c.fold_ratio) else None]
                        for c in r["candidates"] if np.isfinite(c.score)][:ROUND_CANDIDATES] for r in d.rounds],
            "noise_sd_binned": d.fit.get("voltage_noise_sd_binned")}
     if "soc" in b:

@@ -17,6 +17,10 @@ One round, on the current model ``m`` (the base model, then the base model with 
 4. add the chosen candidate (:meth:`Search._choose`) if it lowers the held-out RMSE by at least ``min_gain`` (10 %)
    and the model is not already at the noise floor (held-out RMSE ≤ ``NOISE_FLOOR`` × the voltage noise of the
    averaged records, :func:`residual_noise`; ``NOISE_FLOOR_REFIT`` × once the base refit is in the model); else stop.
+   The noise is measured again on the residual of the model as it grows (:meth:`Search._remeasure_noise`: a base
+   model far off, in the cold, reads its own error at the current's edges as noise);
+5. at the end, each SOC drift named is swapped for another when that one, fitted beside everything else added, cuts
+   the held-out RMSE by ``min_gain`` (:meth:`Search._swap_drift`).
 
 Candidates. The bounded fit (the expensive part) runs for the ``max_fits`` best-supported families by signature R²
 (at least ``MIN_SIGNATURE_R2``); the four SOC drifts (capacity, current bias, leak, efficiency: one regressor shape up
@@ -34,11 +38,13 @@ their signature on the refitted residual (the refit took up part of their shape)
 The current sensor gets evidence of its own: where the records hold rests (at least ``FIELD_REST_MIN_S`` below C/20
 whose spread is the sensor's noise), the true current is zero, so the measured rest current *is* the offset. ``b`` is
 bounded to that median ± 3 standard errors (± C/500 for the sensor's resolution); with at least ``REST_EVIDENCE_S`` of
-rests a clear offset puts the current bias first, a null one rules it out.
+rests a clear offset puts the current bias first — added whatever the voltage says of it, a measurement rather than an
+inference (on a cold record the temperature's error hides it until both are in the model) — a null one rules it out.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time as _time
 from dataclasses import dataclass, field
 
@@ -110,12 +116,16 @@ class Candidate:
     fold_sse: np.ndarray | None = field(default=None, repr=False)
     fit: FoldFit | None = field(default=None, repr=False)
     layout: tuple = ()  # ((effect, param names), ...) of the fitted θ
+    #: the largest ratio, over the blocks, of the held-out squared error after to before (reported: a real effect
+    #: lowers the error wherever it shows, one that takes up base-fit error often makes some block worse)
+    fold_ratio: float = float("nan")
 
     def to_dict(self) -> dict:
         score = round(float(self.score), 6) if np.isfinite(self.score) else None  # None: not fitted (valid JSON)
         return {"effect": self.effect, "score": score, "evidence": self.evidence,
                 "signature_r2": round(float(self.signature_r2), 6), "rmse_v_before": self.rmse_before,
-                "rmse_v_after": self.rmse_after, "params": self.params, "seconds": round(self.seconds, 3)}
+                "rmse_v_after": self.rmse_after, "params": self.params, "seconds": round(self.seconds, 3),
+                "worst_block_mse_ratio": round(float(self.fold_ratio), 4) if np.isfinite(self.fold_ratio) else None}
 
 
 def initial_soc(model, profile) -> float:
@@ -197,7 +207,7 @@ class Search:
 
     def __init__(self, base, folds: Folds, t_ref: float, candidates=None, min_gain: float = 0.10,
                  max_nfev: int = 15, max_steps: int = 3, max_fits: int = 3, h_ref: float = 0.0,
-                 noise_sd: float = 0.0, raw=None, base_refit: bool = True):
+                 noise_sd: float = 0.0, raw=None, base_refit: bool = True, noise_scale: float = 0.0):
         self.base = base
         self.folds = folds
         self.t_ref = float(t_ref)
@@ -216,6 +226,9 @@ class Search:
         self.bias_rest = rest_current(folds.records if raw is None else raw, base.capacity_ah,
                                       min_s=FIELD_REST_MIN_S)
         self.noise_sd = noise_sd
+        #: the raw records' noise → the averaged records' (0: the noise is not measured again as the model improves)
+        self.noise_scale = float(noise_scale)
+        self.raw = raw
         n_all = np.concatenate([np.ones(p.n, dtype=bool) for p in folds.records])
         self.rows = {j: np.concatenate([folds.train_mask(r, j) for r in range(len(folds.records))])
                      for j in range(folds.k)}
@@ -395,12 +408,18 @@ class Search:
                     cands.append(Candidate(name, -np.inf, rmse_now, rmse_now, {}, r2,
                                            f"residual signature {'' if sig is None else sig.regressor} explains "
                                            f"{100 * r2:.1f} % of the residual variance: not fitted"))
+            for c in cands:
+                c.fold_ratio = self.worst_block(c, sse_now)
             cands.sort(key=lambda c: (c.score, c.signature_r2), reverse=True)
             rounds.append({"candidates": cands, "signatures": sigs_all, "trajectory": trajs[None], "model": model})
             best = self._choose(cands)
-            if best is None or not np.isfinite(best.score) or best.score <= 0 \
-                    or best.rmse_after > (1.0 - self.min_gain) * rmse_now \
-                    or rmse_now <= self.floor(BASE_REFIT in names):
+            # a current offset the rests measure is a measurement, not an inference from the voltage: it is added
+            # first (fitted within the rests' bounds) whatever it does to the held-out error — on a record whose
+            # error another effect dominates (a cold cell) it cuts nothing until that effect is added beside it
+            measured = best is not None and best.effect == "current_bias" and bool(self.bias_measured)
+            if best is None or not np.isfinite(best.score) or not measured and (
+                    best.score <= 0 or best.rmse_after > (1.0 - self.min_gain) * rmse_now
+                    or rmse_now <= self.floor(BASE_REFIT in names)):
                 break
             best = self._beyond_refit(best, cands, names, fold_sigs, sigs_all, n_eff)
             steps.append(best)
@@ -415,8 +434,77 @@ class Search:
             thetas = best.fit.thetas
             build = self.builder(names)[0]
             model, self.offsets = build(best.fit.row(None))
-            rmse_now, r_now = best.rmse_after, best.held_residual
+            rmse_now, r_now, sse_now = best.rmse_after, best.held_residual, best.fold_sse
+            self._remeasure_noise(model)
+        if steps:
+            steps = self._swap_drift(steps, r_now)
+            model, self.offsets = self.builder([n for n, _ in steps[-1].layout])[0](steps[-1].fit.row(None))
         return model, steps, rounds, before
+
+    def _swap_drift(self, steps, r_now):
+        """``steps`` with each SOC drift it named (:data:`SOC_DRIFT`) exchanged for another when that one, fitted
+        jointly with everything else the search added, cuts the held-out RMSE by :attr:`min_gain` (a swap step of
+        stepwise selection, among effects with one parameter each, held to the same gain as an addition: where the
+        two explain about as well, the records do not tell them apart and the first stays).
+
+        The four drifts leave nearly the same residual, and the one that wins a round alone can owe its lead to
+        what it took up of a later step's share (a fade comes with grown resistances, which the base refit takes
+        later; a leak at its bound mimics a fade on a record that discharges steadily). Fitted beside the later
+        steps, the drift the records hold explains more."""
+        last = steps[-1]
+        n_eff = effective_samples(r_now)
+        empty = {g: {} for g in self.groups}
+        # a current offset the rests measure is direct evidence (no model needed): it is never swapped away
+        for e in [n for n, _ in last.layout if n in SOC_DRIFT and not (n == "current_bias" and self.bias_measured)]:
+            layout = steps[-1].layout
+            names = [n for n, _ in layout]
+            keep = [m for m, n in enumerate(names) if n != e]
+            cols = np.concatenate([np.arange(sum(len(ps) for _, ps in layout[:m]),
+                                             sum(len(ps) for _, ps in layout[:m + 1])) for m in keep]) \
+                if keep else np.zeros(0, dtype=int)
+            rest = [names[m] for m in keep]
+            thetas = steps[-1].fit.thetas[:, cols] if keep else None
+            best = steps[-1]
+            for d in SOC_DRIFT:
+                if d in names or self.applicable(d) is not None:
+                    continue
+                cand = self._try(d, rest, thetas, empty, None, best.rmse_after, n_eff)
+                if np.isfinite(cand.score) and cand.rmse_after <= (1.0 - self.min_gain) * best.rmse_after:
+                    best = cand
+            if best is steps[-1]:
+                continue
+            i = next(k for k, st in enumerate(steps) if st.effect == e)
+            steps = list(steps)
+            note = (f"; {best.effect} fitted in place of {e} beside the later steps: held-out RMSE "
+                    f"{1000 * steps[-1].rmse_after:.1f} → {1000 * best.rmse_after:.1f} mV (swapped)")
+            steps[i] = dataclasses.replace(steps[i], effect=best.effect, evidence=steps[i].evidence + note,
+                                           params=best.params if i == len(steps) - 1 else steps[i].params)
+            steps[-1] = dataclasses.replace(steps[-1], rmse_after=best.rmse_after, held_residual=best.held_residual,
+                                            fold_sse=best.fold_sse, fit=best.fit, layout=best.layout,
+                                            effects=best.effects)
+        return steps
+
+    @staticmethod
+    def worst_block(c: Candidate, sse_before) -> float:
+        """The largest ratio over the blocks of ``c``'s held-out squared error to ``sse_before`` (NaN unfitted)."""
+        if c.fold_sse is None or sse_before is None:
+            return float("nan")
+        return float(np.max(c.fold_sse / np.maximum(sse_before, 1e-30)))
+
+    def _remeasure_noise(self, model):
+        """The voltage noise measured again on the residual of ``model`` (what was added so far, all-data fit), kept
+        when lower. The second difference of the residual keeps, beside the sensor's white noise, the model's error
+        where the current changes from sample to sample (a drive cycle's current moves every second): a base model
+        whose resistances are far off (the cold) reads that error as noise, and the floor it sets then stops the search
+        while the error is many times the noise. The better model reads less of it."""
+        if self.raw is None or self.noise_scale <= 0:
+            return
+        try:
+            sigma = residual_noise(model, self.raw)
+        except Exception:  # an augmented model the raw records drive out of its domain: keep the noise as it was
+            return
+        if sigma > 0:
+            self.noise_sd = min(self.noise_sd, sigma * self.noise_scale)
 
     def floor(self, refitted: bool = False) -> float:
         """No effect is added once the held-out RMSE is at or below this (see :data:`NOISE_FLOOR`;
@@ -433,9 +521,8 @@ class Search:
         if not ok:
             return cands[0] if cands else None
         best = max(ok, key=lambda c: c.score)
-        if self.bias_measured:
-            bias = [c for c in ok if c.effect == "current_bias" and c.score > 0
-                    and c.rmse_after <= (1.0 - self.min_gain) * c.rmse_before]
+        if self.bias_measured:  # the rests measure the offset: it is taken whatever the voltage says of it
+            bias = [c for c in ok if c.effect == "current_bias"]
             if bias:
                 return bias[0]
         if self.temperature_measured:  # likewise the measured temperature: a base refit would only mimic it
