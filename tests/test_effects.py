@@ -34,7 +34,7 @@ EFFECTS = {
     "capacity": lambda: Capacity(cap0=1.2),
     "current_bias": lambda: CurrentBias(b0=0.05),
     "extra_rc": lambda: ExtraRC(R=4e-3, log10_tau=2.7),
-    "butler_volmer": lambda: ButlerVolmer(I0=6.0, dR=5e-4),
+    "butler_volmer": lambda: ButlerVolmer(I0=6.0, dR=5e-4, Ea=40e3, t_ref=15.0),
     "coulombic_efficiency": lambda: CoulombicEfficiency(eta_c=0.95),
     "self_discharge": lambda: SelfDischarge(rate=0.02),
 }

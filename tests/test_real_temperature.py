@@ -105,6 +105,29 @@ def test_fit_and_estimate_commands_with_two_temperatures(data_dir, tmp_path, cap
     assert metrics["noise"]["mode"] == "sensor"  # the coulomb counter never reads the voltage
 
 
+def test_fit_command_with_the_charge_transfer_term(data_dir, tmp_path, capsys):
+    h25 = find_panasonic(data_dir, "25degC", "HPPC")[0]
+    h20 = find_panasonic(data_dir, "n20degC", "HPPC")[0]
+    out = tmp_path / "rint_ct.json"
+    assert main(["fit", "--data", str(h25), str(h20), "--model", "rint", "--charge-transfer", "--out", str(out)]) == 0
+    assert "Arrhenius law" in capsys.readouterr().out
+    d = json.loads(out.read_text())
+    (eff,) = d["effects"]
+    law = d["fit"]["charge_transfer"]
+    assert eff["name"] == "butler_volmer" and eff["values"]["Ea"] == law["ea_j_per_mol"] >= 0.0
+    assert law["i0_law_a"][0] <= law["i0_law_a"][1]  # the cold exchange current is not the larger
+    name, params = load_params(out)
+    assert make_model(name, params).name == "rint+butler_volmer"
+    us06 = find_panasonic(data_dir, "n20degC", "US06")[0]
+    js = tmp_path / "sim.json"
+    assert main(["simulate", "--data", str(us06), "--params", str(out), "--json", str(js)]) == 0
+    assert np.isfinite(json.loads(js.read_text())["rmse_v"])
+    capsys.readouterr()
+    # the law needs two temperatures: one record is a user error (exit 2, one line)
+    assert main(["fit", "--data", str(h25), "--model", "rint", "--charge-transfer", "--out", str(out)]) == 2
+    assert "at least two" in capsys.readouterr().err
+
+
 # ----------------------------------------------------------------------------------------------- without data
 def _record(temp=None, ambient=None):
     meta = ProfileMeta(name="r", extra={} if ambient is None else {"ambient_temperature_c": ambient})

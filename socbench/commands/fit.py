@@ -12,7 +12,9 @@ Several ``--data`` records (one per temperature: Panasonic HPPCs at 25, 10, 0, �
 assembled into one temperature-aware set (:func:`socbench.identify.temperature.fit_temperatures`): parameter tables over
 SOC × temperature, an OCV per temperature on one SOC axis, and the capacity per temperature
 (``capacity_by_temperature``). Each record's temperature is the median of its temperature column (else the ambient
-temperature of its file name); the command says which.
+temperature of its file name); the command says which. ``--charge-transfer`` adds the Butler–Volmer charge-transfer
+term with an Arrhenius exchange current ``I0(T)``, fitted with the base model on each record (``fit_temperatures(...,
+charge_transfer=True)``); the file carries it as an ``"effects"`` entry, which every command that reads the file runs.
 
 The noise recipe (:mod:`socbench.estimators.model_error`) measures the fitted model's voltage error on the
 ``--validation`` records (other drive cycles of the same cell, never one you will score), else on the identification
@@ -53,6 +55,9 @@ def add_arguments(parser) -> None:
                              "(default: the record's HPPC rest points)")
     parser.add_argument("--no-segments", action="store_true",
                         help="fit the record as one piece, through its gaps (default: restart each segment)")
+    parser.add_argument("--charge-transfer", action="store_true",
+                        help="with records at several temperatures: fit the Butler-Volmer charge-transfer term "
+                             "(an Arrhenius exchange current I0(T)) together with the model")
     parser.add_argument("--validation", nargs="+", default=(),
                         help="records (with a reference SOC) on which the noise recipe measures the model error "
                              "(default: the identification records)")
@@ -92,6 +97,9 @@ def run(args) -> int:
     if several and (args.soc0 is not None or args.ocv):
         raise ConfigError("--soc0 and --ocv apply to a single record; with several --data records each record's HPPC "
                           "gives its own start and OCV")
+    if args.charge_transfer and not several:
+        raise ConfigError("--charge-transfer fits the exchange current's temperature law: give one HPPC record per "
+                          "temperature, at least two")
     model_class(args.model)  # an unknown model fails before the data is read
     output_file(args.out, "--out")
     ocv = _read_ocv(args.ocv) if args.ocv else None
@@ -102,7 +110,8 @@ def run(args) -> int:
             raise DataError("a validation record needs a reference SOC (the model error is measured at the true "
                             "SOC)", file=v.meta.source or v.name, column="soc_ref")
     if several:
-        res = fit_temperatures(args.model, records, mode=args.mode, capacity_ah=args.capacity)
+        res = fit_temperatures(args.model, records, mode=args.mode, capacity_ah=args.capacity,
+                               charge_transfer=args.charge_transfer)
         params, summary = res.params, res.fit_summary()
         print(f"{args.model} fitted at {len(res.temps)} temperatures ({args.mode} mode) on one SOC axis "
               f"(Q_ref {res.capacity_ref:.4g} Ah) in {res.seconds:.1f} s:")

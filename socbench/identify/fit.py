@@ -20,6 +20,13 @@ model is fitted on (:meth:`FitProblem.fit_profile`), so the fitted SOC axis is t
 
 Polynomial and lookup fits start from a constant fit (warm start), which is cheap and keeps the high-dimensional
 fits away from the poor local minima a cold start in 35+ parameters can find.
+
+``effects``: effects of :mod:`socbench.models.effects` fitted *together with* the base model (the charge-transfer
+term of :class:`~socbench.models.effects.ButlerVolmer`): each effect's ``joint_params`` (those no base parameter
+can stand in for: ``I0``, not ``dR``, which is ``R0``'s double) are appended to θ as constants within the
+effect's bounds (log-scaled when positive), starting from the effect's values; with ``fit_effects=False`` the
+effects are held as given. The fitted set carries them (``ModelParams.effects``), so
+:func:`~socbench.models.registry.make_model` rebuilds the fitted model from it and PARAMS.json stores them.
 """
 
 from __future__ import annotations
@@ -30,13 +37,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ConfigError, DataError
+from ..models.effects import augment
 from ..models.params import Constant, ModelParams
 from ..models.registry import model_class, model_names
 from ..ocv import OCVCurve
 from ..profile import Profile
 from .hppc import analyze_hppc, edge_resistance, unrecorded_charge
 from .lsq import LsqResult, fit_parameters
-from .specs import ConstantForm, Guess, LookupForm, PolyForm, param_spec
+from .specs import ConstantForm, Guess, LookupForm, ParamSpec, PolyForm, param_spec
 
 MODES = ("paper", "constant", "lookup")
 #: models whose parameters the paper fits as 6th-degree SOC polynomials
@@ -157,6 +165,28 @@ class FitProblem:
     guess: Guess
     notes: tuple
     current_offset_a: float = 0.0  # the current sensor's offset measured on the HPPC rests [A]
+    #: effects in the model (templates: their values are the start or the held values)
+    effects: tuple = ()
+    #: ``(index into effects, ParamSpec)`` of each effect parameter fitted: θ entries after the base parameters'
+    effect_specs: tuple = ()
+
+    @property
+    def n_base(self) -> int:
+        """θ entries of the base model's parameters (the effects' follow)."""
+        return self.slices[-1].stop if self.slices else 0
+
+    def label_specs(self) -> list:
+        """``(label, ParamSpec)`` of every θ entry, in θ order."""
+        out = [(lab, s) for s, f in zip(self.specs, self.forms) for lab in f.labels(s.name)]
+        return out + [(f"{self.effects[k].name}.{s.name}", s) for k, s in self.effect_specs]
+
+    def effects_at(self, theta) -> list:
+        """The effects with the values of ``theta`` (``(P,)`` or a batch ``(B, P)``: one value per variant)."""
+        theta = np.asarray(theta, dtype=float)
+        values = [{} for _ in self.effects]
+        for j, (k, spec) in enumerate(self.effect_specs):
+            values[k][spec.name] = spec.from_theta(theta[..., self.n_base + j])
+        return [e.with_values(**v) for e, v in zip(self.effects, values)]
 
     def fit_profile(self, profile: Profile) -> Profile:
         """The record the parameters are fitted on: its current less the sensor offset measured on its rests."""
@@ -168,13 +198,37 @@ class FitProblem:
         """The parameter set of ``theta``; ``clamp``: polynomials fitted on part of the SOC axis are stored clamped
         to it (:meth:`~socbench.identify.specs.PolyForm.clamped`), as a finished fit returns them."""
         theta = np.asarray(theta, dtype=float)
+        p = self._base_params(theta, clamp)
+        if not self.effects:
+            return p
+        return p.replace(effects=tuple({"name": e.name, "values": {k: float(v) for k, v in e.values.items()}}
+                                       for e in self.effects_at(theta)))
+
+    def _base_params(self, theta, clamp: bool = False) -> ModelParams:
         values = {s.name: (f.clamped(s, theta[..., sl]) if clamp and isinstance(f, PolyForm) else
                            f.function(s, theta[..., sl])) for s, f, sl in zip(self.specs, self.forms, self.slices)}
         return ModelParams(capacity_ah=self.capacity_ah, ocv=self.ocv, values=values, options=self.options,
                            source="socbench fit", notes=self.notes)
 
     def build(self, theta):
-        return model_class(self.name)(self.params(theta))
+        theta = np.asarray(theta, dtype=float)
+        base = model_class(self.name)(self._base_params(theta))
+        return augment(base, self.effects_at(theta)) if self.effects else base
+
+
+def _effect_param_specs(effects, fit_effects: bool, model) -> tuple:
+    """``(index, ParamSpec)`` of each effect parameter a joint fit estimates: the effect's ``joint_params``, within its
+    bounds on ``model`` (log-scaled when the lower bound is positive), starting from its value (clipped into them)."""
+    if not fit_effects:
+        return ()
+    out = []
+    for k, e in enumerate(effects):
+        bounds = e.bounds(model)
+        for pname in e.param_names if e.joint_params is None else e.joint_params:
+            lo, hi = (float(b) for b in bounds[pname])
+            init = float(np.clip(np.asarray(e[pname], dtype=float), lo, hi))
+            out.append((k, ParamSpec(pname, "effect", "", lo > 0, init, lo, hi)))
+    return tuple(out)
 
 
 def _forms_for(name: str, mode: str, n_params: int, knots, domain=(0.0, 1.0)) -> list:
@@ -190,7 +244,7 @@ def _forms_for(name: str, mode: str, n_params: int, knots, domain=(0.0, 1.0)) ->
 
 def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | None = None,
               capacity_ah: float | None = None, soc0: float | None = None, knots=None,
-              options: dict | None = None) -> FitProblem:
+              options: dict | None = None, effects=(), fit_effects: bool = True) -> FitProblem:
     """Analyse the record and lay out θ (names, start, bounds, forms) for :func:`fit_model`."""
     if mode not in MODES:
         raise ConfigError(f"unknown fit mode '{mode}'; known: {', '.join(MODES)}")
@@ -265,19 +319,31 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
         th0.append(f.theta0(s))
         lo += [s.theta_bounds[0]] * f.size
         hi += [s.theta_bounds[1]] * f.size
+    effects = tuple(effects)
+    if effects:
+        probe = model_class(name)(ModelParams(capacity_ah=q, ocv=ocv, values={
+            s.name: f.function(s, t) for s, f, t in zip(specs, forms, th0)}, options=options))
+        effect_specs = _effect_param_specs(effects, fit_effects, probe)
+        for k, es in effect_specs:
+            labels.append(f"{effects[k].name}.{es.name}")
+            th0.append(np.atleast_1d(es.to_theta(es.init)))
+            lo.append(es.theta_bounds[0])
+            hi.append(es.theta_bounds[1])
+        notes.append(f"with the effects {', '.join(e.name for e in effects)} "
+                     + ("fitted with the base parameters" if effect_specs else "held as given"))
+    else:
+        effect_specs = ()
     notes.append(f"fitted by socbench.identify ({mode} mode) on {src}")
     return FitProblem(name, tuple(specs), tuple(forms), tuple(labels), tuple(slices), np.concatenate(th0),
-                      np.asarray(lo), np.asarray(hi), q, ocv, options, soc0, jumps, guess, tuple(notes), offset)
+                      np.asarray(lo), np.asarray(hi), q, ocv, options, soc0, jumps, guess, tuple(notes), offset,
+                      effects, effect_specs)
 
 
 def _warnings(prob: FitProblem, res: LsqResult, values: dict, stderr: dict) -> list:
     out = []
     if not res.success:
         out.append(f"optimiser did not converge: {res.message}")
-    spec_of = {}
-    for s, f in zip(prob.specs, prob.forms):
-        for lab in f.labels(s.name):
-            spec_of[lab] = s
+    spec_of = dict(prob.label_specs())
     for lab in prob.labels:
         s, val, se = spec_of[lab], values[lab], stderr[lab]
         if not np.isfinite(se):
@@ -300,35 +366,40 @@ def _warnings(prob: FitProblem, res: LsqResult, values: dict, stderr: dict) -> l
 def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | None = None,
               capacity_ah: float | None = None, soc0: float | None = None, *, knots=None, options: dict | None = None,
               compress: bool | dict = True, warm_start: bool = True, max_nfev: int | None = None,
-              time_weighted: bool = False, loss: str = "linear", segments=None) -> FitResult:
+              time_weighted: bool = False, loss: str = "linear", segments=None, effects=(),
+              fit_effects: bool = True) -> FitResult:
     """Fit model ``name`` to ``profile`` (see the module docstring). Returns a :class:`FitResult`.
+
+    ``effects``: effects in the model, their ``joint_params`` fitted with the base parameters (held as given with
+    ``fit_effects=False``); the fitted set carries them (``params.effects``).
 
     ``segments``: a record of several discharges is fitted segment by segment (None: found in the record; False:
     one piece; see :func:`~socbench.identify.lsq.fit_parameters` and :mod:`socbench.segments`)."""
     t0 = _time.perf_counter()
     if compress is True:
         compress = dict(FIT_COMPRESSION)
-    prob = setup_fit(name, profile, mode, ocv, capacity_ah, soc0, knots, options)
+    prob = setup_fit(name, profile, mode, ocv, capacity_ah, soc0, knots, options, effects, fit_effects)
     profile = prob.fit_profile(profile)
     theta0 = prob.theta0.copy()
     if warm_start and any(not isinstance(f, ConstantForm) for f in prob.forms):
-        const = setup_fit(name, profile, "constant", prob.ocv, prob.capacity_ah, prob.soc0, None, prob.options)
+        const = setup_fit(name, profile, "constant", prob.ocv, prob.capacity_ah, prob.soc0, None, prob.options,
+                          effects, fit_effects)
         cres = fit_parameters(const.build, profile, const.theta0, const.lower, const.upper, names=const.labels,
                               soc0=prob.soc0, soc_jumps=prob.soc_jumps, compress=compress, max_nfev=max_nfev,
                               time_weighted=time_weighted, loss=loss, segments=segments)
         for sl, ct in zip(prob.slices, cres.theta):  # one constant per parameter, in the same order
             theta0[sl] = ct
+        theta0[prob.n_base:] = cres.theta[const.n_base:]  # the effects' parameters: constants in both
         theta0 = np.clip(theta0, prob.lower, prob.upper)
     res = fit_parameters(prob.build, profile, theta0, prob.lower, prob.upper, names=prob.labels, soc0=prob.soc0,
                          soc_jumps=prob.soc_jumps, compress=compress, max_nfev=max_nfev, time_weighted=time_weighted,
                          loss=loss, segments=segments)
     params = prob.params(res.theta, clamp=True)
     values, stderr = {}, {}
-    for s, f, sl in zip(prob.specs, prob.forms, prob.slices):
-        for lab, th, se in zip(f.labels(s.name), res.theta[sl], res.stderr[sl]):
-            val = float(s.from_theta(th))
-            values[lab] = val
-            stderr[lab] = float(abs(val) * se) if s.log else float(se)  # delta method through exp
+    for (lab, s), th, se in zip(prob.label_specs(), res.theta, res.stderr):
+        val = float(s.from_theta(th))
+        values[lab] = val
+        stderr[lab] = float(abs(val) * se) if s.log else float(se)  # delta method through exp
     warnings = _warnings(prob, res, values, stderr)
     return FitResult(name=name, params=params, rmse_v=res.rmse, stderr=stderr, corr=res.corr,
                      corr_names=prob.labels, warnings=warnings, seconds=_time.perf_counter() - t0,

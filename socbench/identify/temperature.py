@@ -28,6 +28,23 @@
    :class:`~socbench.models.params.CapacityTable` (``capacity_by_temperature`` in PARAMS.json).
 
 A single record gives a plain single-temperature set (exactly :func:`fit_model`).
+
+**Charge transfer** (``charge_transfer=True``): the cold cell's polarisation is not linear in the current (the
+Panasonic HPPCs: the 10 s polarisation per ampere at the smallest pulse is 1.0× that at 2C at 25 °C, 2.6× at
+−20 °C), the Butler–Volmer signature ``U_ct = N_s(2R_gT/F)·asinh(I/2I_0)`` with an exchange current ``I_0`` that
+falls steeply in the cold. The set then carries a :class:`~socbench.models.effects.ButlerVolmer` effect fitted with
+the base model (docs/real_data.md §4d measures the signature), in two passes:
+
+a. at each temperature ``T_k`` the base parameters and one ``I_0,k`` are fitted together
+   (:func:`fit_model` with ``effects``; ``ΔR = 0``: the base's ``R0`` carries the linear part);
+b. the Arrhenius law ``ln I_0(T) = ln I_0(T_ref) − (E_a/R_g)(1/T − 1/T_ref)`` (``T_ref`` = 25 °C) through the
+   ``(1/T_k, ln I_0,k)`` by weighted least squares (:func:`arrhenius_law`: weights from each ``I_0,k``'s standard
+   error, an ``I_0,k`` at a bound of its range left out; ``E_a ≥ 0``);
+c. at each temperature the base parameters refitted with the law's ``I_0(T)`` held, so every node of the tables
+   was fitted with the exchange current the set will use (the law is looked up at the measured cell temperature,
+   sample by sample, like every table).
+
+Pass (a)'s ``I_0,k`` and the law are in :attr:`TemperatureFit.extra` (``"charge_transfer"``) and the notes.
 """
 
 from __future__ import annotations
@@ -38,6 +55,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import DataError
+from ..models.base import T_REF_C
+from ..models.effects import KELVIN, R_GAS, ButlerVolmer
 from ..models.params import CapacityTable, ModelParams, TemperatureTable
 from ..ocv import OCVCurve, TemperatureOCV, monotone_points
 from ..profile import Profile
@@ -101,6 +120,7 @@ class TemperatureFit:
                 for t, s, how, q, f in zip(self.temps, self.sources, self.temperature_notes, self.capacities,
                                            self.fits)],
             "notes": list(self.notes),
+            **({"charge_transfer": self.extra["charge_transfer"]} if "charge_transfer" in self.extra else {}),
         }
 
 
@@ -123,12 +143,62 @@ def _table_scale(name: str, nodes) -> str:
     return "log" if param_spec(name, Guess()).log and positive else "linear"
 
 
+#: a relative standard error of a fitted ``I_0,k`` below this is taken as this in the law's weights: the fit's
+#: standard errors assume white residuals and are far too small on a record of thousands of correlated samples, so
+#: without a floor one temperature would decide the law alone
+I0_REL_SE_FLOOR = 0.05
+#: the charge-transfer term's label among a fit's values
+I0_LABEL = f"{ButlerVolmer.name}.I0"
+
+
+@dataclass(frozen=True)
+class ArrheniusLaw:
+    """``I_0(T) = i0_ref·exp[−(ea/R_g)(1/T − 1/T_ref)]`` fitted through per-temperature exchange currents."""
+
+    i0_ref: float  # [A] at t_ref
+    ea: float  # [J/mol]
+    t_ref: float  # [°C]
+    used: tuple  # per point: whether it entered the fit
+
+    def __call__(self, temp_c):
+        tk = np.asarray(temp_c, dtype=float) + KELVIN
+        return self.i0_ref * np.exp(-self.ea / R_GAS * (1.0 / tk - 1.0 / (self.t_ref + KELVIN)))
+
+    def effect(self) -> ButlerVolmer:
+        return ButlerVolmer(I0=self.i0_ref, dR=0.0, Ea=self.ea, t_ref=self.t_ref)
+
+
+def arrhenius_law(temps_c, i0, rel_se, usable=None, t_ref: float = T_REF_C) -> ArrheniusLaw:
+    """Weighted least squares of ``ln I_0`` on ``x = −(1/T − 1/T_ref)/R_g``: ``ln I_0 = ln I_0(T_ref) + E_a·x``.
+
+    Weights ``1/max(rel_se, I0_REL_SE_FLOOR)²`` (``rel_se`` the standard error of ``ln I_0``); points not ``usable``
+    (at a bound of the fit's range, non-finite) are left out. With fewer than two usable temperatures, or a fitted
+    ``E_a < 0`` (an exchange current that grows in the cold is no Arrhenius process), ``E_a = 0`` and ``I_0`` is the
+    weighted geometric mean."""
+    t = np.asarray(temps_c, dtype=float)
+    y = np.log(np.asarray(i0, dtype=float))
+    se = np.asarray(rel_se, dtype=float)
+    ok = np.isfinite(y) & np.isfinite(se) & (np.ones(t.size, bool) if usable is None else np.asarray(usable, bool))
+    if not ok.any():
+        raise DataError("no usable exchange current to fit the Arrhenius law to")
+    w = 1.0 / np.maximum(se[ok], I0_REL_SE_FLOOR) ** 2
+    x = -(1.0 / (t[ok] + KELVIN) - 1.0 / (t_ref + KELVIN)) / R_GAS
+    ea = 0.0
+    if ok.sum() >= 2:
+        xm, ym = np.average(x, weights=w), np.average(y[ok], weights=w)
+        ea = float(np.sum(w * (x - xm) * (y[ok] - ym)) / np.sum(w * (x - xm) ** 2))
+    ea = max(ea, 0.0)
+    ln_ref = float(np.average(y[ok] - ea * x, weights=w))
+    return ArrheniusLaw(float(np.exp(ln_ref)), ea, float(t_ref), tuple(bool(v) for v in ok))
+
+
 def fit_temperatures(name: str, records, mode: str = "paper", capacity_ah: float | None = None,
-                     options: dict | None = None, **fit_kwargs) -> TemperatureFit:
+                     options: dict | None = None, charge_transfer: bool = False, **fit_kwargs) -> TemperatureFit:
     """Fit ``name`` on every record and assemble the temperature-aware set (see the module docstring).
 
-    ``capacity_ah`` is ``Q_ref`` (default: the largest charge a record delivers); ``fit_kwargs`` go to
-    :func:`fit_model` (``compress``, ``time_weighted``, ``knots``…).
+    ``capacity_ah`` is ``Q_ref`` (default: the largest charge a record delivers); ``charge_transfer`` adds the
+    Butler–Volmer term with an Arrhenius ``I_0(T)`` fitted with the base model (the module docstring);
+    ``fit_kwargs`` go to :func:`fit_model` (``compress``, ``time_weighted``, ``knots``…).
     """
     t0 = _time.perf_counter()
     records = list(records)
@@ -147,18 +217,41 @@ def fit_temperatures(name: str, records, mode: str = "paper", capacity_ah: float
     analyses = [analyze_hppc(p) for _, _, p in placed]
     own = [float(a.capacity_ah) for a in analyses]
     q_ref = float(capacity_ah) if capacity_ah else max(own)
-    fits: list[FitResult] = []
-    for _, _, prof in placed:
-        fits.append(fit_model(name, prof, mode=mode, capacity_ah=q_ref, options=options, **fit_kwargs))
     temps = tuple(t for t, _, _ in placed)
+
+    def fit_all(**kw):
+        return [fit_model(name, prof, mode=mode, capacity_ah=q_ref, options=options, **fit_kwargs, **kw)
+                for _, _, prof in placed]
+
     notes = [f"fitted at {len(temps)} temperatures ({', '.join(f'{t:.1f}' for t in temps)} °C) on one SOC axis "
              f"counted with Q_ref = {q_ref:.4g} Ah"]
+    extra = {}
+    if not charge_transfer:
+        fits: list[FitResult] = fit_all()
+    else:
+        # (a) one exchange current per temperature with the base parameters; start at the 1C current
+        first = fit_all(effects=(ButlerVolmer(I0=q_ref),))
+        i0 = np.array([f.values[I0_LABEL] for f in first])
+        rel_se = np.array([f.stderr[I0_LABEL] / f.values[I0_LABEL] for f in first])
+        free = [I0_LABEL not in f.lsq.at_bounds for f in first]
+        law = arrhenius_law(temps, i0, rel_se, free)
+        # (b) every temperature refitted with the law's exchange current held (one record: pass (a) is final)
+        fits = first if len(first) == 1 else fit_all(effects=(law.effect(),), fit_effects=False)
+        extra["charge_transfer"] = {"temps": list(temps), "i0_fitted_a": i0.tolist(), "i0_rel_se": rel_se.tolist(),
+                                    "used": list(law.used), "i0_ref_a": law.i0_ref, "ea_j_per_mol": law.ea,
+                                    "t_ref_c": law.t_ref, "i0_law_a": np.atleast_1d(law(temps)).tolist(),
+                                    "rmse_v_first_pass": [f.rmse_v for f in first]}
+        notes.append("charge transfer (Butler–Volmer) fitted with the base model: I0 per temperature "
+                     + ", ".join(f"{t:.1f} °C {v:.3g} A" + ("" if u else " (at a bound: not used)")
+                                 for t, v, u in zip(temps, i0, law.used))
+                     + f"; Arrhenius law I0(T) = {law.i0_ref:.3g} A at {law.t_ref:g} °C, Ea = {law.ea / 1e3:.1f} "
+                       "kJ/mol; base parameters refitted with it held")
     if len(fits) == 1:
         f = fits[0]
         params = f.params.replace(notes=f.params.notes + tuple(notes))
         return TemperatureFit(name, params, temps, tuple(fits), tuple(own), q_ref,
                               tuple(p.name for _, _, p in placed), tuple(h for _, h, _ in placed), tuple(notes),
-                              _time.perf_counter() - t0, mode)
+                              _time.perf_counter() - t0, mode, extra)
     # OCV: each record's own curve, continued below its range by the curve that reaches lowest
     curves = [f.params.ocv for f in fits]
     ref = min(curves, key=lambda c: float(c.soc[0]))
@@ -181,6 +274,6 @@ def fit_temperatures(name: str, records, mode: str = "paper", capacity_ah: float
     params = ModelParams(capacity_ah=q_ref, ocv=ocv, values=values, eta_charge=base.eta_charge,
                          options=dict(base.options), source="socbench fit (several temperatures)",
                          notes=tuple(notes) + tuple(n for f in fits for n in f.params.notes),
-                         capacity_by_temperature=cap)
+                         capacity_by_temperature=cap, effects=base.effects)
     return TemperatureFit(name, params, temps, tuple(fits), tuple(own), q_ref, tuple(p.name for _, _, p in placed),
-                          tuple(h for _, h, _ in placed), tuple(notes), _time.perf_counter() - t0, mode)
+                          tuple(h for _, h, _ in placed), tuple(notes), _time.perf_counter() - t0, mode, extra)

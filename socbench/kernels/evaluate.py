@@ -1045,12 +1045,13 @@ def output_loaded(im, fm, x, i, temp, has_temp, jac, H, work):
                 H[s0 + 1] += s2
                 H[s0 + 2] += -s3 * ie
                 H[0] += d1 * x[s0] + d2 * x[s0 + 1] - d3 * x[s0 + 2] * ie
-        elif code == 6:  # butler_volmer [I0, dR, n_cells]
+        elif code == 6:  # butler_volmer [I0, dR, n_cells, Ea, t_ref]: I0(T) = I0·exp[−(Ea/R)(1/T − 1/T_ref)]
             tk = (temp if has_temp else T_REF_C) + KELVIN
             g = fm[v + 2] * 2.0 * R_GAS * tk / FARADAY
-            xx = ie / (2.0 * fm[v])
+            i0 = fm[v] * math.exp(-fm[v + 3] / R_GAS * (1.0 / tk - 1.0 / (fm[v + 4] + KELVIN)))
+            xx = ie / (2.0 * i0)
             y = y + (-g * math.asinh(xx) + fm[v + 1] * ie)
-            D = D + (-g / (2.0 * fm[v] * math.sqrt(1.0 + xx * xx)) + fm[v + 1])
+            D = D + (-g / (2.0 * i0 * math.sqrt(1.0 + xx * xx)) + fm[v + 1])
     b = im[H_BIAS]
     if jac and b >= 0:
         H[b] -= D

@@ -78,6 +78,9 @@ class Effect:
     walk_sd: ClassVar[tuple] = ()
     #: state -> the parameter that is its initial value (a fitted initial value's spread is its filter uncertainty)
     initial_params: ClassVar[dict] = {}
+    #: the parameters a fit together with the base model estimates (:func:`socbench.identify.fit.fit_model`'s
+    #: ``effects``): those no base parameter can stand in for (None: every parameter)
+    joint_params: ClassVar[tuple | None] = None
 
     def __init__(self, *, initial_sd=None, **values):
         unknown = sorted(set(values) - set(self.param_names) - set(self.settings))
@@ -455,31 +458,46 @@ class ExtraRC(Effect):
 class ButlerVolmer(Effect):
     """Current-dependent charge-transfer over-potential (ECM_SPEC §9.6), no state.
 
-    ``y += −U_ct(I) + ΔR·I``, ``U_ct = N_s·(2 R_g T/F)·asinh(I/(2 I_0))`` (symmetric α = 0.5, ``N_s`` cells in series,
-    ``T`` the measured temperature, else 25 °C). ``ΔR`` hands back the part of the base model's linear ``R0·I`` that the
-    asinh term now carries (``y = … − R_Ω I − U_ct``). ``D = −N_s(2R_gT/F)/(2 I_0 √(1 + (I/2I_0)²)) + ΔR``.
-    Parameters ``I0`` [A] and ``dR`` [Ω].
+    ``y += −U_ct(I, T) + ΔR·I``, ``U_ct = N_s·(2 R_g T/F)·asinh(I/(2 I_0(T)))`` (symmetric α = 0.5, ``N_s`` cells in
+    series, ``T`` the measured temperature in kelvin, else 25 °C), with the exchange current following Arrhenius::
+
+        I_0(T) = I0 · exp[−(E_a/R_g)(1/T − 1/T_ref)]
+
+    (``E_a = 0``, the default: one ``I0`` at every temperature). ``ΔR`` hands back the part of the base model's linear
+    ``R0·I`` that the asinh term now carries (``y = … − R_Ω I − U_ct``).
+    ``D = −N_s(2R_gT/F)/(2 I_0(T) √(1 + (I/2I_0(T))²)) + ΔR``; no state and no SOC dependence (``H`` gets nothing).
+    Parameters ``I0`` [A] (at ``t_ref``) and ``dR`` [Ω]; settings ``Ea`` [J/mol] and ``t_ref`` [°C]: not fitted by the
+    generic effect fits (a single-temperature record cannot tell ``E_a``), set by the temperature-aware fit
+    (:func:`socbench.identify.temperature.fit_temperatures` with ``charge_transfer=True``).
     """
 
     name = "butler_volmer"
     param_names = ("I0", "dR")
     defaults = {"I0": 1.0, "dR": 0.0}
+    settings = {"Ea": 0.0, "t_ref": T_REF_C}
+    #: fitted with a base model, ΔR is the base's R0 over again (both multiply I): only I0
+    joint_params = ("I0",)
 
     def bounds(self, model):
         q = model.capacity_ah
         return {"I0": (0.01 * q, 10.0 * q), "dR": (-resistance_scale(model), resistance_scale(model))}
 
     def kernel_values(self, base):
-        return (self["I0"], self["dR"], float(n_cells(base)))
+        return (self["I0"], self["dR"], float(n_cells(base)), self["Ea"], self["t_ref"])
+
+    def exchange_current(self, tk):
+        """``I_0(T)`` [A] at the cell temperature ``tk`` [K] (the Arrhenius law of the class docstring)."""
+        return self["I0"] * np.exp(-self["Ea"] / R_GAS * (1.0 / tk - 1.0 / (self["t_ref"] + KELVIN)))
 
     def output_term(self, e, z, i, temp, base, jac):
         tk = _temp_k(temp, T_REF_C, np.shape(i))
         g = n_cells(base) * 2.0 * R_GAS * tk / FARADAY
-        x = i / (2.0 * self["I0"])
+        i0 = self.exchange_current(tk)
+        x = i / (2.0 * i0)
         dy = -g * np.arcsinh(x) + self["dR"] * i
         if not jac:
             return dy, None, None, None
-        return dy, np.zeros(e.shape), np.zeros(dy.shape), -g / (2.0 * self["I0"] * np.sqrt(1.0 + x * x)) + self["dR"]
+        return dy, np.zeros(e.shape), np.zeros(dy.shape), -g / (2.0 * i0 * np.sqrt(1.0 + x * x)) + self["dR"]
 
 
 class CoulombicEfficiency(Effect):

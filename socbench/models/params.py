@@ -32,6 +32,12 @@ A set fitted at several temperatures (``socbench fit --data HPPC1 HPPC2 …``) c
 temperature delivered is kept as data in the optional key ``"capacity_by_temperature": {"temps": [...],
 "capacity_ah": [...], "source": "..."}`` (:class:`CapacityTable`). A set without that key is a single-temperature set,
 read and written exactly as before.
+
+A set may carry effects of :mod:`socbench.models.effects` that were fitted with it (the charge-transfer term of a
+temperature-aware fit): the optional key ``"effects": [{"name": "butler_volmer", "values": {"I0": 5.1, "dR": 0.0,
+"Ea": 48000.0, "t_ref": 25.0}}]`` (each effect's parameters and settings, numbers only).
+:func:`~socbench.models.registry.make_model` adds them to the model it builds, so every command that loads the file
+runs the model the fit produced. A set without the key has no effects, read and written exactly as before.
 """
 
 from __future__ import annotations
@@ -382,6 +388,8 @@ class ModelParams:
     source: str = ""
     notes: tuple = ()
     capacity_by_temperature: CapacityTable | None = None
+    #: effects fitted with the set: ``({"name": effect name, "values": {parameter or setting: number}}, …)``
+    effects: tuple = ()
 
     def __post_init__(self):
         if not (np.isfinite(self.capacity_ah) and self.capacity_ah > 0):
@@ -392,6 +400,7 @@ class ModelParams:
         object.__setattr__(self, "values", MappingProxyType(vals))
         object.__setattr__(self, "options", MappingProxyType(dict(self.options)))
         object.__setattr__(self, "notes", tuple(self.notes))
+        object.__setattr__(self, "effects", _effect_specs(self.effects))
 
     def __getitem__(self, name: str) -> SocFunction:
         try:
@@ -409,6 +418,7 @@ class ModelParams:
             "source": self.source,
             "notes": self.notes,
             "capacity_by_temperature": self.capacity_by_temperature,
+            "effects": self.effects,
         }
         d.update(changes)
         return ModelParams(**d)
@@ -428,6 +438,32 @@ class ModelParams:
         return self.replace(values=new)
 
 
+def _effect_specs(specs) -> tuple:
+    """The ``effects`` of a set, checked (a known effect, its own parameter and setting names, finite numbers) and
+    frozen as ``({"name", "values"}, …)`` with float values."""
+    from .effects import EFFECTS  # effects import this module
+
+    out = []
+    for spec in specs:
+        if not isinstance(spec, Mapping) or set(spec) != {"name", "values"} or not isinstance(spec["values"], Mapping):
+            raise ConfigError(f"an effect must be {{\"name\": ..., \"values\": {{...}}}}, got {spec!r}")
+        cls = EFFECTS.get(spec["name"])
+        if cls is None:
+            raise ConfigError(f"unknown effect '{spec['name']}'; known: {', '.join(EFFECTS)}")
+        allowed = set(cls.param_names) | set(cls.settings)
+        values = {}
+        for k, v in spec["values"].items():
+            if k not in allowed:
+                raise ConfigError(f"effect '{cls.name}' has no parameter '{k}' (have {sorted(allowed)})")
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not np.isfinite(v):
+                raise ConfigError(f"effect '{cls.name}': '{k}' must be a finite number, got {v!r}")
+            values[k] = float(v)
+        out.append(MappingProxyType({"name": cls.name, "values": MappingProxyType(values)}))
+    if len({e["name"] for e in out}) != len(out):
+        raise ConfigError(f"an effect appears twice: {[e['name'] for e in out]}")
+    return tuple(out)
+
+
 def params_to_dict(model_name: str, params: ModelParams, **extra) -> dict:
     return {
         "model": model_name,
@@ -440,6 +476,8 @@ def params_to_dict(model_name: str, params: ModelParams, **extra) -> dict:
         "notes": list(params.notes),
         **({"capacity_by_temperature": params.capacity_by_temperature.to_dict()}
            if params.capacity_by_temperature is not None else {}),
+        **({"effects": [{"name": e["name"], "values": dict(e["values"])} for e in params.effects]}
+           if params.effects else {}),
         **extra,
     }
 
@@ -447,7 +485,7 @@ def params_to_dict(model_name: str, params: ModelParams, **extra) -> dict:
 def params_from_dict(d: Mapping, *, ocv: OCVCurve | None = None, file: str = "") -> tuple[str, ModelParams]:
     """``(model_name, ModelParams)`` from the JSON form. ``ocv`` fills in a file that carries none."""
     known = {"model", "capacity_ah", "eta_charge", "ocv", "params", "options", "source", "notes", "fit", "paper",
-             "capacity_by_temperature", "model_error"}
+             "capacity_by_temperature", "model_error", "effects"}
     unknown = sorted(set(d) - known)
     if unknown:
         raise ConfigError(f"{file or 'parameters'}: unknown key '{unknown[0]}'")
@@ -470,6 +508,7 @@ def params_from_dict(d: Mapping, *, ocv: OCVCurve | None = None, file: str = "")
             notes=tuple(d.get("notes", ())),
             capacity_by_temperature=(CapacityTable.from_dict(d["capacity_by_temperature"])
                                      if d.get("capacity_by_temperature") is not None else None),
+            effects=tuple(d.get("effects", ())),
         )
     except ConfigError as exc:
         raise ConfigError(f"{file or 'parameters'}: {exc}") from None

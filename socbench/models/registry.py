@@ -44,5 +44,11 @@ def model_class(name: str):
 
 
 def make_model(name: str, params, mode: str | None = None):
-    """Instantiate model ``name`` with ``params`` (a :class:`~socbench.models.params.ModelParams`)."""
-    return model_class(name)(params, mode)
+    """Instantiate model ``name`` with ``params`` (a :class:`~socbench.models.params.ModelParams`), with the effects
+    the set carries (``params.effects``: an :class:`~socbench.models.effects.AugmentedModel`)."""
+    model = model_class(name)(params, mode)
+    if not params.effects:
+        return model
+    from .effects import augment, make_effect
+
+    return augment(model, [make_effect(e["name"], **e["values"]) for e in params.effects])
