@@ -151,11 +151,11 @@ def run(args) -> int:
     params_text = "".join(f"  {k} {float(est.info[k][0]):.4g} ± {float(est.info[k + '_3sigma'][0]):.2g} (3σ)"
                           for k in est.info.get("parameters", ()))
     segs = f"  {est.segments.count} segments" if est.segments.count > 1 else ""
-    print(f"{args.estimator} on {name}, {profile.name}: n={profile.n}{segs}  {soc_part}"
+    print(f"{args.estimator} on {model.name}, {profile.name}: n={profile.n}{segs}  {soc_part}"
           f"V RMSE {_fmt(s['rmse_v'], 1000, 1)} mV  NIS {_fmt(s['nis_mean'])}{nis_band}{params_text}  "
           f"noise {noise_mode}  failed runs {s['failed_runs']}  out of domain "
           f"{100 * est.domain['outside_fraction']:.1f} %  -> {out}")
-    warn_outside(est.domain, f"{args.estimator} on {name}, {profile.name}")
+    warn_outside(est.domain, f"{args.estimator} on {model.name}, {profile.name}")
     return 0
 
 
