@@ -172,10 +172,11 @@ def fit_job(args) -> dict:
 def run_job(args) -> dict:
     """One filter on one record (default the US06): the recipe's noise, a guess 20 points low, SOC on the data's
     axis; the record bin-averaged to ``resolution`` seconds (0: as recorded)."""
-    model, params_path, stats_dict, tag, est_name, noise_mode, trace_path, resolution, *test = args
+    model, params_path, stats_dict, tag, est_name, noise_mode, trace_path, resolution, *rest = args
+    test, soc0_error = (list(rest) + ["US06", SOC0_ERROR][len(rest):])[:2]  # optional: the record, the guess error
     name, params = load_params(params_path)
     m = make_model(name, params)
-    prof = _record(tag, test[0] if test else "US06")
+    prof = _record(tag, test)
     if resolution > 0:
         prof = recipe.bin_average(prof, resolution)
     stats = recipe.ModelErrorStats.from_dict(stats_dict) if stats_dict else None
@@ -187,7 +188,7 @@ def run_job(args) -> dict:
     est = make_estimator(est_name, run_model, noise, soc0_sd=SOC0_SD)
     axis = soc_axis(params, prof)
     t0 = time.perf_counter()
-    r = run_on_data_axis(est, prof, axis, soc0=float(prof.soc_ref[0]) + SOC0_ERROR, soc0_sd=SOC0_SD, seed=0)
+    r = run_on_data_axis(est, prof, axis, soc0=float(prof.soc_ref[0]) + soc0_error, soc0_sd=SOC0_SD, seed=0)
     seconds = time.perf_counter() - t0
     s = score(r, prof)
     idx = np.unique(np.round(np.linspace(0, prof.n - 1, 2500)).astype(int))
@@ -518,6 +519,18 @@ def main(argv=None) -> int:
     for k, out in _each(pool, run_job, ajobs):
         cache.path("unscheduled", f"{akeys[k]}.json").write_text(json.dumps(out, default=_jsonable))
     unsched = {p.stem: json.loads(p.read_text()) for p in cache.path("unscheduled").glob("*.json")}
+    # the second ablation: the same filters started at the true SOC (what the 20-point initial error costs each)
+    tjobs, tkeys = [], []
+    for est in ("ekf", "ukf"):
+        for tag in TAGS:
+            key = f"{best}_5T_{est}_{tag}"
+            if not cache.path("truestart", f"{key}.json").exists():
+                tjobs.append((best, str(cache.path("fits", f"{best}_5T.json")), stats[(best, "5T")], tag, est,
+                              "model", "", args.resolution, "US06", 0.0))
+                tkeys.append(key)
+    for k, out in _each(pool, run_job, tjobs):
+        cache.path("truestart", f"{tkeys[k]}.json").write_text(json.dumps(out, default=_jsonable))
+    truestart = {p.stem: json.loads(p.read_text()) for p in cache.path("truestart").glob("*.json")}
     runs = {p.stem: json.loads(p.read_text()) for p in cache.path("runs").glob("*.json")}
     rjobs, rkeys = [], []
     for fit in ("5T", "25"):
@@ -872,6 +885,30 @@ def write_doc(path: Path, v: dict):
             for t, i, u in zip(ct["temps"], ct["i0_fitted_a"], ct["used"]))
           + f"; the law I₀ = {ct['i0_ref_a']:.3g} A at {ct['t_ref_c']:g} °C, E_a = {ct['ea_j_per_mol'] / 1e3:.1f} "
             "kJ/mol.\n")
+    w("\n**4e. What the initial error costs** (five-temperature fit, the recipe, the filters started at the true SOC "
+      "instead of 20 points below it; SOC RMSE % (within 3σ), with the 20-point start of section 4 beside it):\n")
+    w("| US06 | EKF from the truth | EKF from −20 points | UKF from the truth | UKF from −20 points |")
+    w("|---|---|---|---|---|")
+    for tag in TAGS:
+        cells = []
+        for est in ("ekf", "ukf"):
+            for r in (v["truestart"].get(f"{best}_5T_{est}_{tag}"), runs.get(f"{best}_5T_{est}_{tag}")):
+                cells.append("failed" if r is None or "error" in r else
+                             f"{pc(r['soc_rmse'])} ({r['frac_within_3sigma']:.2f})")
+        w(f"| {LABEL[tag]} | " + " | ".join(cells) + " |")
+    gaps = [(LABEL[t], e, u, et) for t in TAGS
+            for e, u, et in [(runs.get(f"{best}_5T_ekf_{t}"), runs.get(f"{best}_5T_ukf_{t}"),
+                              v["truestart"].get(f"{best}_5T_ekf_{t}"))]
+            if e and u and et and "error" not in e and "error" not in u and "error" not in et
+            and e["soc_rmse"] - u["soc_rmse"] > TARGET["ekf_ukf"]
+            and et["soc_rmse"] < e["soc_rmse"] - TARGET["ekf_ukf"]]
+    if gaps:
+        w("\nWhere the EKF ends far from the UKF (" + ", ".join(
+            f"{g[0]}: {pc(g[1]['soc_rmse'])} against {pc(g[2]['soc_rmse'])} %, {pc(g[3]['soc_rmse'])} % from the "
+            "truth" for g in gaps) + "), the gap is made in the first minute: the EKF corrects the 20-point error "
+          "in one linearised step, at the guess's OCV slope, lands points away from the truth with a band already "
+          "narrow, and the slow model-error state takes up the rest; the sigma-point filter spans the curvature. An "
+          "iterated measurement update (re-linearised at the corrected state) is the EKF-side remedy.\n")
     w("\n![SOC error with ±3σ](figures/real_data_soc_error.png)\n")
     w("*SOC error (data axis) of the EKF and UKF with their ±3σ bands, per temperature; left the five-temperature "
       "fit, right the 25 °C fit.*\n")
