@@ -1,6 +1,6 @@
 """SOC estimators as batched numpy engines — coulomb counting, EKF, UKF, particle filter, adaptive EKF (Sage–Husa),
-cubature KF, square-root UKF, H∞ filter and a joint SOC–capacity–R0 EKF (``dual``) — plus per-run references
-(filterpy where it has the filter, textbook forms otherwise; docs/estimators.md compares them).
+cubature KF, square-root UKF, H∞ filter, a joint SOC–capacity–R0 EKF (``dual``) and the iterated EKF (``iekf``) — plus
+per-run references (filterpy where it has the filter, textbook forms otherwise; docs/estimators.md compares them).
 
 ``make_estimator(name, model, noise=None, **options)`` builds one; ``estimator.run(profile, soc0=None, P0=None,
 seed=None) -> Estimate`` runs it over every Monte Carlo run of the profile at once; ``scoring.score(estimate,
@@ -27,6 +27,7 @@ ESTIMATORS: dict[str, str] = {
     "srukf": "socbench.estimators.srukf:SRUKF",
     "hinf": "socbench.estimators.hinf:HInfinityFilter",
     "dual": "socbench.estimators.dual:JointEKF",
+    "iekf": "socbench.estimators.iekf:IteratedEKF",
 }
 
 

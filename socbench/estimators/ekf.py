@@ -46,7 +46,7 @@ class EKF(Estimator):
 
     name = "ekf"
     #: methods the compiled kernel implements: a subclass overriding one runs numpy (kernels.engine.plan)
-    kernel_hooks = ("process_cov",)
+    kernel_hooks = ("process_cov", "measurement_update")
 
     def _run(self, inputs, x0, P0, seed=None) -> Estimate:
         m, opt, noise = self.model, self.options, self.noise
@@ -65,7 +65,7 @@ class EKF(Estimator):
                 S = innovation_var(P, H, Rk)
                 nis = e * e / S
                 gated = gate(nis)
-                x, P, _ = kalman_update(x, P, H, Rk, S, e, gated)
+                x, P = self.measurement_update(x, P, H, Rk, S, e, gated, inputs.voltage[:, k], ik, tk)
                 x, P = settle_update(rec, k, x, P, x_good, P_good, y, e, S, nis, gated, opt)
                 if k + 1 == T:
                     break
@@ -75,6 +75,12 @@ class EKF(Estimator):
                 P = symmetrise(F @ P @ np.swapaxes(F, -1, -2) + self.process_cov(x, B, inputs.dt[k]))
                 settle_predict(rec, k + 1, x, P, x_good, P_good)
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold})
+
+    def measurement_update(self, x, P, H, Rk, S, e, gated, v, i, temp):
+        """``(x⁺, P⁺)`` from the prior ``x, P`` linearised there (``H, R_k, S, e``; module docstring); ``v, i, temp``
+        the sample, for subclasses that linearise again (:class:`~socbench.estimators.iekf.IteratedEKF`)."""
+        x, P, _ = kalman_update(x, P, H, Rk, S, e, gated)
+        return x, P
 
     def process_cov(self, x, B, dt):
         """``Q_k`` of the step from the posterior: the sensor model's (subclasses add their own terms)."""
