@@ -649,6 +649,18 @@ def verdict(v: dict) -> str:
                      + ", ".join(LABEL[t] for t in hard) + " the US06 draws a higher mean current than Cycle_1 and "
                      "the model's slow error on it is more than 1.3 times the validation one (section 4c), so the "
                      "±3σ band, honest on the validation cycle's error, is too narrow on the US06.")
+    ts = v.get("truestart") or {}
+    far = [t for t in TAGS if all(k in ts for k in (f"{best}_5T_ekf_{t}", f"{best}_5T_iekf_{t}_guess"))
+           and runs.get(f"{best}_5T_ekf_{t}") and runs.get(f"{best}_5T_ukf_{t}")
+           and runs[f"{best}_5T_ekf_{t}"]["soc_rmse"] - runs[f"{best}_5T_ukf_{t}"]["soc_rmse"] > TARGET["ekf_ukf"]]
+    if far:
+        lines.append("- **Why the EKF parts from the UKF:** at " + ", ".join(
+            f"{LABEL[t]} (EKF {pc(runs[f'{best}_5T_ekf_{t}']['soc_rmse'])} %, UKF "
+            f"{pc(runs[f'{best}_5T_ukf_{t}']['soc_rmse'])} %)" for t in far)
+            + " the gap is made by the EKF's first linearised correction of the 20-point error: from the true SOC "
+            "the EKF reaches " + ", ".join(f"{pc(ts[f'{best}_5T_ekf_{t}']['soc_rmse'])} %" for t in far)
+            + ", and the iterated EKF from the same 20-point start " + ", ".join(
+                f"{pc(ts[f'{best}_5T_iekf_{t}_guess']['soc_rmse'])} %" for t in far) + " (section 4e).")
     if v["flights"] is None:
         lines.append("- **The default flight scenarios' NIS after the recipe** (must be within a factor 3 of 1): "
                      "**not measured in this run** (`--skip-flights`, to meet its deadline); `python "
