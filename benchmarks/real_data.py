@@ -259,6 +259,15 @@ def _guarded(fn, item):
         return {"error": f"{type(exc).__name__}: {exc}".splitlines()[0][:300]}
 
 
+def cached_runs(cache: Cache, folder: str, pool, jobs: dict) -> dict:
+    """Every result stored in ``cache/folder`` after running :func:`run_job` for each key of ``jobs`` (key → a
+    function giving its arguments, called only for a key not stored yet); each result saved as it finishes."""
+    todo = [k for k in jobs if not cache.path(folder, f"{k}.json").exists()]
+    for j, out in _each(pool, run_job, [jobs[k]() for k in todo]):
+        cache.path(folder, f"{todo[j]}.json").write_text(json.dumps(out, default=_jsonable))
+    return {p.stem: json.loads(p.read_text()) for p in cache.path(folder).glob("*.json")}
+
+
 def _each(pool, fn, items):
     """``(index, result)`` pairs as they finish (each saved at once by the caller: an interrupt loses little)."""
     from concurrent.futures import as_completed
@@ -466,18 +475,11 @@ def main(argv=None) -> int:
     # the filters themselves on the validation records (EKF and UKF, the recipe measured on those records, the
     # scoring protocol): the model whose filters both track the SOC best there is the best model; never a US06
     shortlist = top[: args.shortlist]
-    vjobs, vkeys = [], []
-    for m in shortlist:
-        for est in VALIDATION_FILTERS:
-            for tag in TAGS:
-                key = f"{m}_5T_{est}_{tag}"
-                if not cache.path("validation", f"{key}.json").exists():
-                    vjobs.append((m, str(cache.path("fits", f"{m}_5T.json")), stats_for(m, "5T"), tag, est, "model",
-                                  "", args.resolution, "Cycle"))
-                    vkeys.append(key)
-    for k, out in _each(pool, run_job, vjobs):
-        cache.path("validation", f"{vkeys[k]}.json").write_text(json.dumps(out, default=_jsonable))
-    vruns = {p.stem: json.loads(p.read_text()) for p in cache.path("validation").glob("*.json")}
+    vruns = cached_runs(cache, "validation", pool, {
+        f"{m}_5T_{est}_{tag}": lambda m=m, est=est, tag=tag: (
+            m, str(cache.path("fits", f"{m}_5T.json")), stats_for(m, "5T"), tag, est, "model", "", args.resolution,
+            "Cycle")
+        for m in shortlist for est in VALIDATION_FILTERS for tag in TAGS})
 
     def val_score(m):
         rs = [[vruns.get(f"{m}_5T_{est}_{t}") for est in VALIDATION_FILTERS] for t in TAGS]
@@ -517,34 +519,18 @@ def main(argv=None) -> int:
         print(f"run {keys[k]}: SOC RMSE {100 * out['soc_rmse']:.2f} %, within 3σ {out['frac_within_3sigma']:.3f}, "
               f"NIS {out['nis_mean']:.2f} ({out['seconds']:.0f} s)", flush=True)
     # the ablation: the best model's filters with the recipe but the full Jacobian (no parameter scheduling)
-    ajobs, akeys = [], []
-    for est in ("ekf", "ukf"):
-        for tag in TAGS:
-            key = f"{best}_5T_{est}_{tag}"
-            if not cache.path("unscheduled", f"{key}.json").exists():
-                ajobs.append((best, str(cache.path("fits", f"{best}_5T.json")), stats[(best, "5T")], tag, est,
-                              "model-unscheduled", "", args.resolution))
-                akeys.append(key)
-    for k, out in _each(pool, run_job, ajobs):
-        cache.path("unscheduled", f"{akeys[k]}.json").write_text(json.dumps(out, default=_jsonable))
-    unsched = {p.stem: json.loads(p.read_text()) for p in cache.path("unscheduled").glob("*.json")}
-    # the second ablation: the same filters started at the true SOC (what the 20-point initial error costs each)
-    tjobs, tkeys = [], []
-    for est in ("ekf", "ukf", "iekf"):
-        for tag in TAGS:
-            key = f"{best}_5T_{est}_{tag}"
-            if not cache.path("truestart", f"{key}.json").exists():
-                tjobs.append((best, str(cache.path("fits", f"{best}_5T.json")), stats[(best, "5T")], tag, est,
-                              "model", "", args.resolution, "US06", 0.0))
-                tkeys.append(key)
-            key = f"{best}_5T_{est}_{tag}_guess"  # the iterated EKF from the 20-point start too
-            if est == "iekf" and not cache.path("truestart", f"{key}.json").exists():
-                tjobs.append((best, str(cache.path("fits", f"{best}_5T.json")), stats[(best, "5T")], tag, est,
-                              "model", "", args.resolution, "US06", SOC0_ERROR))
-                tkeys.append(key)
-    for k, out in _each(pool, run_job, tjobs):
-        cache.path("truestart", f"{tkeys[k]}.json").write_text(json.dumps(out, default=_jsonable))
-    truestart = {p.stem: json.loads(p.read_text()) for p in cache.path("truestart").glob("*.json")}
+    fit5 = str(cache.path("fits", f"{best}_5T.json"))
+    unsched = cached_runs(cache, "unscheduled", pool, {
+        f"{best}_5T_{est}_{tag}": lambda est=est, tag=tag: (
+            best, fit5, stats[(best, "5T")], tag, est, "model-unscheduled", "", args.resolution)
+        for est in ("ekf", "ukf") for tag in TAGS})
+    # the second ablation: the same filters started at the true SOC (what the 20-point initial error costs each), and
+    # the iterated EKF from the 20-point start too ("_guess")
+    truestart = cached_runs(cache, "truestart", pool, {
+        f"{best}_5T_{est}_{tag}{suffix}": lambda est=est, tag=tag, err=err: (
+            best, fit5, stats[(best, "5T")], tag, est, "model", "", args.resolution, "US06", err)
+        for est in ("ekf", "ukf", "iekf") for tag in TAGS
+        for suffix, err in (("", 0.0), ("_guess", SOC0_ERROR)) if est == "iekf" or not suffix})
     runs = {p.stem: json.loads(p.read_text()) for p in cache.path("runs").glob("*.json")}
     rjobs, rkeys = [], []
     for fit in ("5T", "25"):

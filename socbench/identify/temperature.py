@@ -161,8 +161,7 @@ class ArrheniusLaw:
     used: tuple  # per point: whether it entered the fit
 
     def __call__(self, temp_c):
-        tk = np.asarray(temp_c, dtype=float) + KELVIN
-        return self.i0_ref * np.exp(-self.ea / R_GAS * (1.0 / tk - 1.0 / (self.t_ref + KELVIN)))
+        return self.effect().exchange_current(np.asarray(temp_c, dtype=float) + KELVIN)
 
     def effect(self) -> ButlerVolmer:
         return ButlerVolmer(I0=self.i0_ref, dR=0.0, Ea=self.ea, t_ref=self.t_ref)
