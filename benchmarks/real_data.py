@@ -129,37 +129,56 @@ def _validation_rmse(m, tags) -> dict:
     return out
 
 
+#: the label of the setting chosen per temperature: each HPPC fitted with the setting whose fit validates best on the
+#: Cycle_1 run of its own temperature (``fit_temperatures(per_record=)``), kept if the assembled set's mean is lower
+PER_TEMPERATURE = "per temperature"
+
+
+def _fit_tried(model, tags, label, tried, fits, **kwargs):
+    """Fit setting ``label`` (``fit_temperatures`` keywords ``kwargs``) at ``tags``; its Cycle_1 RMSE per tag into
+    ``tried`` and the fit into ``fits`` (a failed fit: its error into ``tried``)."""
+    try:
+        res = fit_temperatures(model, [_record(t, "HPPC") for t in tags], **kwargs)
+        val = _validation_rmse(make_model(model, res.params), tags)
+    except (ModelError, DataError, FloatingPointError, np.linalg.LinAlgError) as exc:
+        tried[label] = {"error": f"{type(exc).__name__}: {exc}"}
+        return
+    tried[label] = {"mean_rmse_v": float(np.mean(list(val.values()))), "rmse_v": val}
+    fits[label] = res
+
+
 def fit_job(args) -> dict:
     """Fit ``model`` on the HPPCs of ``tags`` with every setting of :data:`FIT_SETTINGS`; keep the one with the lowest
     mean open-loop RMSE on the Cycle_1 runs of those temperatures (validation: a 25 °C campaign validates on the
-    25 °C run alone); save its PARAMS.json; its RMSE on every Cycle_1 run."""
+    25 °C run alone); save its PARAMS.json; its RMSE on every Cycle_1 run.
+
+    Over several temperatures two more candidates: :data:`PER_TEMPERATURE` (each temperature's HPPC fitted with the
+    setting that validates best at that temperature), and the chosen one with the charge-transfer term
+    (:data:`CT_SUFFIX`); each is kept if it lowers the mean."""
     model, tags, params_path = args
     t0 = time.perf_counter()
-    tried, fits = {}, {}
+    tried, fits, settings = {}, {}, {}
     for label, kw in FIT_SETTINGS.items():
-        try:
-            res = fit_temperatures(model, [_record(t, "HPPC") for t in tags], **kw)
-            val = _validation_rmse(make_model(model, res.params), tags)
-        except (ModelError, DataError, FloatingPointError, np.linalg.LinAlgError) as exc:
-            tried[label] = {"error": f"{type(exc).__name__}: {exc}"}
-            continue
-        tried[label] = {"mean_rmse_v": float(np.mean(list(val.values()))), "rmse_v": val}
-        fits[label] = res
+        settings[label] = dict(kw)
+        _fit_tried(model, tags, label, tried, fits, **kw)
     if not fits:
         raise ModelError(f"{model}: no fit setting gave a usable model ({tried})")
     chosen = min(fits, key=lambda k: tried[k]["mean_rmse_v"])
-    if len(tags) > 1:  # the charge-transfer term (Arrhenius I0(T), fitted with the model): kept if validation says so
+    if len(tags) > 1:
+        # per temperature, the setting whose fit predicts that temperature's Cycle_1 best
+        per_t = [min(fits, key=lambda k, t=t: tried[k]["rmse_v"][t]) for t in tags]
+        if len(set(per_t)) > 1:
+            settings[PER_TEMPERATURE] = {"per_record": [FIT_SETTINGS[k] for k in per_t]}
+            _fit_tried(model, tags, PER_TEMPERATURE, tried, fits, **settings[PER_TEMPERATURE])
+            if PER_TEMPERATURE in fits:
+                tried[PER_TEMPERATURE]["per_temperature"] = dict(zip(tags, per_t))
+                if tried[PER_TEMPERATURE]["mean_rmse_v"] < tried[chosen]["mean_rmse_v"]:
+                    chosen = PER_TEMPERATURE
+        # the charge-transfer term (Arrhenius I0(T), fitted with the model): kept if validation says so
         label = chosen + CT_SUFFIX
-        try:
-            res = fit_temperatures(model, [_record(t, "HPPC") for t in tags], charge_transfer=True,
-                                   **FIT_SETTINGS[chosen])
-            val = _validation_rmse(make_model(model, res.params), tags)
-            tried[label] = {"mean_rmse_v": float(np.mean(list(val.values()))), "rmse_v": val}
-            fits[label] = res
-            if tried[label]["mean_rmse_v"] < tried[chosen]["mean_rmse_v"]:
-                chosen = label
-        except (ModelError, DataError, FloatingPointError, np.linalg.LinAlgError) as exc:
-            tried[label] = {"error": f"{type(exc).__name__}: {exc}"}
+        _fit_tried(model, tags, label, tried, fits, charge_transfer=True, **settings[chosen])
+        if label in fits and tried[label]["mean_rmse_v"] < tried[chosen]["mean_rmse_v"]:
+            chosen = label
     res = fits[chosen]
     save_params(params_path, model, res.params, fit=res.fit_summary())
     val = _validation_rmse(make_model(model, res.params), TAGS)
@@ -682,6 +701,11 @@ def verdict(v: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _cli_mode(setting: str) -> str:
+    """The ``--mode`` of ``socbench fit`` for a setting label (a setting per temperature has none: "MODE")."""
+    return "MODE" if setting.startswith(PER_TEMPERATURE) else setting.split("/")[0]
+
+
 def write_doc(path: Path, v: dict):
     best, top, fits, fit25, runs, stats, resid = (v[k] for k in ("best", "top", "fits", "fit25", "runs", "stats",
                                                                   "resid"))
@@ -704,30 +728,40 @@ def write_doc(path: Path, v: dict):
       "SOC × temperature (log-linear in T for positive quantities, exact at each fitted temperature, held outside); "
       "the OCV is each HPPC's own rest points (a cold HPPC covers only the top of the axis: below it the lowest-"
       "reaching curve is shifted to meet it). The same command: `socbench fit --data HPPC25 HPPC10 HPPC0 HPPCn10 "
-      f"HPPCn20 --model {best} --mode {fits[best]['setting'].split('/')[0]}"
+      f"HPPCn20 --model {best} --mode {_cli_mode(fits[best]['setting'])}"
       f"{' --charge-transfer' if fits[best]['setting'].endswith(CT_SUFFIX) else ''} --out P.json` (the sample "
-      "weighting of the chosen setting is a library option, `fit_temperatures(..., compress=, time_weighted=)`).\n")
+      "weighting of the chosen setting is a library option, `fit_temperatures(..., compress=, time_weighted=)`"
+      + ("; so is a setting per temperature, the one chosen here: `fit_temperatures(..., per_record=)`, the command "
+         "fits one `--mode` at every temperature" if fits[best]["setting"].startswith(PER_TEMPERATURE) else "")
+      + ").\n")
     w("**How each model is fitted is chosen by validation** (`FIT_SETTINGS` here; `socbench.identify.select` for one "
       "record): the paper's SOC polynomials or a piecewise-linear SOC lookup, each with the three sample weightings "
       "of `socbench.identify.FIT_CANDIDATES` (`edges`: the samples right after each current edge; `dense`; "
       "`time-weighted`: each kept sample weighted by the time it stands for, so the long relaxations count as much "
       "as they last). Each setting is fitted at every temperature and scored open loop on the Cycle_1 runs of those "
       "temperatures (the 25 °C fit: the 25 °C run alone); the lowest mean RMSE wins. The US06 runs are never used. "
-      "The winner of a five-temperature fit is then fitted again with the **charge-transfer term** (section 4d: a "
+      f"Over five temperatures one more candidate, **{PER_TEMPERATURE}**: each HPPC fitted with the setting whose "
+      "fit predicts the Cycle_1 run of its own temperature best (the setting that suits the warm cell need not suit "
+      "the cold one; the tables interpolate between nodes of different forms), kept if the assembled set's mean "
+      "is lower. The winner of a five-temperature fit is then fitted again with the **charge-transfer term** "
+      "(section 4d: a "
       "Butler–Volmer over-potential whose exchange current follows an Arrhenius law I₀(T), fitted with the model on "
       "each HPPC, `fit_temperatures(..., charge_transfer=True)`, `socbench fit --charge-transfer`) and kept if its "
       "mean Cycle_1 RMSE is lower.\n")
     w(f"| setting | {best}: mean Cycle_1 RMSE, five-temperature fit [mV] | "
       f"{best}: 25 °C Cycle_1 RMSE, 25 °C fit [mV] |")
     w("|---|---|---|")
-    ct_labels = [k for k in fits[best].get("settings", {}) if k.endswith(CT_SUFFIX)]
-    for label in list(FIT_SETTINGS) + ct_labels:
+    extra_labels = [k for k in fits[best].get("settings", {}) if k not in FIT_SETTINGS]
+    for label in list(FIT_SETTINGS) + extra_labels:
         cells = []
         for f in (fits[best], fit25):
             t = f.get("settings", {}).get(label, {})
             cells.append("failed" if "error" in t else (mv(t["mean_rmse_v"]) if t else "—") +
                          (" **(chosen)**" if f.get("setting") == label else ""))
-        w(f"| {label} | " + " | ".join(cells) + " |")
+        per_t = fits[best]["settings"].get(PER_TEMPERATURE, {}).get("per_temperature")
+        shown = label if not (label.startswith(PER_TEMPERATURE) and per_t) else label + " (" + ", ".join(
+            f"{LABEL[t]} {per_t[t]}" for t in TAGS) + ")"
+        w(f"| {shown} | " + " | ".join(cells) + " |")
     w("")
     w("| HPPC | temperature (median of the cell thermocouple) | capacity delivered [Ah] | SOC range on Q_ref | "
       f"fit RMSE ({best}) [mV] |")

@@ -20,6 +20,7 @@ from socbench.kernels.lowering import NotLowerable, lower
 from socbench.models import Constant, Lookup, Polynomial, make_model, model_names, paper_params
 from socbench.models.effects import ModelError as ModelErrorEffect
 from socbench.models.effects import ResistanceOffset, augment
+from socbench.models.params import TemperatureTable
 from socbench.profile import Profile, ProfileMeta
 
 from .model_points import random_points
@@ -124,6 +125,20 @@ def test_every_model_with_lookup_and_constant_parameters(name, form):
     m = make_model(name, p.replace(values={k: _as_form(v, form) for k, v in p.values.items()}))
     x, i, dt, temp = _points(m, 300, 3, wide=True)
     x[:20, 0] = np.linspace(0.0, 1.0, 9).repeat(3)[:20]  # exactly on the breakpoints (np.interp's node rule)
+    _assert_points_equal(m, x, i, dt, temp)
+
+
+@pytest.mark.parametrize("name", ["thevenin", "dp", "esc", "nrc"])
+def test_temperature_tables_whose_nodes_mix_forms(name):
+    """A fit setting chosen per temperature (``fit_temperatures(per_record=)``) gives tables whose nodes are of
+    different forms: a polynomial at one temperature, a lookup at the next, a constant at a third."""
+    p = temperature_params(name)
+    forms = ("lookup", None, "constant")  # None: the node as it is (the paper's polynomial or constant)
+    values = {k: TemperatureTable(t.temps, tuple(n if f is None else _as_form(n, f) for n, f in zip(t.nodes, forms)),
+                                  t.scale) for k, t in p.values.items()}
+    m = make_model(name, p.replace(values=values))
+    x, i, dt, temp = _points(m, 400, 6, wide=True)
+    temp[::5] = 0.0  # at the middle node
     _assert_points_equal(m, x, i, dt, temp)
 
 

@@ -150,6 +150,31 @@ def test_record_temperature_and_refusals():
         fit_temperatures("rint", [a.with_(temperature_c=np.full(a.n, 25.0)), b])
 
 
+def test_a_fit_setting_per_temperature():
+    """``per_record``: each record fitted with its own setting; each node is exactly that record's own fit."""
+    from socbench.datasets import builtin_profile
+    from socbench.identify import fit_model
+    from socbench.models.params import Polynomial
+
+    a = builtin_profile("hppc")
+    warm, cold = a.with_(temperature_c=np.full(a.n, 25.0)), a.with_(temperature_c=np.full(a.n, 0.0))
+    res = fit_temperatures("thevenin", [warm, cold], per_record=[{"mode": "paper"}, {"mode": "lookup"}])
+    assert res.temps == (0.0, 25.0) and res.mode == "per temperature"
+    assert [f.mode for f in res.fits] == ["lookup", "paper"]  # coldest first: each record kept its own setting
+    alone = {"paper": fit_model("thevenin", warm, mode="paper", capacity_ah=res.capacity_ref),
+             "lookup": fit_model("thevenin", cold, mode="lookup", capacity_ah=res.capacity_ref)}
+    z = np.linspace(0.0, 1.0, 101)
+    for name, table in res.params.values.items():
+        assert isinstance(table.nodes[0], Lookup)
+        assert isinstance(table.nodes[1], Polynomial) or table.nodes[1].is_constant
+        np.testing.assert_array_equal(table(z, np.full(z.shape, 0.0)), alone["lookup"].params[name](z))
+        np.testing.assert_array_equal(table(z, np.full(z.shape, 25.0)), alone["paper"].params[name](z))
+    sim = make_model("thevenin", res.params).simulate(a.with_(temperature_c=np.linspace(-5.0, 30.0, a.n)), soc0=1.0)
+    assert np.all(np.isfinite(sim.voltage_v))
+    with pytest.raises(DataError, match="1 per-record settings for 2 records"):
+        fit_temperatures("thevenin", [warm, cold], per_record=[{"mode": "paper"}])
+
+
 def test_extended_ocv_meets_the_cold_curve_and_stays_monotone():
     warm = OCVCurve(np.linspace(0, 1, 11), 3.0 + 1.2 * np.linspace(0, 1, 11) ** 0.7)
     cold = OCVCurve([0.3, 0.6, 1.0], [3.55, 3.8, 4.15])

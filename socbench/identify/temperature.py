@@ -192,35 +192,49 @@ def arrhenius_law(temps_c, i0, rel_se, usable=None, t_ref: float = T_REF_C) -> A
 
 
 def fit_temperatures(name: str, records, mode: str = "paper", capacity_ah: float | None = None,
-                     options: dict | None = None, charge_transfer: bool = False, **fit_kwargs) -> TemperatureFit:
+                     options: dict | None = None, charge_transfer: bool = False, per_record=None,
+                     **fit_kwargs) -> TemperatureFit:
     """Fit ``name`` on every record and assemble the temperature-aware set (see the module docstring).
 
     ``capacity_ah`` is ``Q_ref`` (default: the largest charge a record delivers); ``charge_transfer`` adds the
     Butler–Volmer term with an Arrhenius ``I_0(T)`` fitted with the base model (the module docstring);
     ``fit_kwargs`` go to :func:`fit_model` (``compress``, ``time_weighted``, ``knots``…).
+
+    ``per_record``: one dict of :func:`fit_model` keywords per record (in the order given), laid over ``mode`` and
+    ``fit_kwargs`` for that record alone — a fit setting chosen per temperature (the SOC form and the sample
+    weighting that validate best at one temperature need not at another). The nodes of a table may then be of
+    different forms (a polynomial at one temperature, a lookup at the next): each is evaluated on its own and the
+    table interpolates their values, so nothing else changes.
     """
     t0 = _time.perf_counter()
     records = list(records)
     if not records:
         raise DataError("fit_temperatures needs at least one record")
+    if per_record is None:
+        per_record = [{}] * len(records)
+    per_record = [dict(kw) for kw in per_record]
+    if len(per_record) != len(records):
+        raise DataError(f"fit_temperatures: {len(per_record)} per-record settings for {len(records)} records")
     placed = []
-    for prof in records:
+    for prof, kw in zip(records, per_record):
         temp, how = record_temperature(prof)
-        placed.append((temp, how, prof))
+        placed.append((temp, how, prof, {"mode": mode, **fit_kwargs, **kw}))
     placed.sort(key=lambda x: x[0])
-    for (ta, _, pa), (tb, _, pb) in zip(placed, placed[1:]):
+    for (ta, _, pa, _), (tb, _, pb, _) in zip(placed, placed[1:]):
         if tb - ta < MIN_SPACING_C:
             raise DataError(f"two identification records at the same temperature ({ta:.1f} and {tb:.1f} °C): "
                             f"{pa.name} and {pb.name}; give one record per temperature",
                             file=pb.meta.source or pb.name)
-    analyses = [analyze_hppc(p) for _, _, p in placed]
+    analyses = [analyze_hppc(p) for _, _, p, _ in placed]
     own = [float(a.capacity_ah) for a in analyses]
     q_ref = float(capacity_ah) if capacity_ah else max(own)
-    temps = tuple(t for t, _, _ in placed)
+    temps = tuple(t for t, _, _, _ in placed)
+    modes = sorted({setting["mode"] for _, _, _, setting in placed})
+    mode = modes[0] if len(modes) == 1 else "per temperature"
 
     def fit_all(**kw):
-        return [fit_model(name, prof, mode=mode, capacity_ah=q_ref, options=options, **fit_kwargs, **kw)
-                for _, _, prof in placed]
+        return [fit_model(name, prof, capacity_ah=q_ref, options=options, **setting, **kw)
+                for _, _, prof, setting in placed]
 
     notes = [f"fitted at {len(temps)} temperatures ({', '.join(f'{t:.1f}' for t in temps)} °C) on one SOC axis "
              f"counted with Q_ref = {q_ref:.4g} Ah"]
@@ -249,7 +263,7 @@ def fit_temperatures(name: str, records, mode: str = "paper", capacity_ah: float
         f = fits[0]
         params = f.params.replace(notes=f.params.notes + tuple(notes))
         return TemperatureFit(name, params, temps, tuple(fits), tuple(own), q_ref,
-                              tuple(p.name for _, _, p in placed), tuple(h for _, h, _ in placed), tuple(notes),
+                              tuple(p.name for _, _, p, _ in placed), tuple(h for _, h, _, _ in placed), tuple(notes),
                               _time.perf_counter() - t0, mode, extra)
     # OCV: each record's own curve, continued below its range by the curve that reaches lowest
     curves = [f.params.ocv for f in fits]
@@ -274,5 +288,6 @@ def fit_temperatures(name: str, records, mode: str = "paper", capacity_ah: float
                          options=dict(base.options), source="socbench fit (several temperatures)",
                          notes=tuple(notes) + tuple(n for f in fits for n in f.params.notes),
                          capacity_by_temperature=cap, effects=base.effects)
-    return TemperatureFit(name, params, temps, tuple(fits), tuple(own), q_ref, tuple(p.name for _, _, p in placed),
-                          tuple(h for _, h, _ in placed), tuple(notes), _time.perf_counter() - t0, mode, extra)
+    return TemperatureFit(name, params, temps, tuple(fits), tuple(own), q_ref,
+                          tuple(p.name for _, _, p, _ in placed), tuple(h for _, h, _, _ in placed), tuple(notes),
+                          _time.perf_counter() - t0, mode, extra)
