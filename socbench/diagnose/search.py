@@ -22,20 +22,19 @@ One round, on the current model ``m`` (the base model, then the base model with 
 5. at the end, each SOC drift named is swapped for another when that one, fitted beside everything else added, cuts
    the held-out RMSE by ``min_gain`` (:meth:`Search._swap_drift`).
 
-Candidates. The bounded fit (the expensive part) runs for the ``max_fits`` best-supported families by signature R²
-(at least ``MIN_SIGNATURE_R2``); the four SOC drifts (capacity, current bias, leak, efficiency: one regressor shape up
-to U(z)/U(1) and charge weighting) are one family, fitted together; the capacity effect is a fade (:data:`FADE_ONLY`),
+Candidates. The bounded fit (the expensive part) runs for the ``max_fits`` best-supported families by signature R² (at
+least ``MIN_SIGNATURE_R2``); the four SOC drifts (capacity, current bias, leak, efficiency: one regressor shape up to
+U(z)/U(1) and charge weighting) are one family, fitted together; the capacity effect is a fade (:data:`FADE_ONLY`),
 one-sided like the leak (it only removes charge) and the efficiency (it only loses charge). Beside the effects, the
-**base refit** (``BASE_REFIT``): the base model's own parameters scaled and a voltage offset per record, fitted the
-same way. It stands
-for what a better base fit would absorb (an OCV read from unrelaxed rests, a slow branch a short pulse cannot
-identify) and is never named an effect; an effect within ``PARSIMONY`` of a winning base refit is preferred to it.
-For the same reason an extra RC branch whose time constant lies within ×``TWIN_TAU`` of one of the base model's
+**base refit** (``BASE_REFIT``): the base model's own parameters scaled and a voltage offset per record, fitted the same
+way. It stands for what a better base fit would absorb (an OCV read from unrelaxed rests, a slow branch a short pulse
+cannot identify) and is never named an effect; an effect within ``PARSIMONY`` of a winning base refit is preferred to
+it. For the same reason an extra RC branch whose time constant lies within ×``TWIN_TAU`` of one of the base model's
 branches is not named while the base is not refitted: it cannot be told from a misfit of that branch. Nested tests
 against the refit (:meth:`Search._beyond_refit`): an effect that wins a round in which the refit also cut the error is
-named only if, fitted jointly with the refit, it cuts the refit's error by ``min_gain`` (else the refit is taken);
-after a refit is adopted, the ``CARRY`` best-scoring effects of its round are fitted again jointly with it, whatever
-their signature on the refitted residual (the refit took up part of their shape).
+named only if, fitted jointly with the refit, it cuts the refit's error by ``min_gain`` (else the refit is taken); after
+a refit is adopted, the ``CARRY`` best-scoring effects of its round are fitted again jointly with it, whatever their
+signature on the refitted residual (the refit took up part of their shape).
 
 The current sensor gets evidence of its own: where the records hold rests (at least ``FIELD_REST_MIN_S`` below C/20
 whose spread is the sensor's noise), the true current is zero, so the measured rest current *is* the offset. ``b`` is
