@@ -17,10 +17,10 @@ from socbench.cli import main
 from socbench.diagnose import bin_average, diagnose, make_folds
 from socbench.diagnose.search import rest_current
 from socbench.diagnose.signatures import Trajectory, signatures
-from socbench.diagnose.synthetic import cell, hidden_case
+from socbench.diagnose.synthetic import cell, eval_current, hidden_case
 from socbench.models import make_model
 from socbench.models.effects import EFFECTS, augment, make_effect
-from socbench.profile import Profile
+from socbench.profile import Profile, ProfileMeta
 
 DESIGN_KEYS = {"model", "effects_added", "before", "after", "candidates", "steps", "split"}
 
@@ -118,6 +118,24 @@ def test_diagnosis_names_the_hidden_effect_and_cuts_the_held_out_error(case):
     ranked = [c.effect for c in d.rounds[0]["candidates"]]
     assert d.effects_added == [effect], ranked
     assert d.after["rmse_v"] <= 0.7 * d.before["rmse_v"]
+
+
+def test_capacity_is_a_fade_an_soc_slower_than_counted_is_not_named_capacity():
+    """The evaluation cell holds 8 % more charge than the fit test counted (``cap0 = 0.92``): no fade, and no capacity
+    fitted below 1 in any round; the same record with a fade (``cap0 = 1.15``) names it (the unit case above)."""
+    name, params = cell("thevenin")
+    base = make_model(name, params)
+    rng = np.random.default_rng(11)
+    fit, _ = hidden_case(None, name, "rests", v_sd=1e-3, seed=11)
+    t, i = eval_current("rests", seed=11)
+    prof = Profile(t, i, temperature_c=np.full(t.size, 25.0))
+    sim = augment(base, [make_effect("capacity", cap0=0.92)]).simulate(prof, soc0=0.95)
+    ev = Profile(t, i, voltage_v=sim.voltage_v + rng.normal(0.0, 1e-3, t.size), temperature_c=prof.temperature_c,
+                 soc_ref=np.clip(sim.soc, 0.0, 1.0), meta=ProfileMeta(name="eval", source="eval", capacity_ah=2.5))
+    d = diagnose(name, [fit], [ev], soc=False)
+    assert "capacity" not in d.effects_added, d.effects_added
+    fitted = [c.params["cap0"] for r in d.rounds for c in r["candidates"] if c.effect == "capacity" and c.params]
+    assert fitted and min(fitted) >= 1.0, fitted
 
 
 @pytest.mark.parametrize("base,load,seed", [("thevenin", "pulses", 8), ("dp", "steps", 9)])

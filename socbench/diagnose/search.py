@@ -22,18 +22,19 @@ One round, on the current model ``m`` (the base model, then the base model with 
 5. at the end, each SOC drift named is swapped for another when that one, fitted beside everything else added, cuts
    the held-out RMSE by ``min_gain`` (:meth:`Search._swap_drift`).
 
-Candidates. The bounded fit (the expensive part) runs for the ``max_fits`` best-supported families by signature R²
-(at least ``MIN_SIGNATURE_R2``); the four SOC drifts (capacity, current bias, leak, efficiency: one regressor shape up
-to U(z)/U(1) and charge weighting) are one family, fitted together. Beside the effects, the **base refit**
-(``BASE_REFIT``): the base model's own parameters scaled and a voltage offset per record, fitted the same way. It stands
-for what a better base fit would absorb (an OCV read from unrelaxed rests, a slow branch a short pulse cannot
-identify) and is never named an effect; an effect within ``PARSIMONY`` of a winning base refit is preferred to it.
-For the same reason an extra RC branch whose time constant lies within ×``TWIN_TAU`` of one of the base model's
+Candidates. The bounded fit (the expensive part) runs for the ``max_fits`` best-supported families by signature R² (at
+least ``MIN_SIGNATURE_R2``); the four SOC drifts (capacity, current bias, leak, efficiency: one regressor shape up to
+U(z)/U(1) and charge weighting) are one family, fitted together; the capacity effect is a fade (:data:`FADE_ONLY`),
+one-sided like the leak (it only removes charge) and the efficiency (it only loses charge). Beside the effects, the
+**base refit** (``BASE_REFIT``): the base model's own parameters scaled and a voltage offset per record, fitted the same
+way. It stands for what a better base fit would absorb (an OCV read from unrelaxed rests, a slow branch a short pulse
+cannot identify) and is never named an effect; an effect within ``PARSIMONY`` of a winning base refit is preferred to
+it. For the same reason an extra RC branch whose time constant lies within ×``TWIN_TAU`` of one of the base model's
 branches is not named while the base is not refitted: it cannot be told from a misfit of that branch. Nested tests
 against the refit (:meth:`Search._beyond_refit`): an effect that wins a round in which the refit also cut the error is
-named only if, fitted jointly with the refit, it cuts the refit's error by ``min_gain`` (else the refit is taken);
-after a refit is adopted, the ``CARRY`` best-scoring effects of its round are fitted again jointly with it, whatever
-their signature on the refitted residual (the refit took up part of their shape).
+named only if, fitted jointly with the refit, it cuts the refit's error by ``min_gain`` (else the refit is taken); after
+a refit is adopted, the ``CARRY`` best-scoring effects of its round are fitted again jointly with it, whatever their
+signature on the refitted residual (the refit took up part of their shape).
 
 The current sensor gets evidence of its own: where the records hold rests (at least ``FIELD_REST_MIN_S`` below C/20
 whose spread is the sensor's noise), the true current is zero, so the measured rest current *is* the offset. ``b`` is
@@ -97,6 +98,14 @@ TWIN_TAU = 3.0
 T_EVIDENCE_K = 5.0
 #: effects fitted again beside the base refit in the round after it was adopted (the best-scoring ones)
 CARRY = 2
+#: the lower bound of the capacity effect's ``cap0 = Q_model/Q_true`` in the search. The base model's SOC axis (its OCV
+#: curve and every record's counted SOC) is counted with the capacity of the fit test, measured on the same cell: what
+#: the evaluation records can show is a fade since then (ageing, the cold), ``cap0 ≥ 1`` — a one-sided drift like the
+#: leak (``rate ≥ 0``) and the efficiency (``η_c ≤ 1``). Below 1, a cell that gained charge, the capacity effect was the
+#: only SOC drift that could slow the SOC down, and what it took there was the OCV curve's own error:
+#: ``U(z₀ + cap·(z − z₀))`` is a function of the counted SOC ``z`` alone, a stretch of the OCV's SOC axis about the
+#: start, which takes up any OCV misfit that correlates with the charge moved since the start.
+FADE_ONLY = 1.0
 #: compression of the training record for the fits (the held-out part is scored on every sample)
 FIT_COMPRESS = {"max_step_s": 60.0}
 
@@ -223,6 +232,9 @@ class Search:
         self.soc0s = [initial_soc(base, p) for p in folds.records]
         self.groups = tuple(range(folds.k)) + (None,)  # the folds, then the all-data fit
         self.bounds = {name: EFFECTS[name]().bounds(base) for name in EFFECTS}
+        # the capacity effect is a fade (see FADE_ONLY): cap0 = Q_fit/Q_use ≥ 1
+        lo, hi = self.bounds["capacity"]["cap0"]
+        self.bounds["capacity"] = {"cap0": (max(lo, FADE_ONLY), hi)}
         self.bias_rest = rest_current(folds.records if raw is None else raw, base.capacity_ah,
                                       min_s=FIELD_REST_MIN_S)
         self.noise_sd = noise_sd
