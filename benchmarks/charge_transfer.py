@@ -4,8 +4,8 @@ Writes ``docs/charge_transfer.md`` (every number in it comes from this run). Iss
 polarisation is not linear in the current (docs/real_data.md §4d); ``fit_temperatures(..., charge_transfer=True)``
 fits an exchange current with the base model on each HPPC and an Arrhenius law through them
 (:mod:`socbench.identify.temperature`). Here dp (fit setting paper/time-weighted: the best linear model of
-docs/real_data.md before the term existed; with it, validation there now prefers esc + the term) is fitted on the
-five HPPCs twice, without and with the term, and each fit is scored exactly as
+docs/real_data.md before the term existed; which model and setting validation there prefers now, it says) is
+fitted on the five HPPCs twice, without and with the term, and each fit is scored exactly as
 ``benchmarks/real_data.py`` scores its models (its functions, not a copy):
 
 1. **validation** — open-loop voltage RMSE on the Cycle_1 run at each temperature (``_validation_rmse``);
@@ -188,8 +188,9 @@ def write_doc(path: Path, fits, stats, runs, single, args, wall, load0):
         "at the start).*",
         "",
         f"**What is compared.** {MODEL}, fit setting {SETTING} (the best linear model and its setting in "
-        "docs/real_data.md before the term existed, both chosen there on the Cycle_1 runs; with the term, validation "
-        "there now prefers esc), fitted on the five Panasonic 18650PF HPPCs "
+        "docs/real_data.md before the term existed, both chosen there on the Cycle_1 runs; with the term and a fit "
+        "setting per temperature, validation there prefers another model now, section 2 of that page), fitted on the "
+        "five Panasonic 18650PF HPPCs "
         "(`socbench.identify.temperature.fit_temperatures`) as a linear model (**linear**) and with the "
         "Butler–Volmer charge-transfer term `U_ct = N_s(2R_gT/F)·asinh(I/2I₀(T))`, `I₀(T) = I₀,ref·exp[−(E_a/R_g)"
         "(1/T − 1/T_ref)]` (**charge-transfer**, `charge_transfer=True`: one I₀ fitted with the base parameters on "
