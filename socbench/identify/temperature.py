@@ -12,7 +12,8 @@
    charge a cold cell delivers before the cut-off is mostly lost to resistance, not missing charge; blending two
    temperatures at equal fractions of their own capacities would blend different charge states (tens of mV of OCV
    apart in the knee).
-3. **Fit** each record with :func:`~socbench.identify.fit.fit_model` on that axis (``capacity_ah=Q_ref``). SOC
+3. **Fit** each record with :func:`~socbench.identify.fit.fit_model` on that axis (``capacity_ah=Q_ref``; each with
+   its own fit setting when ``per_record`` gives one, e.g. the one that validates best at that temperature). SOC
    polynomials of a record that covers part of the axis are fitted on its range and stored clamped to it (their end
    values held), lookups hold their end values by construction: nothing is extrapolated below a cold record's range.
 4. **Tables**. Each parameter becomes a :class:`~socbench.models.params.TemperatureTable` over the fitted
