@@ -138,6 +138,34 @@ def test_capacity_is_a_fade_an_soc_slower_than_counted_is_not_named_capacity():
     assert fitted and min(fitted) >= 1.0, fitted
 
 
+@pytest.mark.parametrize("effect,base", [("extra_rc", "rint"), ("hysteresis", "dp")])
+def test_the_compiled_fold_filters_give_the_numpy_references_soc_errors(effect, base, monkeypatch):
+    """The held-out SOC errors from one compiled run per fold equal the batched numpy reference (a parameter batch of
+    the folds, R per run), before and after the effect is added."""
+    import socbench.diagnose.core as core
+
+    fit, ev = hidden_case(effect, base, "pulses", "small", v_sd=1e-3, seed=4)
+    used, original = [], core._compiled_fold_filters
+
+    def spy(*args):
+        out = original(*args)
+        used.append(out is not None)
+        return out
+
+    monkeypatch.setattr(core, "_compiled_fold_filters", spy)
+    compiled = diagnose(base, [fit], [ev], max_steps=1)
+    assert compiled.effects_added  # the after-models are augmented, one parameter set per fold
+    assert used and all(used)  # every filter of the diagnosis ran the compiled path
+    monkeypatch.setattr(core, "_compiled_fold_filters", lambda *a, **k: None)
+    reference = diagnose(base, [fit], [ev], max_steps=1)
+    assert reference.effects_added == compiled.effects_added
+    for key in ("before", "after"):
+        for name in core.SOC_ESTIMATORS:
+            got, want = (d.__dict__[key]["soc"][name] for d in (compiled, reference))
+            assert got["soc_rmse"] == pytest.approx(want["soc_rmse"], rel=1e-9, abs=1e-12)
+            assert got["failed_runs"] == want["failed_runs"]
+
+
 @pytest.mark.parametrize("base,load,seed", [("thevenin", "pulses", 8), ("dp", "steps", 9)])
 def test_diagnosis_adds_nothing_when_nothing_is_hidden(base, load, seed):
     fit, ev = hidden_case(None, base, load, v_sd=1e-3, seed=seed)

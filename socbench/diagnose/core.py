@@ -249,36 +249,79 @@ def fold_spread_sd(step, base) -> dict:
 
 
 def soc_errors(model_for, folds: Folds, soc0s, voltage_sd, estimators=SOC_ESTIMATORS) -> dict | None:
-    """Held-out SOC RMSE of each filter: every record filtered from its start once per fold (``k`` runs of one
-    batched run), block ``j`` scored with run ``j``. ``model_for(layout)`` gives ``(model, per-record voltage
-    offsets (k, records) or None)`` with one variant per fold on a leading batch axis of shape ``layout`` — ``(k,)``
+    """Held-out SOC RMSE of each filter: every record filtered from its start once per fold, block ``j`` scored with
+    fold ``j``'s run. ``model_for(layout, fold=None)`` gives ``(model, per-record voltage offsets or None)``: with
+    ``fold`` that fold's model alone, else one variant per fold on a leading batch axis of shape ``layout`` — ``(k,)``
     for the EKF, ``(k, 1)`` for the UKF, which evaluates the model on ``(runs, sigma points)`` — or one model for every
-    fold. ``voltage_sd (k,)`` is each fold's filter voltage noise. None without a reference SOC."""
+    fold. ``voltage_sd (k,)`` is each fold's filter voltage noise. None without a reference SOC.
+
+    Two paths, the same numbers: where every fold's filter runs compiled (:func:`socbench.kernels.engine.plan`), one
+    run per fold with its own model and noise (the compiled filters take one parameter set and the sensor-noise
+    form of R); else the numpy reference, one batched run of the ``k`` folds (a parameter batch, R per run)."""
     if any(p.soc_ref is None for p in folds.records):
         return None
-    from ..estimators import SensorNoise, make_estimator
-
-    k = folds.k
     vsd = np.maximum(np.asarray(voltage_sd, dtype=float), 1e-3)
     out = {}
     for name in estimators:
-        model = model_for((k, 1) if name == "ukf" else (k,))[0]
-        run_model, offsets = model_for((k,))  # its initial states and voltage offsets, one row per fold
-        noise = SensorNoise(voltage_sd=float(vsd.max()), current_sd=SOC_CURRENT_SD * model.capacity_ah)
-
-        def r_of(D, noise=noise):  # each fold's own voltage noise (one run per fold)
-            return vsd**2 + noise.input_var * np.asarray(D) ** 2
-
+        per_fold = _compiled_fold_filters(model_for, name, folds.k, vsd)
+        run = _fold_runs if per_fold is not None else _batched_runs
         sq, n, failed = 0.0, 0, 0
         for r, (p, b, z0) in enumerate(zip(folds.records, folds.blocks, soc0s)):
-            x0 = run_model.x0(np.full(k, z0), (k,))
-            est = make_estimator(name, model, noise, R=r_of).run(_batched(p, k, offsets, r), x0=x0)
-            e = est.soc[b, np.arange(p.n)] - p.soc_ref
+            soc, f = run(per_fold or (model_for, name, folds.k, vsd), p, b, z0, r)
+            e = soc - p.soc_ref
             sq += float(e @ e)
             n += p.n
-            failed += int(est.failed.sum())
+            failed += f
         out[name] = {"soc_rmse": float(np.sqrt(sq / n)), "failed_runs": failed}
     return out
+
+
+def _fold_noise(model, voltage_sd: float):
+    from ..estimators import SensorNoise
+
+    return SensorNoise(voltage_sd=float(voltage_sd), current_sd=SOC_CURRENT_SD * model.capacity_ah)
+
+
+def _compiled_fold_filters(model_for, name: str, k: int, vsd) -> list | None:
+    """``[(estimator, model, offsets)]`` of every fold when each runs compiled, else None."""
+    from ..estimators import make_estimator
+    from ..kernels.engine import plan
+
+    out = []
+    for j in range(k):
+        model, offsets = model_for(None, fold=j)
+        est = make_estimator(name, model, _fold_noise(model, vsd[j]))
+        if plan(est)[0] is None:
+            return None
+        out.append((est, model, offsets))
+    return out
+
+
+def _fold_runs(per_fold, p: Profile, b, z0: float, r: int):
+    """The compiled path: fold ``j``'s own run scores block ``j``. ``(SOC (n,), failed runs)``."""
+    soc, failed = np.empty(p.n), 0
+    for j, (est, model, offsets) in enumerate(per_fold):
+        res = est.run(_batched(p, 1, None if offsets is None else np.asarray(offsets)[None], r), x0=model.x0(z0, (1,)))
+        soc[b == j] = res.soc[0, b == j]
+        failed += int(res.failed.sum())
+    return soc, failed
+
+
+def _batched_runs(args, p: Profile, b, z0: float, r: int):
+    """The numpy reference: the ``k`` folds as one batched run (a parameter batch, each run's own R)."""
+    from ..estimators import make_estimator
+
+    model_for, name, k, vsd = args
+    model = model_for((k, 1) if name == "ukf" else (k,))[0]
+    run_model, offsets = model_for((k,))  # its initial states and voltage offsets, one row per fold
+    noise = _fold_noise(model, vsd.max())
+
+    def r_of(D):  # each fold's own voltage noise (one run per fold)
+        return vsd**2 + noise.input_var * np.asarray(D) ** 2
+
+    est = make_estimator(name, model, noise, R=r_of)
+    res = est.run(_batched(p, k, offsets, r), x0=run_model.x0(np.full(k, z0), (k,)))
+    return res.soc[b, np.arange(p.n)], int(res.failed.sum())
 
 
 def _coarse(profile: Profile, dt: float, max_samples: int) -> Profile:
@@ -340,12 +383,13 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
             return out
 
         vsd_b = train_rmse(base)
-        sb = soc_errors(lambda layout: (base, None), soc_folds, soc0s, vsd_b)
+        sb = soc_errors(lambda layout, fold=None: (base, None), soc_folds, soc0s, vsd_b)
         if steps:
             last = steps[-1]
             isd = fold_spread_sd(last, base)
             vsd_a = train_rmse(search.builder([n for n, _ in last.layout])[0], last.fit.folds())
-            sa = soc_errors(lambda layout: search.fold_models(last, layout, isd), soc_folds, soc0s, vsd_a)
+            sa = soc_errors(lambda layout, fold=None: search.fold_models(last, layout, isd, fold), soc_folds, soc0s,
+                            vsd_a)
         else:
             vsd_a, sa, isd = vsd_b, sb, {}
         if sb is not None and sa is not None:
@@ -422,8 +466,8 @@ def soc_attribution(diag: Diagnosis, eval_profiles, dt: float = 1.0) -> dict | N
     folds = make_folds(records, diag.split.k)
     soc0s = [initial_soc(base, p) for p in records]
     isd = fold_spread_sd(last, base)
-    models = {"before": lambda layout: (base, None),
-              "after": lambda layout: search.fold_models(last, layout, isd)}
+    models = {"before": lambda layout, fold=None: (base, None),
+              "after": lambda layout, fold=None: search.fold_models(last, layout, isd, fold)}
     noise = {"before": np.asarray(vsd["before"]), "after": np.asarray(vsd["after"])}
     out = {}
     for key, other in (("before", "after"), ("after", "before")):

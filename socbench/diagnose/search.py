@@ -659,11 +659,13 @@ class Search:
                     return f"R{j}C{j}", tj
         return None
 
-    def fold_models(self, step: Candidate, layout=None, initial_sd=None):
+    def fold_models(self, step: Candidate, layout=None, initial_sd=None, fold: int | None = None):
         """``(model, offsets)`` of every fold after ``step`` (one variant per fold on a leading batch axis of shape
-        ``layout``, default ``(k,)``)."""
+        ``layout``, default ``(k,)``), or of fold ``fold`` alone."""
         build = self.builder([n for n, _ in step.layout], initial_sd)[0]
         th = step.fit.folds()
+        if fold is not None:
+            return build(th[fold])
         return build(th.reshape((layout or (th.shape[0],)) + th.shape[1:]))
 
 
