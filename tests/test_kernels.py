@@ -409,9 +409,11 @@ def _rounding_spread(estimator, profile, soc0, a, seed=5):
     rounding (the H∞ posterior held at its feasibility cap, ``P⁺_zz = 2 P_K,zz`` on every update) grows it by orders
     of magnitude over a record, and then no two orders of summation — numpy's BLAS and the compiled loop — can agree
     to 1e-9 either. Several perturbations, because one samples a chaotic run's sensitivity once: the compiled loop's
-    summation order is another perturbation, and on one run the four moved numpy by 0.004–0.023 of SOC."""
+    summation order is another perturbation, and on one run the four moved numpy by 0.004–0.023 of SOC. Eight, since
+    four undersampled it: with numpy 2.4 the compiled loop moved one run (the noise recipe's dp with scheduling) by
+    0.20 of SOC where ±1, ±2 parts moved numpy by at most 0.016 and ±3, ±4 parts by 0.069."""
     spread = {f: None for f in FIELDS}
-    for k in (1, -1, 2, -2):
+    for k in (1, -1, 2, -2, 3, -3, 4, -4):
         p2 = Profile(profile.time_s, profile.current_a, voltage_v=profile.voltage_v * (1.0 + k * 2.0**-52),
                      temperature_c=profile.temperature_c, soc_ref=profile.soc_ref, meta=profile.meta)
         a2 = estimator.run(p2, soc0=soc0, seed=seed)
