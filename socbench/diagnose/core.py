@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import time as _time
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
@@ -264,10 +265,11 @@ def soc_errors(model_for, folds: Folds, soc0s, voltage_sd, estimators=SOC_ESTIMA
     out = {}
     for name in estimators:
         per_fold = _compiled_fold_filters(model_for, name, folds.k, vsd)
-        run = _fold_runs if per_fold is not None else _batched_runs
+        run = (partial(_fold_runs, per_fold) if per_fold is not None
+               else partial(_batched_runs, model_for, name, folds.k, vsd))
         sq, n, failed = 0.0, 0, 0
         for r, (p, b, z0) in enumerate(zip(folds.records, folds.blocks, soc0s)):
-            soc, f = run(per_fold or (model_for, name, folds.k, vsd), p, b, z0, r)
+            soc, f = run(p, b, z0, r)
             e = soc - p.soc_ref
             sq += float(e @ e)
             n += p.n
@@ -307,11 +309,10 @@ def _fold_runs(per_fold, p: Profile, b, z0: float, r: int):
     return soc, failed
 
 
-def _batched_runs(args, p: Profile, b, z0: float, r: int):
+def _batched_runs(model_for, name: str, k: int, vsd, p: Profile, b, z0: float, r: int):
     """The numpy reference: the ``k`` folds as one batched run (a parameter batch, each run's own R)."""
     from ..estimators import make_estimator
 
-    model_for, name, k, vsd = args
     model = model_for((k, 1) if name == "ukf" else (k,))[0]
     run_model, offsets = model_for((k,))  # its initial states and voltage offsets, one row per fold
     noise = _fold_noise(model, vsd.max())
