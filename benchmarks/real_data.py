@@ -752,13 +752,13 @@ def write_doc(path: Path, v: dict):
       f"{best}: 25 °C Cycle_1 RMSE, 25 °C fit [mV] |")
     w("|---|---|---|")
     extra_labels = [k for k in fits[best].get("settings", {}) if k not in FIT_SETTINGS]
+    per_t = fits[best].get("settings", {}).get(PER_TEMPERATURE, {}).get("per_temperature")
     for label in list(FIT_SETTINGS) + extra_labels:
         cells = []
         for f in (fits[best], fit25):
             t = f.get("settings", {}).get(label, {})
             cells.append("failed" if "error" in t else (mv(t["mean_rmse_v"]) if t else "—") +
                          (" **(chosen)**" if f.get("setting") == label else ""))
-        per_t = fits[best]["settings"].get(PER_TEMPERATURE, {}).get("per_temperature")
         shown = label if not (label.startswith(PER_TEMPERATURE) and per_t) else label + " (" + ", ".join(
             f"{LABEL[t]} {per_t[t]}" for t in TAGS) + ")"
         w(f"| {shown} | " + " | ".join(cells) + " |")

@@ -161,7 +161,7 @@ def test_the_compiled_fold_filters_give_the_numpy_references_soc_errors(effect, 
     assert reference.effects_added == compiled.effects_added
     for key in ("before", "after"):
         for name in core.SOC_ESTIMATORS:
-            got, want = (d.__dict__[key]["soc"][name] for d in (compiled, reference))
+            got, want = (getattr(d, key)["soc"][name] for d in (compiled, reference))
             assert got["soc_rmse"] == pytest.approx(want["soc_rmse"], rel=1e-9, abs=1e-12)
             assert got["failed_runs"] == want["failed_runs"]
 
