@@ -46,7 +46,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from socbench.datasets.panasonic import find_panasonic, load_panasonic  # noqa: E402
 from socbench.errors import DataError, ModelError  # noqa: E402
-from socbench.estimators import SensorNoise, make_estimator  # noqa: E402
+from socbench.estimators import SensorNoise, estimator_class, make_estimator  # noqa: E402
 from socbench.estimators import model_error as recipe  # noqa: E402
 from socbench.estimators.scoring import score  # noqa: E402
 from socbench.identify import FIT_CANDIDATES  # noqa: E402
@@ -60,6 +60,8 @@ LABEL = {"25degC": "25 °C", "10degC": "10 °C", "0degC": "0 °C", "n10degC": "�
 SOC0_ERROR = -0.20
 SOC0_SD = 0.1
 VALIDATION_FILTERS = ("ekf", "ukf")
+#: seeds of each particle-filter run on the US06 (section 4f)
+PF_SEEDS = 5
 #: the recording instruments, as declared by the measured scenarios (catalog/measured/panasonic.toml)
 SENSOR = SensorNoise(voltage_sd=0.002, current_sd=0.02)
 TARGET = {"soc_rmse": 0.015, "coverage": 0.9, "ekf_ukf": 0.005}
@@ -189,10 +191,12 @@ def fit_job(args) -> dict:
 
 # ------------------------------------------------------------------------------------------------ 4: runs
 def run_job(args) -> dict:
-    """One filter on one record (default the US06): the recipe's noise, a guess 20 points low, SOC on the data's
-    axis; the record bin-averaged to ``resolution`` seconds (0: as recorded)."""
+    """One filter on one record (default the US06): the recipe's noise in the form the filter takes, a guess 20 points
+    low, SOC on the data's axis; the record bin-averaged to ``resolution`` seconds (0: as recorded). Optional: the
+    record, the guess error, and a number of seeds (the record run that many times as one batch, each with its own
+    random numbers: the particle filters; the per-run SOC RMSE and 3σ coverage are kept)."""
     model, params_path, stats_dict, tag, est_name, noise_mode, trace_path, resolution, *rest = args
-    test, soc0_error = (list(rest) + ["US06", SOC0_ERROR][len(rest):])[:2]  # optional: the record, the guess error
+    test, soc0_error, n_seeds = (list(rest) + ["US06", SOC0_ERROR, 1][len(rest):])[:3]
     name, params = load_params(params_path)
     m = make_model(name, params)
     prof = _record(tag, test)
@@ -201,23 +205,31 @@ def run_job(args) -> dict:
     stats = recipe.ModelErrorStats.from_dict(stats_dict) if stats_dict else None
     unscheduled = noise_mode == "model-unscheduled"  # the ablation: the recipe with the full Jacobian
     run_model, noise = recipe.apply(m, SENSOR, stats, prof, noise="sensor" if est_name == "coulomb" else
-                                    "model" if unscheduled else noise_mode)
+                                    "model" if unscheduled else noise_mode,
+                                    form=estimator_class(est_name).model_error_form)
     if unscheduled:
         run_model.schedule_soc = False
     est = make_estimator(est_name, run_model, noise, soc0_sd=SOC0_SD)
     axis = soc_axis(params, prof)
+    one = prof
+    if n_seeds > 1:
+        prof = prof.with_(current_a=np.tile(prof.current_a, (n_seeds, 1)),
+                          voltage_v=np.tile(prof.voltage_v, (n_seeds, 1)))
     t0 = time.perf_counter()
-    r = run_on_data_axis(est, prof, axis, soc0=float(prof.soc_ref[0]) + soc0_error, soc0_sd=SOC0_SD, seed=0)
+    r = run_on_data_axis(est, prof, axis, soc0=float(one.soc_ref[0]) + soc0_error, soc0_sd=SOC0_SD, seed=0)
     seconds = time.perf_counter() - t0
     s = score(r, prof)
-    idx = np.unique(np.round(np.linspace(0, prof.n - 1, 2500)).astype(int))
+    idx = np.unique(np.round(np.linspace(0, one.n - 1, 2500)).astype(int))
     if trace_path:
-        np.savez_compressed(trace_path, t=prof.time_s[idx], err=(r.soc[0] - prof.soc_ref)[idx], sd=r.soc_std[0][idx],
-                            temp=prof.temperature_c[idx])
+        np.savez_compressed(trace_path, t=one.time_s[idx], err=(r.soc[0] - one.soc_ref)[idx], sd=r.soc_std[0][idx],
+                            temp=one.temperature_c[idx])
     out = {k: s[k] for k in ("soc_rmse", "soc_max_abs", "frac_within_3sigma", "nis_mean", "nis_band", "rmse_v",
                              "nees_mean", "failed_runs")}
-    out.update({"seconds": seconds, "n": prof.n, "axis": axis.to_dict(), "filter_voltage_sd": noise.voltage_sd,
-                "t_start": float(prof.temperature_c[0]), "t_max": float(prof.temperature_c.max())})
+    out.update({"seconds": seconds, "n": one.n, "axis": axis.to_dict(), "filter_voltage_sd": noise.voltage_sd,
+                "t_start": float(one.temperature_c[0]), "t_max": float(one.temperature_c.max())})
+    if n_seeds > 1:
+        out.update({"seeds": n_seeds, "runs_soc_rmse": s["runs"]["soc_rmse"],
+                    "runs_within_3sigma": s["runs"]["frac_within_3sigma"]})
     return out
 
 
@@ -550,6 +562,13 @@ def main(argv=None) -> int:
             best, fit5, stats[(best, "5T")], tag, est, "model", "", args.resolution, "US06", err)
         for est in ("ekf", "ukf", "iekf") for tag in TAGS
         for suffix, err in (("", 0.0), ("_guess", SOC0_ERROR)) if est == "iekf" or not suffix})
+    # the particle filters from the same 20-point start, each over PF_SEEDS seeds (their random numbers are part of the
+    # result): the bootstrap PF (the recipe in its inflated form) and the Rao–Blackwellised PF (the recipe's states)
+    particle = cached_runs(cache, "particle", pool, {
+        f"{best}_{fit}_{est}_{tag}": lambda fit=fit, est=est, tag=tag: (
+            best, str(cache.path("fits", f"{best}_{fit}.json")), stats[(best, fit)], tag, est, "model", "",
+            args.resolution, "US06", SOC0_ERROR, PF_SEEDS)
+        for fit in ("5T", "25") for est in ("pf", "rbpf") for tag in TAGS})
     runs = {p.stem: json.loads(p.read_text()) for p in cache.path("runs").glob("*.json")}
     rjobs, rkeys = [], []
     for fit in ("5T", "25"):
@@ -586,8 +605,8 @@ def main(argv=None) -> int:
         from socbench.study import DEFAULT_ESTIMATORS, DEFAULT_SCENARIOS
 
         t0 = time.perf_counter()
-        flights = study(cache, "flights", list(model_names()), DEFAULT_ESTIMATORS, DEFAULT_SCENARIOS, args.flight_seeds,
-                        args.jobs)
+        flights = study(cache, "flights", list(model_names()), DEFAULT_ESTIMATORS + ("rbpf",), DEFAULT_SCENARIOS,
+                        args.flight_seeds, args.jobs)
         fl_wall = kept_wall(cache, "flights", time.perf_counter() - t0)
         flights_sensor = study(cache, "flights-sensor", ("thevenin", "dp"), ("ekf", "ukf"), DEFAULT_SCENARIOS, 3,
                                args.jobs, noise="sensor")
@@ -679,6 +698,30 @@ def verdict(v: dict) -> str:
         lines.append("- **The default flight scenarios' NIS after the recipe** (must be within a factor 3 of 1): "
                      "**not measured in this run** (`--skip-flights`, to meet its deadline); `python "
                      "benchmarks/real_data.py` without it adds section 7.")
+    pr = v.get("particle") or {}
+    if pr:
+        met = [LABEL[t] for t in TAGS
+               if (r := pr.get(f"{best}_5T_rbpf_{t}")) and "error" not in r
+               and max(r["runs_soc_rmse"]) <= TARGET["soc_rmse"] and min(r["runs_within_3sigma"]) >= TARGET["coverage"]]
+        lines.append("- **The Rao–Blackwellised particle filter** (section 4f; beside the must-show's EKF/UKF pair, "
+                     "not in its place): with the five-temperature fit, SOC RMSE ≤ 1.5 % and within 3σ ≥ 0.9 in "
+                     f"every one of {PF_SEEDS} seeds at {', '.join(met) if met else 'no temperature'} of the five. "
+                     "Section 4f says why, and where it is weaker than the EKF.")
+    if v["flights"] is not None:
+        fl = v["flights"]
+        per = []
+        for est in fl.config.estimators:
+            rows = [r["row"] for r in fl.cells if r["row"]["estimator"] == est and r["row"]["nis_mean"] is not None]
+            if est == "coulomb" or not rows:
+                continue
+            nis = np.array([r["nis_mean"] for r in rows])
+            cov = [r["frac_within_3sigma"] for r in rows if r["frac_within_3sigma"] is not None]
+            per.append(f"{est.upper()} {int(np.sum((nis >= 1 / 3) & (nis <= 3)))}/{len(rows)} cells "
+                       f"(within 3σ, median over the cells, {np.median(cov):.2f})")
+        lines.append("- **The default flight scenarios' NIS after the recipe** (within a factor 3 of 1, section 7): "
+                     + "; ".join(per) + ". A NIS near 1 is the innovations' consistency, not the SOC band's: the "
+                     "particle filters' innovations are the size they predict while their SOC bands hold the truth "
+                     "far less often than the Kalman filters' (the medians above; a cause not isolated here).")
     lines.append("- **What the recipe now gets right (measured):** on synthetic records with a planted error, "
                  "including one more persistent than the record, its band holds the truth 90–100 % of the time "
                  "(`tests/test_model_error.py`, where the first version held a persistent error 47 % of the time).")
@@ -961,6 +1004,43 @@ def write_doc(path: Path, v: dict):
           "narrow, and the slow model-error state takes up the rest; the sigma-point filter spans the curvature. The "
           "iterated EKF (`iekf`: the update re-linearised at the corrected state until it stops moving, "
           "`socbench.estimators.iekf`) is the EKF-side remedy; its columns above measure it.\n")
+    pr = v.get("particle") or {}
+    if pr:
+        w("\n**4f. The particle filters** (the same 20-point start, each run over "
+          f"{PF_SEEDS} seeds of its random numbers; SOC RMSE % median (worst) over the seeds, within 3σ median "
+          "(lowest)). The bootstrap PF (`pf`) takes the recipe's error as white noise (its inflated form: five "
+          "near-deterministic coloured states collapse a bootstrap cloud); the Rao–Blackwellised PF (`rbpf`, "
+          "`socbench.estimators.rbpf`) puts particles on the SOC alone and carries every other state — the RC "
+          "voltages and the recipe's coloured error states — in one Kalman filter per run, the parameters looked up "
+          "at the particles' mean SOC. Targets for one filter: SOC RMSE ≤ 1.5 % and within 3σ ≥ 0.9 in every "
+          "seed.\n")
+        w("| US06 | fit | PF SOC RMSE % | PF within 3σ | RBPF SOC RMSE % | RBPF within 3σ | RBPF NIS | RBPF targets "
+          "met in every seed |")
+        w("|---|---|---|---|---|---|---|---|")
+        for tag in TAGS:
+            for fit, label in (("5T", "5 temperatures"), ("25", "25 °C only")):
+                cells = []
+                for est in ("pf", "rbpf"):
+                    r = pr.get(f"{best}_{fit}_{est}_{tag}")
+                    if r is None or "error" in r:
+                        cells += ["failed", "failed"]
+                        continue
+                    e, c = np.asarray(r["runs_soc_rmse"], float), np.asarray(r["runs_within_3sigma"], float)
+                    cells += [f"{pc(np.median(e))} ({pc(np.max(e))})", f"{np.median(c):.2f} ({np.min(c):.2f})"]
+                r = pr.get(f"{best}_{fit}_rbpf_{tag}")
+                ok_all = bool(r and "error" not in r and max(r["runs_soc_rmse"]) <= TARGET["soc_rmse"]
+                              and min(r["runs_within_3sigma"]) >= TARGET["coverage"])
+                nis = nis_txt(r) if r and "error" not in r else "—"
+                w(f"| {LABEL[tag]} | {label} | " + " | ".join(cells) + f" | {nis} | {ok(ok_all)} |")
+        w("\nWhy the RBPF differs from the EKF here: its particles place the SOC from the first rested voltage "
+          "without a linearisation (the EKF's first correction of the 20-point error lands where the guess's OCV "
+          "slope points, section 4e), and its SOC moves by reweighting, which a slow voltage error the coloured "
+          "states explain moves little. The same property is its weakness: a particle cloud's spread depends on "
+          "the data, and under an error its noise does not describe (a constant current-sensor offset declared as "
+          "white noise) reweighting narrows the cloud and the SOC follows the voltage more slowly than the EKF's, "
+          "whose covariance never looks at the data. On the recipe's calibration records (a known coloured error "
+          "planted, `tests/test_rbpf.py`) its band holds the truth 90–100 % of the time, as the EKF's does, where "
+          "the bootstrap PF's does not.\n")
     w("\n![SOC error with ±3σ](figures/real_data_soc_error.png)\n")
     w("*SOC error (data axis) of the EKF and UKF with their ±3σ bands, per temperature; left the five-temperature "
       "fit, right the 25 °C fit.*\n")

@@ -106,7 +106,7 @@ def test_every_estimator_reports_its_domain_and_warns_when_driven_past_empty(est
     prof_past = prof_past.with_(voltage_v=v + 0.005 * rng.standard_normal(v.size))
     keep = int(np.argmax(z < 0.2))
     prof_ok = prof_past.slice(0, keep)
-    opts = {"n_particles": 100} if estimator == "pf" else {}
+    opts = {"n_particles": 100} if estimator in ("pf", "rbpf") else {}
     for prof, past in ((prof_past, True), (prof_ok, False)):
         est = make_estimator(estimator, m, **opts).run(prof, soc0=1.0, seed=1)
         d = est.domain

@@ -68,7 +68,7 @@ def test_a_diverged_run_is_described_with_its_reason_step_and_state(estimator):
     prof = constant_current(m.capacity_ah, 1.0, soc_span=0.03)
     v = m.simulate(prof, soc0=1.0).voltage_v
     prof = prof.with_(voltage_v=np.stack([v + 0.05, v - 0.05]), soc_ref=None)
-    opts = {"nis_max": 1e-6, **({"n_particles": 50} if estimator == "pf" else {})}
+    opts = {"nis_max": 1e-6, **({"n_particles": 50} if estimator in ("pf", "rbpf") else {})}
     est = make_estimator(estimator, m, **opts).run(prof, soc0=0.8, seed=0)
     assert est.failed.all() and (est.failed_at == 0).all()
     assert est.failure_reasons() == ["NIS above nis_max"] * 2

@@ -73,7 +73,7 @@ def test_estimate_restarts_each_segment_like_a_record_start(estimator):
     m = make_model("dp", paper_params("dp"))
     rng = np.random.default_rng(77)
     prof, n1, zb, _ = two_segments(m, rng, "rise")
-    opts = {"n_particles": 64} if estimator == "pf" else {}
+    opts = {"n_particles": 64} if estimator in ("pf", "rbpf") else {}
     est = make_estimator(estimator, m, **opts).run(prof, soc0=0.9, seed=3)
     assert est.segments.count == 2 and est.domain["segments"] == 2
     first = make_estimator(estimator, m, **opts).run(prof.slice(0, n1), soc0=0.9, seed=3)

@@ -1,5 +1,6 @@
 """SOC estimators as batched numpy engines — coulomb counting, EKF, UKF, particle filter, adaptive EKF (Sage–Husa),
-cubature KF, square-root UKF, H∞ filter, a joint SOC–capacity–R0 EKF (``dual``) and the iterated EKF (``iekf``) — plus
+cubature KF, square-root UKF, H∞ filter, a joint SOC–capacity–R0 EKF (``dual``), the iterated EKF (``iekf``) and the
+Rao–Blackwellised PF (``rbpf``: SOC particles, a Kalman filter for the other states) — plus
 per-run references (filterpy where it has the filter, textbook forms otherwise; docs/estimators.md compares them).
 
 ``make_estimator(name, model, noise=None, **options)`` builds one; ``estimator.run(profile, soc0=None, P0=None,
@@ -28,6 +29,7 @@ ESTIMATORS: dict[str, str] = {
     "hinf": "socbench.estimators.hinf:HInfinityFilter",
     "dual": "socbench.estimators.dual:JointEKF",
     "iekf": "socbench.estimators.iekf:IteratedEKF",
+    "rbpf": "socbench.estimators.rbpf:RaoBlackwellPF",
 }
 
 
