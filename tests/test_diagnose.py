@@ -18,7 +18,7 @@ from socbench.diagnose import bin_average, diagnose, make_folds
 from socbench.diagnose.search import rest_current
 from socbench.diagnose.signatures import Trajectory, signatures
 from socbench.diagnose.synthetic import cell, eval_current, hidden_case
-from socbench.models import make_model
+from socbench.models import Constant, ModelParams, make_model
 from socbench.models.effects import EFFECTS, augment, make_effect
 from socbench.profile import Profile, ProfileMeta
 
@@ -93,6 +93,38 @@ def test_signature_guess_recovers_the_hidden_parameter():
     traj = Trajectory.simulate(base, ev, 0.95)
     bounds = {n: EFFECTS[n]().bounds(base) for n in EFFECTS}
     assert signatures(base, traj, bounds, 25.0)["capacity"].guess["cap0"] == pytest.approx(1.3, abs=0.05)
+
+
+def _aged_cell_eval(fade, growth, seed, v_sd=1e-3):
+    """The synthetic Thevenin cell aged, built from its parameters (not from the capacity effect): the capacity
+    faded by ``fade``, every resistance grown by ``1 + growth`` and the capacitance shrunk by it (SEI growth: the
+    time constant unchanged); measured on the pulse load."""
+    name, params = cell("thevenin")
+    grown = {k: Constant(v.value * (1.0 + growth) if k.startswith("R") else v.value / (1.0 + growth))
+             for k, v in params.values.items()}
+    aged = make_model(name, ModelParams(params.capacity_ah * (1.0 - fade), params.ocv, grown))
+    t, i = eval_current("pulses", seed=seed)
+    sim = aged.simulate(Profile(t, i), soc0=0.95)
+    v = sim.voltage_v + np.random.default_rng(seed).normal(0.0, v_sd, t.size)
+    return Profile(t, i, voltage_v=v, temperature_c=np.full(t.size, 25.0), soc_ref=sim.soc,
+                   meta=ProfileMeta(name="eval", source="eval", capacity_ah=params.capacity_ah))
+
+
+@pytest.mark.parametrize("draw", range(3))
+def test_an_aged_cell_is_named_capacity_with_its_resistance_growth(draw):
+    """Ageing fades the capacity and grows the resistances together: the diagnosis that fits the capacity's
+    resistance growth names the capacity alone, with its fade (``cap0 = 1/(1 − fade)``) and its growth recovered,
+    and leaves nothing but the noise (fade-only, the search needs the base refit beside it)."""
+    rng = np.random.default_rng(50 + draw)
+    fade, growth = rng.uniform(0.08, 0.25), rng.uniform(0.15, 0.6)
+    fit, _ = hidden_case(None, "thevenin", "pulses", v_sd=1e-3, seed=50 + draw)
+    d = diagnose("thevenin", [fit], [_aged_cell_eval(fade, growth, 60 + draw)], soc=False, resistance_growth=True)
+    # the capacity alone: no base refit took up the grown resistances
+    assert [s.effect for s in d.steps] == ["capacity"], ([s.effect for s in d.steps], fade, growth)
+    params = d.steps[0].params
+    assert params["cap0"] == pytest.approx(1.0 / (1.0 - fade), abs=0.02), (params, fade)
+    assert params["r_growth"] == pytest.approx(growth, abs=0.05 * (1.0 + growth)), (params, growth)
+    assert d.after["rmse_v"] <= 1.5e-3  # within 1.5× the voltage noise: nothing of the ageing left
 
 
 # ------------------------------------------------------------------------------------------------ hidden effects

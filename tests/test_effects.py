@@ -31,7 +31,7 @@ from . import test_models_generic as generic
 EFFECTS = {
     "temperature": lambda: Temperature(Ea=35e3, dUdT=2e-3, t_ref=20.0),
     "hysteresis": lambda: Hysteresis(M=0.06, M0=-0.02, gamma=80.0, h0=0.3),
-    "capacity": lambda: Capacity(cap0=1.2),
+    "capacity": lambda: Capacity(cap0=1.2, r_growth=0.3),
     "current_bias": lambda: CurrentBias(b0=0.05),
     "extra_rc": lambda: ExtraRC(R=4e-3, log10_tau=2.7),
     "butler_volmer": lambda: ButlerVolmer(I0=6.0, dR=5e-4, Ea=40e3, t_ref=15.0),
@@ -92,17 +92,18 @@ def test_whole_record_open_loop_takes_effect_parameter_batches():
     one-variant step loop."""
     base = make_model("dp", paper_params("dp"))
     gamma, tau, cap = np.array([3.0, 60.0, 400.0]), np.array([1.0, 2.5, 3.8]), np.array([0.8, 1.0, 1.3])
+    growth = np.array([0.0, 0.4, 0.1])
 
-    def make(g, lt, c):
+    def make(g, lt, c, rg):
         return [Hysteresis(M=0.05, M0=0.01, gamma=g, h0=-0.5, h_ref=-1.0), ExtraRC(R=3e-3, log10_tau=lt),
-                Capacity(cap0=c), SelfDischarge(rate=0.03), CurrentBias(b0=0.1)]
+                Capacity(cap0=c, r_growth=rg), SelfDischarge(rate=0.03), CurrentBias(b0=0.1)]
 
-    batched = augment(base, make(gamma, tau, cap))
+    batched = augment(base, make(gamma, tau, cap, growth))
     prof = _profile(_pulses(22.0), dt=2.0, temp=10.0)
     y_all = batched.simulate(prof, x0=batched.x0(0.8, (3,))).voltage_v
     assert y_all.shape == (3, prof.n)
     for r in range(3):
-        one = augment(base, make(gamma[r], tau[r], cap[r]))
+        one = augment(base, make(gamma[r], tau[r], cap[r], growth[r]))
         y_one = one.open_loop_stepwise(one.x0(0.8), prof.time_s, prof.current_a, prof.temperature_c)[1]
         np.testing.assert_allclose(y_all[r], y_one, rtol=1e-12, atol=1e-12)
     assert np.ptp(y_all[:, -1]) > 0.01  # the variants differ: the rows are not one simulation repeated
@@ -121,20 +122,25 @@ def _pulses(q, n=1200):
     return np.where(k % 300 < 60, q, np.where(k % 300 < 120, 0.0, np.where(k % 300 < 160, -0.6 * q, 0.0)))
 
 
-def test_temperature_equals_base_with_scaled_resistances_at_constant_temperature():
+def _thevenin_scaled(k):
+    """The paper Thevenin cell built directly with every R × k and every C / k (time constants unchanged), as
+    201-point lookups of the paper's functions."""
     base_params = paper_params("thevenin")
-    base = make_model("thevenin", base_params)
+    z = np.linspace(0, 1, 201)
+    return make_model("thevenin", base_params.with_values(
+        R0={"lookup": {"soc": z.tolist(), "value": (k * base_params["R0"](z)).tolist()}},
+        R1={"lookup": {"soc": z.tolist(), "value": (k * base_params["R1"](z)).tolist()}},
+        C1={"lookup": {"soc": z.tolist(), "value": (base_params["C1"](z) / k).tolist()}},
+    ))
+
+
+def test_temperature_equals_base_with_scaled_resistances_at_constant_temperature():
+    base = make_model("thevenin", paper_params("thevenin"))
     eff = Temperature(Ea=40e3, dUdT=1.5e-3, t_ref=25.0)
     temp_c = -5.0
     k = np.exp(40e3 / 8.314462618 * (1 / (temp_c + 273.15) - 1 / 298.15))
     # the same cell built directly: every R × k, every C / k (τ unchanged), the OCV shifted by the entropic term
-    z = np.linspace(0, 1, 201)
-    scaled = base_params.with_values(
-        R0={"lookup": {"soc": z.tolist(), "value": (k * base_params["R0"](z)).tolist()}},
-        R1={"lookup": {"soc": z.tolist(), "value": (k * base_params["R1"](z)).tolist()}},
-        C1={"lookup": {"soc": z.tolist(), "value": (base_params["C1"](z) / k).tolist()}},
-    )
-    direct = make_model("thevenin", scaled)
+    direct = _thevenin_scaled(k)
     prof = _profile(_pulses(22.0), temp=temp_c)
     y_aug = augment(base, [eff]).simulate(prof, soc0=0.8).voltage_v
     y_dir = direct.simulate(prof, soc0=0.8).voltage_v + 1.5e-3 * (temp_c - 25.0)
@@ -144,6 +150,23 @@ def test_temperature_equals_base_with_scaled_resistances_at_constant_temperature
     # at the reference temperature (and without a temperature column) nothing changes
     at_ref = augment(base, [eff]).simulate(_profile(_pulses(22.0), temp=25.0), soc0=0.8).voltage_v
     np.testing.assert_allclose(at_ref, base.simulate(prof, soc0=0.8).voltage_v, atol=1e-12)
+
+
+def test_capacity_resistance_growth_equals_the_aged_cell_and_composes_with_temperature():
+    """An aged cell (every R × (1 + g), every C / (1 + g)) is the base model with the capacity effect's
+    ``r_growth = g``; in the cold too, whichever order the two effects are listed in (the factors multiply: the
+    entropic term is not scaled by the growth)."""
+    base = make_model("thevenin", paper_params("thevenin"))
+    g, temp_c = 0.35, 0.0
+    prof = _profile(_pulses(22.0), temp=temp_c)
+    y_aged = augment(base, [Capacity(r_growth=g)]).simulate(prof, soc0=0.8).voltage_v
+    np.testing.assert_allclose(y_aged, _thevenin_scaled(1.0 + g).simulate(prof, soc0=0.8).voltage_v, atol=2e-4)
+    assert np.max(np.abs(y_aged - base.simulate(prof, soc0=0.8).voltage_v)) > 0.02  # the growth shows
+    temp = Temperature(Ea=30e3, dUdT=-1e-3, t_ref=25.0)
+    k = np.exp(30e3 / R_GAS * (1 / (temp_c + 273.15) - 1 / 298.15))
+    y_dir = _thevenin_scaled(k * (1.0 + g)).simulate(prof, soc0=0.8).voltage_v - 1e-3 * (temp_c - 25.0)
+    for effects in ([temp, Capacity(r_growth=g)], [Capacity(r_growth=g), temp]):
+        np.testing.assert_allclose(augment(base, effects).simulate(prof, soc0=0.8).voltage_v, y_dir, atol=2e-4)
 
 
 def test_hysteresis_saturates_and_separates_rests_by_2M():

@@ -200,6 +200,24 @@ def test_every_effect_compiled_equals_numpy(case):
     _assert_points_equal(m, x, i, dt, None)
 
 
+def test_effect_parameter_batches_lower_to_one_variant_per_point():
+    """Effect values batched, one variant per point (as the diagnosis' fits simulate them): the capacity effect's
+    resistance growth zero in some variants (the output untouched there) and composed with the temperature's
+    Arrhenius factor in the others."""
+    from socbench.models.effects import Capacity, Temperature
+
+    rng = np.random.default_rng(11)
+    V = 60
+    growth = np.where(rng.random(V) < 0.3, 0.0, rng.uniform(0.0, 1.0, V))
+    m = augment(make_model("dp", paper_params("dp")), [
+        Temperature(Ea=rng.uniform(0.0, 60e3, V), dUdT=rng.uniform(-2e-3, 2e-3, V), t_ref=20.0),
+        Capacity(cap0=rng.uniform(0.8, 1.4, V), r_growth=growth)])
+    assert lower(m).n_variants == V
+    x, i, dt, temp = _points(m, V, 12, wide=True)
+    _assert_points_equal(m, x, i, dt, temp)
+    _assert_points_equal(m, x, i, dt, None)
+
+
 def test_effects_on_a_temperature_table_set():
     m = augment(make_model("dp", temperature_params("dp")), [e() for e in EFFECTS.values()])
     x, i, dt, temp = _points(m, 400, 7, wide=True)

@@ -336,8 +336,10 @@ def _coarse(profile: Profile, dt: float, max_samples: int) -> Profile:
 def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto", dt: float = 1.0, folds: int = 4,
              candidates=None, min_gain: float = 0.10, max_steps: int = 3, max_nfev: int = 15, max_fits: int = 3,
              max_samples: int = 4000, slow_ocv: str = "mean", soc: bool = True,
-             base_refit: bool = True) -> Diagnosis:
-    """Run the whole diagnosis (module docstring). Profiles are :class:`~socbench.profile.Profile` objects."""
+             base_refit: bool = True, resistance_growth: bool = False) -> Diagnosis:
+    """Run the whole diagnosis (module docstring). Profiles are :class:`~socbench.profile.Profile` objects.
+    ``resistance_growth``: the capacity effect is fitted with the resistance growth of ageing beside its fade
+    (:data:`socbench.diagnose.search.RESISTANCE_GROWTH`)."""
     t0 = _time.perf_counter()
     evals = [_coarse(p, dt, max_samples) for p in eval_profiles]
     for p in evals:
@@ -352,7 +354,8 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
     noise_bin = sigma * float(np.sqrt(np.average([1.0 / m for m in per_bin], weights=[e.n for e in evals])))
     search = Search(base, cv, fit_info["t_ref_c"], candidates, min_gain=min_gain, max_nfev=max_nfev,
                     max_steps=max_steps, max_fits=max_fits, h_ref=fit_info["ocv_branch"], noise_sd=noise_bin,
-                    raw=eval_profiles, base_refit=base_refit, noise_scale=noise_bin / sigma if sigma > 0 else 0.0)
+                    raw=eval_profiles, base_refit=base_refit, noise_scale=noise_bin / sigma if sigma > 0 else 0.0,
+                    resistance_growth=resistance_growth)
     final, steps, rounds, before = search.run()
     residuals = {"before": cv_residual(base, cv, search.soc0s)[0],
                  "after": steps[-1].held_residual if steps else None}

@@ -14,7 +14,8 @@ temperature          ``−(k(T; E_a) − 1)·η`` (|I|-scaled × temperature-sca
                      ``(T − T_ref)`` (entropic)
 hysteresis           ``h_γ(t)`` (sign of recent net charge, Plett's h with unit M),   M = β_h, M0 = β_s; γ, h0: grid
                      ``s(t)``
-capacity             ``U'(z)·Ah(t)/Q`` (Ah throughput)                               cap = 1 − β
+capacity             ``U'(z)·Ah(t)/Q`` (Ah throughput); with ``r_growth`` bounded     cap = 1 − β_Ah,
+                     also ``y_model − U(z)`` (the over-potential the growth scales)   r_growth = β_η
 current_bias         ``U'(z)·t/(3600 Q)`` (elapsed time, rests included)              b = β
 coulombic_efficiency ``U'(z)·Ah_charge(t)/Q`` (steps after each charge)               η_c = 1 + β
 self_discharge       ``U'(z)·∫U(z)/U(1) dt/3600`` (sag during rests)                  rate = −β
@@ -124,10 +125,14 @@ def _running_integral(values, dt):
     return out
 
 
-def _linear_one(name, res, col, sse_null, to_guess, regressor, bounds):
-    sse, coef = res.lstsq(res.r, [col])
-    guess = {k: float(np.clip(v, *bounds[k])) for k, v in to_guess(coef[1]).items()}
-    return Signature(name, _r2(sse, sse_null), guess, coef[1] * col, regressor, {"coef": float(coef[1])})
+def _linear(name, res, cols, sse_null, to_guess, regressor, bounds):
+    """The signature of an effect linear in its regressors ``cols``: ``to_guess(β)`` maps their coefficients to the
+    starting guess (clipped to ``bounds``)."""
+    sse, coef = res.lstsq(res.r, cols)
+    beta = coef[1:]
+    guess = {k: float(np.clip(v, *bounds[k])) for k, v in to_guess(beta).items()}
+    return Signature(name, _r2(sse, sse_null), guess, sum(b * c for b, c in zip(beta, cols)), regressor,
+                     {"coef": [float(b) for b in beta]})
 
 
 def _best_on_grid(res, fits, admissible=None):
@@ -166,19 +171,26 @@ def signatures(model, trajectories, bounds: dict, t_ref: float, rows=None) -> di
 
     # Ah throughput, elapsed time, charge after charge segments, OCV-weighted time
     ah = res.cat(lambda tr: tr.profile.amp_hours())
-    out["capacity"] = _linear_one("capacity", res, du * ah / q, sse_null, lambda b: {"cap0": 1.0 - b},
+    # the capacity effect's Δy: the fade's SOC drift and, where its resistance growth is fitted (bounded), the
+    # grown over-potential g·(y_model − U(z)) of ageing
+    if "r_growth" in bounds["capacity"]:
+        out["capacity"] = _linear("capacity", res, [du * ah / q, res.cat(lambda tr: tr.y_model - tr.ocv)], sse_null,
+                                  lambda b: {"cap0": 1.0 - b[0], "r_growth": b[1]}, "U'(z)·Ah/Q, y − U(z)",
+                                  bounds["capacity"])
+    else:
+        out["capacity"] = _linear("capacity", res, [du * ah / q], sse_null, lambda b: {"cap0": 1.0 - b[0]},
                                   "U'(z)·Ah/Q", bounds["capacity"])
     elapsed = res.cat(lambda tr: tr.profile.time_s - tr.profile.time_s[0])
-    out["current_bias"] = _linear_one("current_bias", res, du * elapsed / (3600.0 * q), sse_null,
-                                      lambda b: {"b0": b}, "U'(z)·t/(3600 Q)", bounds["current_bias"])
+    out["current_bias"] = _linear("current_bias", res, [du * elapsed / (3600.0 * q)], sse_null,
+                                  lambda b: {"b0": b[0]}, "U'(z)·t/(3600 Q)", bounds["current_bias"])
     ah_charge = res.cat(lambda tr: _running_integral(np.maximum(-tr.profile.current_a, 0.0), tr.profile.dt) / 3600.0)
-    out["coulombic_efficiency"] = _linear_one("coulombic_efficiency", res, du * ah_charge / q, sse_null,
-                                              lambda b: {"eta_c": 1.0 + b}, "U'(z)·Ah_charge/Q",
-                                              bounds["coulombic_efficiency"])
+    out["coulombic_efficiency"] = _linear("coulombic_efficiency", res, [du * ah_charge / q], sse_null,
+                                          lambda b: {"eta_c": 1.0 + b[0]}, "U'(z)·Ah_charge/Q",
+                                          bounds["coulombic_efficiency"])
     u1 = float(model.ocv(1.0))
     leak = res.cat(lambda tr: _running_integral(tr.ocv / u1, tr.profile.dt) / 3600.0)
-    out["self_discharge"] = _linear_one("self_discharge", res, du * leak, sse_null, lambda b: {"rate": -b},
-                                        "U'(z)·∫U/U(1)dt", bounds["self_discharge"])
+    out["self_discharge"] = _linear("self_discharge", res, [du * leak], sse_null, lambda b: {"rate": -b[0]},
+                                    "U'(z)·∫U/U(1)dt", bounds["self_discharge"])
 
     # hysteresis: Plett's h for a grid of (γ, h0) and the sign memory s_k (sgn I_k while moving, else s_{k−1}),
     # with M > 0 (the charge branch lies above the discharge branch)

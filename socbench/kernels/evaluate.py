@@ -1001,23 +1001,35 @@ def output_loaded(im, fm, x, i, temp, has_temp, jac, H, work):
     nb = im[H_NB]
     cap = fm[F_CAP]
     tab = im[H_EFFECTS]
-    for e in range(neff):  # output scaling: temperature [Ea, dUdT, t_ref]
-        if im[tab + EFFECT_WIDTH * e] == 1:
-            v = im[tab + EFFECT_WIDTH * e + 3]
+    k = 1.0  # the over-potential factor: the product of temperature's k(T) and capacity's 1 + g
+    scaled = False
+    for e in range(neff):
+        code = im[tab + EFFECT_WIDTH * e]
+        v = im[tab + EFFECT_WIDTH * e + 3]
+        if code == 1:  # temperature [Ea, dUdT, t_ref]
             t_ref = fm[v + 2]
             tk = (temp if has_temp else t_ref) + KELVIN
-            k = math.exp(fm[v] / R_GAS * (1.0 / tk - 1.0 / (t_ref + KELVIN)))
-            y = (1.0 - k) * u + k * y + fm[v + 1] * (tk - KELVIN - t_ref)
-            D = k * D  # D is returned with or without the Jacobians (the particle filter's R reads it)
-            if jac:
-                for c in range(nb):
-                    H[c] = k * H[c]
-                H[0] += (1.0 - k) * du
+            k = k * math.exp(fm[v] / R_GAS * (1.0 / tk - 1.0 / (t_ref + KELVIN)))
+            scaled = True
+        elif code == 3 and fm[v] != 0.0:  # capacity [r_growth]: a fade alone leaves the output as it is
+            k = k * (1.0 + fm[v])
+            scaled = True
+    if scaled:  # y = U + K·(h_base − U)
+        y = u + k * (y - u)
+        D = k * D  # D is returned with or without the Jacobians (the particle filter's R reads it)
+        if jac:
+            for c in range(nb):
+                H[c] = k * H[c]
+            H[0] += (1.0 - k) * du
     for e in range(neff):  # additive terms
         code = im[tab + EFFECT_WIDTH * e]
         s0 = im[tab + EFFECT_WIDTH * e + 1]
         v = im[tab + EFFECT_WIDTH * e + 3]
-        if code == 2:  # hysteresis [M, M0, gamma, h_ref]
+        if code == 1:  # temperature's entropic term
+            t_ref = fm[v + 2]
+            tk = (temp if has_temp else t_ref) + KELVIN
+            y = y + fm[v + 1] * (tk - KELVIN - t_ref)
+        elif code == 2:  # hysteresis [M, M0, gamma, h_ref]
             moving = abs(ie) > cap / 100.0
             s = sign(ie) if moving else x[s0 + 1]
             y = y + (fm[v] * (x[s0] - fm[v + 3]) + fm[v + 1] * (s + fm[v + 3]))

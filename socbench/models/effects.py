@@ -11,16 +11,20 @@ How the pieces compose in one step (``i`` the measured current, ``T`` the measur
     z⁺  = z + G·(z_b⁺ − z) − Σ leak                      capacity (G ∋ c), coulombic_efficiency (G ∋ η_c on charge),
                                                          self_discharge (leak)
     e⁺  = f_e(e, z, i_e)                                 the effects' own states (hysteresis h, s; extra RC U_x; c; b)
-    y   = (1 − k(T))·U(z) + k(T)·h_base(x_b, i_e) + ΔS·(T − T_ref) + Σ terms(e, z, i_e, T)
+    y   = U(z) + K·(h_base(x_b, i_e) − U(z)) + Σ terms(e, z, i_e, T)
+    K   = Π over-potential factors = k(T)·(1 + g)           temperature's Arrhenius k(T) (its entropic ΔS·(T − T_ref)
+                                                         is one of the terms), capacity's resistance growth g
 
 and for the bias state (``b`` enters only through ``i_e``): ``∂x⁺/∂b = −∂x⁺/∂i_e``, ``∂y/∂b = −∂y/∂i_e``, which needs
-the base model's ``B = ∂f/∂I`` and ``D = ∂h/∂I``.
+the base model's ``B = ∂f/∂I`` and ``D = ∂h/∂I``. The over-potential factors multiply, so they compose in any order:
+``H = K·H_base + (1 − K)·U'(z)·e_z``, ``D = K·D_base``.
 
 Effects (ECM_SPEC §9 numbering in brackets):
 
 * :class:`Temperature` [2] — Arrhenius scaling of the over-potential plus an entropic OCV term.
 * :class:`Hysteresis` [1] — Plett's one-state dynamic + instantaneous hysteresis (states ``h``, ``s``).
-* :class:`Capacity` [3] — capacity fade / wrong declared capacity: a random-walk state ``cap`` = Q_model/Q_true.
+* :class:`Capacity` [3] — capacity fade / wrong declared capacity: a random-walk state ``cap`` = Q_model/Q_true, and
+  the resistance growth ``g`` of ageing that comes with a fade (the over-potential scaled by ``1 + g``).
 * :class:`CurrentBias` [4] — current-sensor offset ``b`` as a random-walk state.
 * :class:`ExtraRC` [7] — a further RC branch ``U_x`` (diffusion), built with ``blocks.rc_coefficients``.
 * :class:`ButlerVolmer` [6] — asinh charge-transfer over-potential (no state).
@@ -32,6 +36,7 @@ Effects (ECM_SPEC §9 numbering in brackets):
 
 from __future__ import annotations
 
+import math
 from typing import ClassVar
 
 import numpy as np
@@ -151,8 +156,9 @@ class Effect:
         """Continuous-time leak ``ż`` (self_discharge), or None."""
         return None
 
-    def scale_output(self, y, H, D, z, temp, base, jac):
-        """Transform the base output (temperature): returns ``(y, H_b, H_z, D)``, or None."""
+    def overpotential_factor(self, temp, shape):
+        """The factor ``K_e`` on the base model's over-potential ``h_base − U(z)`` (temperature, resistance growth),
+        broadcast to ``shape``, or None (no factor). The model scales by the product of every effect's."""
         return None
 
     def output_term(self, e, z, i, temp, base, jac):
@@ -187,7 +193,9 @@ class Temperature(Effect):
     input means ``T = T_ref`` (``k = 1``). Parameters: ``Ea`` [J/mol], ``dUdT`` [V/K] (pack: cells × per-cell),
     setting ``t_ref`` [°C] (the temperature the base model was fitted at).
 
-    Jacobians: ``H = (1 − k)U'(z)·e_z + k·H_base``, ``D = k·D_base``.
+    Jacobians: ``H = (1 − k)U'(z)·e_z + k·H_base``, ``D = k·D_base``. ``k`` is the effect's over-potential factor
+    (:meth:`overpotential_factor`, composed with any other by :class:`AugmentedModel`); the entropic term is its
+    output term.
     """
 
     name = "temperature"
@@ -206,13 +214,14 @@ class Temperature(Effect):
         tk = _temp_k(temp, self["t_ref"], shape)
         return np.exp(self["Ea"] / R_GAS * (1.0 / tk - 1.0 / (self["t_ref"] + KELVIN))), tk
 
-    def scale_output(self, y, H, D, z, temp, base, jac):
-        k, tk = self.factor(temp, np.shape(y))
-        u, du = base.ocv.value_and_slope(z, temp)
-        y = (1.0 - k) * u + k * y + self["dUdT"] * (tk - KELVIN - self["t_ref"])
+    def overpotential_factor(self, temp, shape):
+        return self.factor(temp, shape)[0]
+
+    def output_term(self, e, z, i, temp, base, jac):
+        dy = self["dUdT"] * (_temp_k(temp, self["t_ref"], np.shape(z)) - KELVIN - self["t_ref"])
         if not jac:
-            return y, None, None, None
-        return y, k[..., None] * H, (1.0 - k) * du, k * D
+            return dy, None, None, None
+        return dy, np.zeros(dy.shape + (0,)), np.zeros(dy.shape), np.zeros(dy.shape)
 
 
 class Hysteresis(Effect):
@@ -294,28 +303,44 @@ class Hysteresis(Effect):
 
 
 class Capacity(Effect):
-    """Capacity fade or a wrong declared capacity (ECM_SPEC §9.3): state ``cap = Q_model/Q_true`` (random walk).
+    """Capacity fade or a wrong declared capacity (ECM_SPEC §9.3): state ``cap = Q_model/Q_true`` (random walk), and
+    the resistance growth that comes with ageing.
 
     ``z⁺ = z + cap·(z_base⁺ − z)`` — the base SOC increment (computed with the declared Q) is scaled.
     ``∂z⁺/∂cap = z_base⁺ − z``; ``∂z⁺/∂I = cap·B_base[z]``; ``cap⁺ = cap``. Parameter ``cap0`` is its initial value.
+
+    Ageing (SEI growth) fades the capacity and raises the resistances together. With every resistance grown by
+    ``1 + g`` and every capacitance shrunk by it (time constants unchanged), every RC state grows by ``1 + g`` too, so
+    the whole over-potential does — exactly, the mechanism of :class:`Temperature`'s ``k(T)``:
+    ``y = U(z) + (1 + g)·(h_base(x, I) − U(z))``, the over-potential factor ``1 + g`` (:meth:`overpotential_factor`).
+    Jacobians ``H = (1 + g)·H_base − g·U'(z)·e_z``, ``D = (1 + g)·D_base``. Parameter ``r_growth = g ≥ 0`` (default 0:
+    a fade alone, or a wrong declared capacity).
     """
 
     name = "capacity"
     state_names = ("cap",)
-    param_names = ("cap0",)
-    defaults = {"cap0": 1.0}
+    param_names = ("cap0", "r_growth")
+    defaults = {"cap0": 1.0, "r_growth": 0.0}
     state_sd = (0.01,)
     walk_sd = (0.0,)
     initial_params = {"cap": "cap0"}
+    #: a fit of the base model's own parameters scales every resistance itself: the growth is not told from it
+    joint_params = ("cap0",)
 
     def bounds(self, model):
-        return {"cap0": (0.6, 1.6)}
+        # up to doubled resistances: end of life (20 % fade) comes with some tens of percent growth
+        return {"cap0": (0.6, 1.6), "r_growth": (0.0, 1.0)}
 
     def initial(self):
         return self["cap0"][..., None]
 
     def kernel_values(self, base):
-        return ()
+        return (self["r_growth"],)
+
+    def overpotential_factor(self, temp, shape):
+        g = self["r_growth"]
+        # a fade alone (g = 0 in every variant) leaves the output untouched, bit for bit
+        return None if not np.any(g) else np.broadcast_to(1.0 + g, shape)
 
     def soc_gain(self, e, i, base):
         return e[..., 0], np.ones(e.shape)
@@ -898,13 +923,15 @@ class AugmentedModel(Model):
         if jac:
             H = np.zeros(x.shape)
             H[..., :nb] = Hb
-        for e in self.effects:
-            out = e.scale_output(y, H[..., :nb] if jac else None, D, z, tmp, self.base, jac)
-            if out is not None:
-                y, Hs, Hz, D = out
-                if jac:
-                    H[..., :nb] = Hs
-                    H[..., 0] += Hz
+        factors = [k for k in (e.overpotential_factor(tmp, y.shape) for e in self.effects) if k is not None]
+        if factors:  # y = U + K·(h_base − U), K the product of the effects' factors
+            k = math.prod(factors)
+            u, du = self.base.ocv.value_and_slope(z, tmp)
+            y = u + k * (y - u)
+            D = None if D is None else k * D
+            if jac:
+                H[..., :nb] *= k[..., None]
+                H[..., 0] += (1.0 - k) * du
         for e, sl in zip(self.effects, self._slices):
             out = e.output_term(x[..., sl], z, ie, tmp, self.base, jac)
             if out is not None:
