@@ -1038,9 +1038,9 @@ def write_doc(path: Path, v: dict):
           "states explain moves little. The same property is its weakness: a particle cloud's spread depends on "
           "the data, and under an error its noise does not describe (a constant current-sensor offset declared as "
           "white noise) reweighting narrows the cloud and the SOC follows the voltage more slowly than the EKF's, "
-          "whose covariance never looks at the data. On the recipe's calibration records (a known coloured error "
-          "planted, `tests/test_rbpf.py`) its band holds the truth 90–100 % of the time, as the EKF's does, where "
-          "the bootstrap PF's does not.\n")
+          "whose covariance never looks at the data (docs/estimators.md, section 4: the current-bias scenario). On "
+          "the recipe's calibration records (a known coloured error planted, `tests/test_rbpf.py`) its band holds "
+          "the truth 90–100 % of the time, as the EKF's does, where the bootstrap PF's does not.\n")
     w("\n![SOC error with ±3σ](figures/real_data_soc_error.png)\n")
     w("*SOC error (data axis) of the EKF and UKF with their ±3σ bands, per temperature; left the five-temperature "
       "fit, right the 25 °C fit.*\n")

@@ -110,6 +110,49 @@ def shrink(X: np.ndarray, mean: np.ndarray, root: np.ndarray, h: float, eps: np.
     return a * X + (1.0 - a) * mean[..., None, :] + h * np.einsum("...ij,...pj->...pi", root, eps)
 
 
+def progressive_correction(X, w, ll, gated, opt: dict, stage_draws, relikelihood):
+    """Weights ``w ∝ w · L`` (``L = e^ll``, per particle) for the rows not gated, by progressive correction (Oudjane &
+    Musso 2000); the particle filters' shared measurement step.
+
+    When the full likelihood would leave fewer than ``temper_threshold·N`` effective particles (a peaked likelihood on
+    a wide cloud: a far-off start), it is applied in stages ``L^φ1 · L^φ2 ⋯`` (Σφ = 1): each ``φ`` is the largest
+    keeping ``N_eff ≥ resample_threshold·N`` (bisection), and between stages the cloud is resampled (systematic) and
+    spread by the shrinkage kernel (``temper_h``), then ``relikelihood(rows, moved particles)`` gives the moved rows'
+    log-likelihood. At most ``max_stages`` stages; the last takes what is left. ``opt``: the filter's options.
+    Returns ``(X, w, stages (M,))``.
+    """
+    N = X.shape[1]
+    target = opt["resample_threshold"] * N
+    accept = opt["temper_threshold"] * N
+    lw = np.log(w)
+    left = np.where(gated, 0.0, 1.0)
+    stages = np.zeros(X.shape[0], dtype=int)
+    max_stages = max(int(opt["max_stages"]), 1)
+    for s in range(max_stages):
+        active = left > 0
+        if not active.any():
+            break
+        phi = left if s == max_stages - 1 else temper_exponent(lw, ll, left, accept, target)
+        phi = np.where(active, phi, 0.0)
+        lw = normalise_log(lw + phi[:, None] * ll)
+        left = left - phi
+        stages += active
+        part = left > 0
+        if part.any():
+            u, eps = stage_draws(s)
+            w = np.exp(lw)
+            mean, root = weighted_mean_root(X[part], w[part])
+            idx = systematic_indices(w[part], u[part])
+            Xp = shrink(np.take_along_axis(X[part], idx[:, :, None], axis=1), mean, root, opt["temper_h"], eps[part])
+            _clamp_particles(Xp)
+            X = X.copy()
+            X[part] = Xp
+            lw[part] = -np.log(N)
+            ll = ll.copy()
+            ll[part] = relikelihood(part, Xp)
+    return X, np.exp(lw), stages
+
+
 class ParticleFilter(Estimator):
     """Batched bootstrap particle filter."""
 
@@ -155,48 +198,16 @@ class ParticleFilter(Estimator):
 
     # ------------------------------------------------------------------ measurement update with tempering
     def assimilate(self, X, w, ll, gated, v, i, temp, stage_draws):
-        """Weights ``w ∝ w · L`` for the rows not gated, by progressive correction (Oudjane & Musso 2000).
+        """Weights ``w ∝ w · L`` for the rows not gated, by :func:`progressive_correction`; the moved particles'
+        likelihood is the model's output at them against ``v``. Returns ``(X, w, stages (M,))``. Rows are
+        independent, so a per-run caller (the reference) gets the same numbers from a one-row slice."""
 
-        When the full likelihood ``L = e^ll`` would leave fewer than ``temper_threshold·N`` effective particles (a
-        peaked likelihood on a wide cloud: a far-off start), it is applied in stages ``L^φ1 · L^φ2 ⋯`` (Σφ = 1): each
-        ``φ`` is the largest keeping ``N_eff ≥ resample_threshold·N`` (bisection), and between stages the cloud is
-        resampled (systematic) and spread by the shrinkage kernel (``temper_h``), then ``ll`` re-evaluated on the
-        moved particles. At most ``max_stages`` stages; the last takes what is left. Returns ``(X, w, stages (M,))``.
-        Rows are independent, so a per-run caller (the reference) gets the same numbers from a one-row slice.
-        """
-        opt, N = self.options, X.shape[1]
-        target = opt["resample_threshold"] * N
-        accept = opt["temper_threshold"] * N
-        lw = np.log(w)
-        left = np.where(gated, 0.0, 1.0)
-        stages = np.zeros(X.shape[0], dtype=int)
-        max_stages = max(int(opt["max_stages"]), 1)
-        for s in range(max_stages):
-            active = left > 0
-            if not active.any():
-                break
-            phi = left if s == max_stages - 1 else temper_exponent(lw, ll, left, accept, target)
-            phi = np.where(active, phi, 0.0)
-            lw = normalise_log(lw + phi[:, None] * ll)
-            left = left - phi
-            stages += active
-            part = left > 0
-            if part.any():
-                u, eps = stage_draws(s)
-                w = np.exp(lw)
-                mean, root = weighted_mean_root(X[part], w[part])
-                idx = systematic_indices(w[part], u[part])
-                Xp = shrink(np.take_along_axis(X[part], idx[:, :, None], axis=1), mean, root, opt["temper_h"],
-                            eps[part])
-                _clamp_particles(Xp)
-                X = X.copy()
-                X[part] = Xp
-                lw[part] = -np.log(N)
-                tp = None if temp is None else temp[part][:, None]
-                Yp, _, Dp = self.model.output(Xp, i[part][:, None], tp, jac=self.noise.needs_D)
-                ll = ll.copy()
-                ll[part] = log_likelihood(v[part][:, None], Yp, self.noise.R(Dp, Yp.shape))
-        return X, np.exp(lw), stages
+        def relikelihood(part, Xp):
+            tp = None if temp is None else temp[part][:, None]
+            Yp, _, Dp = self.model.output(Xp, i[part][:, None], tp, jac=self.noise.needs_D)
+            return log_likelihood(v[part][:, None], Yp, self.noise.R(Dp, Yp.shape))
+
+        return progressive_correction(X, w, ll, gated, self.options, stage_draws, relikelihood)
 
     # ------------------------------------------------------------------ the time loop
     def _run(self, inputs, x0, P0, seed=None) -> Estimate:

@@ -12,7 +12,9 @@ the same for every particle and its conditional covariance ``P_L`` is one per ru
              H_L = ∂h/∂x_L at [z̄, m̄],  R_k = σ_V² + σ_I² D²,  S_c = H_L P_L H_Lᵀ + R_k    (one per run)
              ŷ = Σ w_j Y_j,   S = Σ w_j (Y_j − ŷ)² + S_c,   e = v_k − ŷ,   NIS = e²/S     (the mixture's)
              where the χ² gate passes:
-               w_j ← w_j · N(v_k; Y_j, S_c) / Σ(…)
+               w_j ← w_j · N(v_k; Y_j, S_c) / Σ(…)      (in tempered stages with resampling and the shrinkage kernel
+                                                        between them where it would leave N_eff < temper_threshold·N:
+                                                        progressive correction, as the bootstrap PF's ``assimilate``)
                K = P_L H_Lᵀ / S_c,   m_j ← m_j + K (v_k − Y_j),   P_L ← (I − K H_L) P_L (I − K H_L)ᵀ + K R_k Kᵀ
              report ẑ = Σ w_j z_j,  σ_z² = Σ w_j (z_j − ẑ)²;  x̄_L = Σ w_j m_j,  var = diag P_L + Σ w_j (m_j − x̄_L)²
     resample where N_eff = 1/Σ w_j² < threshold·N: systematic (as the PF), then the shrinkage kernel on the pairs
@@ -26,8 +28,7 @@ the same for every particle and its conditional covariance ``P_L`` is one per ru
 Conditioned on the sampled current noise the linear states move deterministically (``m_j⁺ = A m_j + B_L I_j``), so
 ``Q_L`` holds only their own random walks (the recipe's coloured-error states); ``q_z`` is the SOC's walk. A ``Q``
 override array splits the same way (its SOC–state cross terms are left out). For a model whose other states are not
-linear (none of the 14 ECMs once scheduled), the update and prediction of ``P_L`` are the EKF's linearisation at the
-mean.
+linear, the update and prediction of ``P_L`` are the EKF's linearisation at the mean.
 
 Why it exists: the bootstrap PF (:mod:`~socbench.estimators.pf`) cannot carry the recipe's coloured states (five
 near-deterministic dimensions collapse onto a few particles), so it takes the model error as white noise and its
@@ -35,7 +36,7 @@ band is far too narrow where the error persists. Here the coloured states sit in
 the particles resolve one dimension. Numpy engine only. Random numbers are the PF's counter-based draws
 (:mod:`socbench.estimators.draws`).
 
-What it does not do (measured in ``tests/test_rbpf.py`` and docs/real_data.md): like every particle filter, its spread
+What it does not do (measured in docs/estimators.md, its current-bias scenario): like every particle filter, its spread
 depends on the data. Under a model that is wrong in a way its noise does not describe (a constant current-sensor
 offset declared as white noise), reweighting concentrates the cloud and the SOC follows the voltage more slowly than
 the EKF's, whose covariance never looks at the data.
@@ -49,7 +50,14 @@ from ..errors import ConfigError
 from .base import Estimator, equilibrium, restore
 from .draws import StepDraws
 from .estimate import Estimate
-from .pf import _clamp_particles, log_likelihood, normalise_log, shrink, systematic_indices, weighted_mean_root
+from .pf import (
+    _clamp_particles,
+    log_likelihood,
+    progressive_correction,
+    shrink,
+    systematic_indices,
+    weighted_mean_root,
+)
 from .safety import diverged, symmetrise
 
 
@@ -57,7 +65,8 @@ class RaoBlackwellPF(Estimator):
     """Batched marginalised particle filter: SOC particles, a shared-covariance Kalman filter for the other states."""
 
     name = "rbpf"
-    defaults = {"n_particles": 200, "resample_threshold": 0.5, "kernel_h": 0.3}
+    defaults = {"n_particles": 200, "resample_threshold": 0.5, "kernel_h": 0.3, "max_stages": 8,
+                "temper_threshold": 0.2, "temper_h": 0.5}
 
     def __init__(self, model, noise=None, **options):
         super().__init__(model, noise, **options)
@@ -66,8 +75,8 @@ class RaoBlackwellPF(Estimator):
             raise ConfigError("rbpf: n_particles must be >= 2")
         if not 0 <= o["resample_threshold"] <= 1:
             raise ConfigError("rbpf: resample_threshold must be in [0, 1] (a fraction of n_particles)")
-        if not 0 <= o["kernel_h"] < 1:
-            raise ConfigError("rbpf: kernel_h must be in [0, 1)")
+        if not 0 <= o["kernel_h"] < 1 or not 0 <= o["temper_h"] < 1:
+            raise ConfigError("rbpf: kernel_h and temper_h must be in [0, 1)")
         if callable(self.noise.Q_override):
             raise ConfigError("rbpf: Q must be an (n, n) array for the particle filter (no callable)")
         self.n_particles = int(o["n_particles"])
@@ -77,6 +86,30 @@ class RaoBlackwellPF(Estimator):
         (the current noise is sampled, so neither holds it; a Q override: its diagonal block and its SOC entry)."""
         Q = np.broadcast_to(self.noise.Q(np.zeros((R, self.n)), dt), (R, self.n, self.n))
         return Q[:, 0, 0], Q[:, 1:, 1:]
+
+    def _outputs(self, X, zbar, i, temp, temp_p):
+        """``Y_j = h([z̄, m_j], I) + E(z_j) − E(z̄)`` (R, N): each particle's output at the mean's parameters."""
+        Xs = X.copy()
+        Xs[..., 0] = zbar[:, None]
+        return (self.model.output(Xs, i[:, None], temp_p, jac=False)[0] + equilibrium(self.model, X[..., 0], temp_p)[0]
+                - equilibrium(self.model, zbar, temp)[0][:, None])
+
+    def _weigh(self, X, w, Y, Sc, gated, v, zbar, i, temp, temp_p, stage_draws):
+        """Weights ``w ∝ w·N(v; Y_j, S_c)`` for the rows not gated, by the particle filters' progressive correction
+        (:func:`~socbench.estimators.pf.progressive_correction`: tempered stages where the full likelihood would leave
+        too few effective particles, the kernel on ``(z, m)`` between them, the moved particles' outputs evaluated
+        again). A far-off start otherwise leaves a few particles, a cloud narrower than the posterior, that the SOC's
+        small process noise never widens again. Returns ``(X, w, Y, stages (R,))``."""
+        Y = Y.copy()
+
+        def relikelihood(part, Xp):
+            tp = None if temp is None else temp[part]
+            Y[part] = self._outputs(Xp, zbar[part], i[part], tp, None if tp is None else tp[:, None])
+            return log_likelihood(v[part][:, None], Y[part], Sc[part][:, None])
+
+        X, w, stages = progressive_correction(X, w, log_likelihood(v[:, None], Y, Sc[:, None]), gated, self.options,
+                                              stage_draws, relikelihood)
+        return X, w, Y, stages
 
     def _run(self, inputs, x0, P0, seed=None) -> Estimate:
         m, opt, noise = self.model, self.options, self.noise
@@ -102,6 +135,7 @@ class RaoBlackwellPF(Estimator):
         threshold = opt["resample_threshold"] * N
         h = opt["kernel_h"]
         resampled = np.zeros(R, dtype=int)
+        staged = np.zeros(R, dtype=int)
         eye = np.eye(n - 1)
         with np.errstate(all="ignore"):
             for k in range(T):
@@ -112,10 +146,7 @@ class RaoBlackwellPF(Estimator):
                 mean = np.einsum("rp,rpi->ri", w, X)
                 mean[:, 0] = zbar
                 # ---------------------------------------------------------------- update
-                Xs = X.copy()
-                Xs[..., 0] = zbar[:, None]
-                Y = (m.output(Xs, ik[:, None], tk_p, jac=False)[0] + equilibrium(m, X[..., 0], tk_p)[0]
-                     - equilibrium(m, zbar, tk)[0][:, None])
+                Y = self._outputs(X, zbar, ik, tk, tk_p)
                 _, H, D = m.output(mean, ik, tk, jac=True)
                 HL = H[:, 1:]
                 Rk = noise.R(D, (R,))
@@ -128,11 +159,11 @@ class RaoBlackwellPF(Estimator):
                 gated = gate(nis)
                 ok = ~gated
                 if ok.any():
-                    r_j = vk[:, None] - Y
-                    lw = normalise_log(np.log(w) + log_likelihood(vk[:, None], Y, Sc[:, None]))
-                    w = np.where(ok[:, None], np.exp(lw), w)
+                    X, w, Y, n_stages = self._weigh(X, w, Y, Sc, gated, vk, zbar, ik, tk, tk_p,
+                                                    lambda s, k=k: draws.stage(k, s))
+                    staged += (n_stages > 1) & ~rec.failed
                     K = np.einsum("rij,rj->ri", PL, HL) / Sc[:, None]
-                    X[..., 1:] += np.where(ok[:, None, None], K[:, None, :] * r_j[..., None], 0.0)
+                    X[..., 1:] += np.where(ok[:, None, None], K[:, None, :] * (vk[:, None] - Y)[..., None], 0.0)
                     A = eye - K[:, :, None] * HL[:, None, :]
                     PLu = symmetrise(A @ PL @ np.swapaxes(A, -1, -2) + Rk[:, None, None] * K[:, :, None] * K[:, None])
                     PL = np.where(ok[:, None, None], PLu, PL)
@@ -184,4 +215,4 @@ class RaoBlackwellPF(Estimator):
                 np.copyto(w_good, w, where=~failed[:, None])
                 np.copyto(PL_good, PL, where=~failed[:, None, None])
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold, "n_particles": N,
-                                         "resampled": resampled, "seed": draws.seed})
+                                         "resampled": resampled, "tempered": staged, "seed": draws.seed})
