@@ -70,18 +70,23 @@ CONFIGS = [
 ]
 
 
-@pytest.mark.parametrize("cfg", range(len(CONFIGS)))
-def test_recipe_band_holds_the_truth_with_a_known_model_error(cfg):
-    rng = np.random.default_rng(100 + cfg)
-    err = dict(CONFIGS[cfg])
-    # randomise around the configuration: this is a family of cells and errors, not one hand-picked case
-    err = {k: v * rng.uniform(0.7, 1.4) for k, v in err.items()}
+def calibration_case(rng, cfg: int, n_test: int):
+    """``(model, err, stats, test, sensor, guess)``: configuration ``cfg`` randomised around its values (a family of
+    cells and errors, not one hand-picked case), the recipe measured on 6 validation draws at the true SOC, ``n_test``
+    fresh draws, the sensor, and a guess 5 points (SD) off the true initial SOC."""
+    err = {k: v * rng.uniform(0.7, 1.4) for k, v in CONFIGS[cfg].items()}
     model = make_model("thevenin", paper_params("thevenin"))
     validation = _draws(model, rng, 6, err)
     stats = recipe.estimate(model, [validation.run(r) for r in range(validation.n_runs)])
-    test = _draws(model, rng, 40, err)
+    test = _draws(model, rng, n_test, err)
     sensor = SensorNoise(voltage_sd=err["white_sd"], current_sd=0.01)
     guess = np.clip(test.soc_ref[:, 0] + rng.normal(0.0, 0.05, test.n_runs), 0, 1)
+    return model, err, stats, test, sensor, guess
+
+
+@pytest.mark.parametrize("cfg", range(len(CONFIGS)))
+def test_recipe_band_holds_the_truth_with_a_known_model_error(cfg):
+    model, err, stats, test, sensor, guess = calibration_case(np.random.default_rng(100 + cfg), cfg, 40)
     covered = {}
     for noise in ("model", "sensor"):
         m, n = recipe.apply(model, sensor, stats, test, noise=noise)
@@ -260,19 +265,12 @@ def test_particle_filter_takes_the_recipe_as_an_inflated_white_r(cfg):
 
     assert estimator_class("pf").model_error_form == "inflated"
     assert estimator_class("ekf").model_error_form == "states"
-    rng = np.random.default_rng(600 + cfg)
-    err = {k: v * rng.uniform(0.7, 1.4) for k, v in CONFIGS[cfg].items()}
-    model = make_model("thevenin", paper_params("thevenin"))
-    validation = _draws(model, rng, 6, err)
-    stats = recipe.estimate(model, [validation.run(r) for r in range(validation.n_runs)])
-    test = _draws(model, rng, 12, err)
-    sensor = SensorNoise(voltage_sd=err["white_sd"], current_sd=0.01)
+    model, err, stats, test, sensor, guess = calibration_case(np.random.default_rng(600 + cfg), cfg, 12)
     m, n = recipe.apply(model, sensor, stats, test, form="inflated")
     assert m is model
     parts = stats.summary()
     floor = parts["white"][0] ** 2 + parts["slow"][0] ** 2 + parts["fast"][0] ** 2
     assert n.voltage_sd ** 2 >= floor * (1 - 1e-12) and n.voltage_sd >= sensor.voltage_sd
-    guess = np.clip(test.soc_ref[:, 0] + rng.normal(0.0, 0.05, test.n_runs), 0, 1)
     pf = score(make_estimator("pf", m, n, soc0_sd=0.05, n_particles=200).run(test, soc0=guess, seed=3), test)
     ms, ns = recipe.apply(model, sensor, stats, test, form="states")
     ekf = score(make_estimator("ekf", ms, ns, soc0_sd=0.05).run(test, soc0=guess), test)

@@ -19,19 +19,12 @@ from socbench.estimators.scoring import score
 from socbench.models import make_model, paper_params
 from socbench.profile import Profile
 
-from .test_model_error import CONFIGS, _draws
+from .test_model_error import calibration_case
 
 
 @pytest.mark.parametrize("cfg", [1, 3])  # an ordinary error, and one more persistent than the record
 def test_rbpf_band_holds_the_truth_with_a_known_model_error(cfg):
-    rng = np.random.default_rng(200 + cfg)
-    err = {k: v * rng.uniform(0.7, 1.4) for k, v in CONFIGS[cfg].items()}
-    model = make_model("thevenin", paper_params("thevenin"))
-    validation = _draws(model, rng, 6, err)
-    stats = recipe.estimate(model, [validation.run(r) for r in range(validation.n_runs)])
-    test = _draws(model, rng, 16, err)
-    sensor = SensorNoise(voltage_sd=err["white_sd"], current_sd=0.01)
-    guess = np.clip(test.soc_ref[:, 0] + rng.normal(0.0, 0.05, test.n_runs), 0, 1)
+    model, err, stats, test, sensor, guess = calibration_case(np.random.default_rng(200 + cfg), cfg, 16)
     covered = {}
     for name, form in (("rbpf", "states"), ("pf", "inflated")):
         m, n = recipe.apply(model, sensor, stats, test, noise="model", form=form)

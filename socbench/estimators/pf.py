@@ -110,6 +110,25 @@ def shrink(X: np.ndarray, mean: np.ndarray, root: np.ndarray, h: float, eps: np.
     return a * X + (1.0 - a) * mean[..., None, :] + h * np.einsum("...ij,...pj->...pi", root, eps)
 
 
+def resample_rows(X, w, rows, u, h: float, K_rough: float, jitter):
+    """In place: systematic resampling of the runs ``rows`` (``u`` their offsets), weights reset to ``1/N``; then,
+    with ``h > 0``, the shrinkage kernel with the cloud's weighted mean and covariance from before resampling
+    (:func:`shrink`), else with ``K_rough > 0`` roughening (:func:`roughening_sd`). ``jitter()`` draws the kernel's
+    or the roughening's normals ``(rows, N, n)``, called only when one of them is used."""
+    N = X.shape[1]
+    Xr = X[rows]
+    if h > 0:
+        mean_r, root_r = weighted_mean_root(Xr, w[rows])
+    idx = systematic_indices(w[rows], u[rows])
+    Xr = np.take_along_axis(Xr, idx[:, :, None], axis=1)
+    w[rows] = 1.0 / N
+    if h > 0:
+        Xr = shrink(Xr, mean_r, root_r, h, jitter())
+    elif K_rough > 0:
+        Xr += roughening_sd(Xr, K_rough)[:, None, :] * jitter()
+    X[rows] = Xr
+
+
 def progressive_correction(X, w, ll, gated, opt: dict, stage_draws, relikelihood):
     """Weights ``w ∝ w · L`` (``L = e^ll``, per particle) for the rows not gated, by progressive correction (Oudjane &
     Musso 2000); the particle filters' shared measurement step.
@@ -255,18 +274,8 @@ class ParticleFilter(Estimator):
                 ess = 1.0 / np.sum(w * w, axis=1)
                 rs = (ess < threshold) & ~failed
                 if rs.any():
-                    Xr = X[rs]
-                    if h > 0:
-                        mean_r, root_r = weighted_mean_root(Xr, w[rs])
-                    idx = systematic_indices(w[rs], u[rs])
-                    Xr = np.take_along_axis(Xr, idx[:, :, None], axis=1)
-                    w[rs] = 1.0 / N
+                    resample_rows(X, w, rs, u, h, K_rough, lambda k=k, rs=rs: draws.roughening(k, rs))
                     resampled += rs
-                    if h > 0:
-                        Xr = shrink(Xr, mean_r, root_r, h, draws.roughening(k, rs))
-                    elif K_rough > 0:
-                        Xr += roughening_sd(Xr, K_rough)[:, None, :] * draws.roughening(k, rs)
-                    X[rs] = Xr
                 # ---------------------------------------------------------------- predict
                 i_p = ik[:, None] if sd_i is None else ik[:, None] + sd_i * eps_i
                 X = m.step(X, i_p, inputs.dt[k], tk_p)[0]

@@ -54,9 +54,7 @@ from .pf import (
     _clamp_particles,
     log_likelihood,
     progressive_correction,
-    shrink,
-    systematic_indices,
-    weighted_mean_root,
+    resample_rows,
 )
 from .safety import diverged, symmetrise
 
@@ -181,16 +179,9 @@ class RaoBlackwellPF(Estimator):
                 # ---------------------------------------------------------------- resample
                 ess = 1.0 / np.sum(w * w, axis=1)
                 rs = (ess < threshold) & ~failed
-                if rs.any():
-                    w_pre = w.copy()
-                    idx = systematic_indices(w[rs], u[rs])
-                    Xr = np.take_along_axis(X[rs], idx[:, :, None], axis=1)
-                    w[rs] = 1.0 / N
+                if rs.any():  # the kernel keeps the cloud's mean and covariance (SOC and states jointly)
+                    resample_rows(X, w, rs, u, h, 0.0, lambda k=k, rs=rs: draws.roughening(k, rs))
                     resampled += rs
-                    if h > 0:  # the cloud's mean and covariance kept (SOC and states jointly), duplicates made distinct
-                        mean_r, root_r = weighted_mean_root(X[rs], w_pre[rs])
-                        Xr = shrink(Xr, mean_r, root_r, h, draws.roughening(k, rs))
-                    X[rs] = Xr
                 # ---------------------------------------------------------------- predict
                 zbar = np.sum(w * X[..., 0], axis=1)
                 mean = np.einsum("rp,rpi->ri", w, X)
