@@ -7,7 +7,9 @@
    discharge branches when both are there, or with ``slow_ocv="discharge"`` the discharge branch, the paper's
    convention of rest points taken after discharge steps) and the capacity. The fit setting is chosen by validation
    on the evaluation records (:func:`~socbench.identify.select_fit`: constant mode with each sample weighting, then
-   the winner in lookup mode), so that the effects are not spent on base-fit error. Nothing is read from names or
+   the winner in lookup mode; with an OCV from the HPPC's rest points, the winner again with that curve refined
+   between the points from the record's discharge segments, :mod:`socbench.identify.pseudo_ocv`), so that the effects
+   are not spent on base-fit error. Nothing is read from names or
    metadata but the declared capacity.
 3. **Search** (:mod:`socbench.diagnose.search`): blocked cross-validation over every evaluation record
    (:func:`~socbench.diagnose.data.make_folds`), signatures, one bounded fit per fold, held-out scores, the forward
@@ -34,6 +36,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..identify import FIT_CANDIDATES, fit_model, ocv_from_slow_test, select_fit, validation_rmse
+from ..identify.pseudo_ocv import refine_ocv
 from ..models import make_model
 from ..models.base import T_REF_C
 from ..models.effects import EFFECTS
@@ -160,10 +163,21 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
                                  **FIT_CANDIDATES[sel.chosen])
         scores[lookup] = float(np.mean([validation_rmse(fits[lookup], r) for r in validation]))
         chosen = min(scores, key=scores.get)
+        if ocv is None:  # the OCV from the HPPC's rest points: its shape between them refined from the discharges
+            settings = {"mode": "lookup", "knots": LOOKUP_KNOTS, **FIT_CANDIDATES[sel.chosen]} if chosen == lookup \
+                else {"mode": "constant", **FIT_CANDIDATES[chosen]}
+            refined = refine_ocv(fits[chosen], prof)
+            if refined is not None:
+                name_r = f"{chosen}, OCV refined"
+                fits[name_r] = fit_model(name, prof, ocv=refined, capacity_ah=capacity, **settings)
+                scores[name_r] = float(np.mean([validation_rmse(fits[name_r], r) for r in validation]))
+                if scores[name_r] < scores[chosen]:
+                    chosen = name_r
+                    info["ocv"] += " refined between them from the discharge segments"
         res = fits[chosen]
-        info["selection"] = {"chosen": chosen if chosen == lookup else f"constant, {chosen}",
-                             "validation_rmse_v": {(k if k == lookup else f"constant, {k}"): v
-                                                   for k, v in scores.items()},
+        label = {k: (k if k.startswith("lookup") else f"constant, {k}") for k in scores}
+        info["selection"] = {"chosen": label[chosen],
+                             "validation_rmse_v": {label[k]: v for k, v in scores.items()},
                              "note": "each setting fitted on the fit record; mean open-loop RMSE on the evaluation "
                                      "records (no parameter fitted on them)"}
     else:

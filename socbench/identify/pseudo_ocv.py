@@ -1,0 +1,120 @@
+"""The OCV between an HPPC's rest points, read from its discharge segments through a fitted model.
+
+An HPPC measures the OCV only at its rest points, 5–10 % of SOC apart; between them the monotone interpolant
+(ECM_SPEC §3.3) guesses. Where the curve bends within a step — the top of charge, LFP's steps between plateaus — the
+guess misses by tens of mV, and every model fitted on that curve carries the miss into each record it simulates.
+The constant-current discharges between the rests pass through those SOCs. With the model fitted on the record, the
+measured voltage plus the model's over-potential is the OCV there::
+
+    Û(z_k) = v_k + (U(z_k) − y_k) = U(z_k) + e_k          e = v − y, the fit's open-loop residual
+
+so the curve's correction at SOC ``z`` is the residual there: ``c(z)`` = the median of ``e`` over the discharge
+samples in a bin of width ``bin_soc`` (discharge only: the rest points follow discharge steps, the same hysteresis
+branch; the median ignores the edges of the pulses, where the dynamics err most).
+
+The over-potential carries the model's own error (a resistance off by δR moves ``Û`` by δR·I along a whole
+discharge); the rest points carry none. So the correction is **anchored**: on each interval between two rest points
+``z_a < z_b`` the straight line through its values at both ends is taken off::
+
+    c̃(z) = c(z) − [c(z_a) + (c(z_b) − c(z_a))·(z − z_a)/(z_b − z_a)]
+
+What every step shares is dynamics, not OCV: a branch the model lacks (or misfits) charges up along each step
+discharge alike, and a hysteresis state swings alike after each set of charge pulses, while the OCV's bends differ
+from step to step. So the median over the intervals of ``c̃`` at the same position ``u = (z − z_a)/(z_b − z_a)``
+within them comes off too (with at least three intervals to take it from). The refined curve — the rest points,
+and ``U(z_m) + c̃(z_m) − median shape(u_m)`` at the centres of the bins inside each interval (clipped to the
+voltages of its two rest points and made monotone by isotonic regression) — passes through every rest point as
+measured; only the shape between them comes from the load. PCHIP interpolates it like any OCV curve. Whether the
+refinement helps is for validation to say
+(:func:`socbench.diagnose.core.fit_base` keeps it only when it predicts the validation records better).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..models.registry import make_model
+from ..ocv import OCVCurve, monotone_points
+from ..profile import Profile
+from .fit import FitResult, setup_fit
+
+#: SOC bin of the correction (0.5 %: ten points in a 5 % HPPC step)
+BIN_SOC = 0.005
+#: samples a bin needs for its median to count
+MIN_BIN_SAMPLES = 3
+#: a discharge sample: current above this share of the record's median discharge current
+DISCHARGE_SHARE = 0.5
+#: intervals needed before their common shape is taken for dynamics (a median of fewer says nothing)
+MIN_INTERVALS = 3
+#: points of the common shape over the position within an interval
+COMMON_GRID = 21
+
+
+def refine_ocv(fit: FitResult, profile: Profile, bin_soc: float = BIN_SOC) -> OCVCurve | None:
+    """The OCV curve of ``fit`` refined between its points from the discharge segments of ``profile`` (the record it
+    was fitted on; see the module docstring), or None when the record holds no discharge between two of its points."""
+    ocv = fit.params.ocv
+    prob = setup_fit(fit.name, profile, "constant", ocv, fit.params.capacity_ah)
+    prof = prob.fit_profile(profile)
+    model = make_model(fit.name, fit.params)
+    with np.errstate(all="ignore"):
+        xs, y = model.open_loop(model.x0(prob.soc0), prof.time_s, prof.current_a, prof.temperature_c, prob.soc_jumps)
+    z, e, i = xs[..., 0], prof.voltage_v - y, prof.current_a
+    moving = i[i > 0]
+    if moving.size == 0:
+        return None
+    use = (i > DISCHARGE_SHARE * float(np.median(moving))) & np.isfinite(e) & (z > ocv.soc[0]) & (z < ocv.soc[-1])
+    if np.count_nonzero(use) < MIN_BIN_SAMPLES:
+        return None
+    edges = np.arange(ocv.soc[0], ocv.soc[-1] + bin_soc, bin_soc)
+    k = np.searchsorted(edges, z[use], side="right") - 1
+    centres, corr = [], []
+    for b in np.unique(k):
+        sel = k == b
+        if np.count_nonzero(sel) >= MIN_BIN_SAMPLES:
+            centres.append(float(np.mean(z[use][sel])))
+            corr.append(float(np.median(e[use][sel])))
+    if len(centres) < 2:
+        return None
+    centres, corr = np.asarray(centres), np.asarray(corr)
+    # anchor each interval between rest points: the line through the correction at its two ends comes off
+    anchors, anchor_v = np.asarray(ocv.soc, dtype=float), np.asarray(ocv.voltage, dtype=float)
+    at_anchor = np.interp(anchors, centres, corr)
+    intervals = []  # (interval, bin centres inside it, their anchored correction)
+    for a in range(anchors.size - 1):
+        za, zb = anchors[a], anchors[a + 1]
+        # the bins inside the interval, clear of its ends by half a bin (a rest point already stands there)
+        inside = (centres > za + 0.5 * bin_soc) & (centres < zb - 0.5 * bin_soc)
+        if np.any(inside):
+            zc = centres[inside]
+            line = at_anchor[a] + (at_anchor[a + 1] - at_anchor[a]) * (zc - za) / (zb - za)
+            intervals.append((a, zc, corr[inside] - line))
+    # what every step shares is dynamics, not OCV: the common shape over the position within the interval comes off
+    common = _common_shape([((zc - anchors[a]) / (anchors[a + 1] - anchors[a]), c) for a, zc, c in intervals])
+    points_z, points_v = [anchors], [anchor_v]
+    for a, zc, c in intervals:
+        u = (zc - anchors[a]) / (anchors[a + 1] - anchors[a])
+        # monotone within the interval and between its two rest points, which stay as measured
+        zi, vi = monotone_points(zc, np.clip(ocv(zc) + c - common(u), anchor_v[a], anchor_v[a + 1]))
+        points_z.append(zi)
+        points_v.append(vi)
+    zs, vs = np.concatenate(points_z), np.concatenate(points_v)
+    return OCVCurve(zs, vs, source=f"{ocv.source}; refined between its points from the discharge segments of "
+                                   f"{profile.meta.source or profile.name} (socbench.identify.pseudo_ocv)")
+
+
+def _common_shape(shapes):
+    """``u ↦`` the median over the intervals of their anchored corrections at the position ``u`` ∈ [0, 1] within the
+    interval (0 with fewer than :data:`MIN_INTERVALS` intervals to take it from)."""
+    grid = np.linspace(0.0, 1.0, COMMON_GRID)
+    rows = [np.interp(grid, u, c, left=np.nan, right=np.nan) for u, c in shapes if u.size >= 2]
+    if len(rows) < MIN_INTERVALS:
+        return lambda u: np.zeros_like(u)
+    rows = np.array(rows)
+    seen = np.isfinite(rows).any(axis=0)  # grid points some interval reaches (nanmedian warns on the others)
+    med = np.full(grid.size, np.nan)
+    med[seen] = np.nanmedian(rows[:, seen], axis=0)
+    ok = np.isfinite(med)
+    if np.count_nonzero(ok) < 2:
+        return lambda u: np.zeros_like(u)
+    return lambda u: np.interp(u, grid[ok], med[ok])
