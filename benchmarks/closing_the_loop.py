@@ -157,9 +157,9 @@ def _soc(d, name):
 HOW = (
     "How it decides (`socbench/diagnose/`): the base model is fitted on the fit data with the fit setting that "
     "validates best on the evaluation records (`socbench.identify.select_fit`: three sample weightings in constant "
-    "mode, then the winner with SOC-dependent lookup parameters; with an OCV from the HPPC's rest points, the winner "
-    "again with that curve refined between the points from the record's discharge segments, "
-    "`socbench.identify.pseudo_ocv`). Every evaluation record is averaged to at most "
+    "mode, then the winner with SOC-dependent lookup parameters; asked to (`refine_ocv=True`, off by default), with an "
+    "OCV from the HPPC's rest points, the winner again with that curve refined between the points from the record's "
+    "discharge segments, `socbench.identify.pseudo_ocv`). Every evaluation record is averaged to at most "
     "4000 bins and cut into 4 blocks of equal duration (blocked cross-validation): each candidate effect is fitted in "
     "its physical bounds 4 times, each time without one block, and scored on the block it did not see; the held-out "
     "RMSE is over every sample. Candidates are the effects whose residual signature explains the most variance "

@@ -6,13 +6,15 @@ fitted model predicts on another record of the same cell (a drive cycle it was n
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import numpy as np
 import pytest
 
-from socbench.diagnose.core import fit_base
+from socbench.diagnose.core import OCV_REFINE_GAIN, fit_base
 from socbench.identify import fit_model, validation_rmse
+from socbench.identify.fit import branch_time_constants
 from socbench.identify.pseudo_ocv import refine_ocv
 
 from . import hppc_records as H
@@ -48,7 +50,7 @@ def draws():
 def test_refined_curve_keeps_every_rest_point(draws):
     """Only the shape between the points comes from the load: the curve passes through each rest point as measured,
     and between two of them it stays within their voltages."""
-    for seed, rec, fit, ocv in draws:
+    for seed, _rec, fit, ocv in draws:
         assert ocv is not None, seed
         old = fit.params.ocv
         assert ocv.soc.size > old.soc.size, seed
@@ -75,18 +77,66 @@ def test_refined_curve_predicts_another_record_better(draws):
 
 
 def test_fit_base_keeps_the_refinement_only_when_it_validates_better():
-    """The diagnosis' base fit tries the refined curve beside the chosen setting and keeps whichever predicts the
-    evaluation records better; both scores are reported."""
+    """Asked to (``refine_ocv``), the diagnosis' base fit tries the refined curve beside the chosen setting and keeps
+    it when it predicts the evaluation records better by the search's own bar (and its branches are identified); both
+    scores are reported. Not asked, it does not try it."""
     for seed in (300, 303):
         rec = H.random_hppc(seed)
         drive = _drive(rec, seed)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            _, info = fit_base(_base(rec), [rec.profile], validation=[drive])
+            _, info = fit_base(_base(rec), [rec.profile], validation=[drive], refine_ocv=True)
         scores = info["selection"]["validation_rmse_v"]
         refined = [k for k in scores if k.endswith("OCV refined")]
         assert len(refined) == 1
         plain = refined[0][: -len(", OCV refined")]
-        best = refined[0] if scores[refined[0]] < scores[plain] else plain
+        kept = info["ocv_refined_branches_identified"] and scores[refined[0]] <= (1 - OCV_REFINE_GAIN) * scores[plain]
+        best = refined[0] if kept else plain
         assert info["selection"]["chosen"] == best
         assert ("refined" in info["ocv"]) == (best == refined[0])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            _, plain_info = fit_base(_base(rec), [rec.profile], validation=[drive])
+        assert not any("refined" in k for k in plain_info["selection"]["validation_rmse_v"])
+
+
+def test_branch_time_constants_are_r_times_c():
+    rec = H.random_hppc(301)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = fit_model("dp", rec.profile, mode="constant")
+    v = fit.params.values
+    taus = branch_time_constants(fit.params)
+    assert set(taus) == {"R1C1", "R2C2"}
+    for j in (1, 2):
+        assert taus[f"R{j}C{j}"] == pytest.approx(float(v[f"R{j}"](0.5)) * float(v[f"C{j}"](0.5)), rel=1e-12)
+
+
+def test_fit_base_rejects_a_refined_fit_whose_branch_is_slower_than_the_record(monkeypatch):
+    """A branch whose time constant exceeds the fit record's duration only ramps with the charge moved (a capacitor):
+    it stands in for the OCV's slope, so a refined fit that leans on one is not kept, whatever it validates to."""
+    import socbench.diagnose.core as core
+
+    rec = H.random_hppc(303)
+    drive = _drive(rec, 303)
+    original = core.fit_model
+
+    def degenerate_when_refined(name, prof, **kw):
+        fit = original(name, prof, **kw)
+        if "refined" not in (kw.get("ocv").source if kw.get("ocv") is not None else ""):
+            return fit
+        values = dict(fit.params.values)
+        values["C1"] = values["C1"].scaled(1e3 * prof.duration_s / branch_time_constants(fit.params)["R1C1"])
+        return dataclasses.replace(fit, params=fit.params.replace(values=values))
+
+    def refined_validates_best(fit, record):  # the guard must hold whatever the validation says
+        return 0.0 if "refined" in fit.params.ocv.source else validate(fit, record)
+
+    validate = core.validation_rmse
+    monkeypatch.setattr(core, "fit_model", degenerate_when_refined)
+    monkeypatch.setattr(core, "validation_rmse", refined_validates_best)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, info = core.fit_base(_base(rec), [rec.profile], validation=[drive], refine_ocv=True)
+    assert info["ocv_refined_branches_identified"] is False
+    assert "refined" not in info["selection"]["chosen"] and "refined" not in info["ocv"]

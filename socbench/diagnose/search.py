@@ -51,6 +51,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..identify.fit import branch_time_constants
 from ..models.effects import EFFECTS, augment, make_effect, n_cells
 from .cv import FoldFit, cv_residual, fit_folds, simulate_records
 from .data import Folds
@@ -659,13 +660,9 @@ class Search:
     def twin_branch(self, tau: float):
         """``(branch, τ_j)`` of a base-model RC branch whose time constant (``R_j·C_j`` at SOC 0.5) lies within
         ×``TWIN_TAU`` of ``tau``, or None: a further branch there cannot be told from a misfit of that one."""
-        vals = self.base.params.values
-        for p in self.base.required_params():
-            j = p[1:]
-            if p[:1] == "R" and j.isdigit() and int(j) >= 1 and f"C{j}" in vals:
-                tj = float(np.ravel(vals[p](0.5))[0] * np.ravel(vals[f"C{j}"](0.5))[0])
-                if tj > 0 and abs(np.log(tau / tj)) <= np.log(TWIN_TAU):
-                    return f"R{j}C{j}", tj
+        for branch, tj in branch_time_constants(self.base.params, self.base.required_params()).items():
+            if tj > 0 and abs(np.log(tau / tj)) <= np.log(TWIN_TAU):
+                return branch, tj
         return None
 
     def fold_models(self, step: Candidate, layout=None, initial_sd=None, fold: int | None = None):

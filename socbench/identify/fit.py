@@ -135,6 +135,18 @@ def _rc_branches(names) -> int:
     return sum(1 for n in names if n[:1] == "R" and n[1:].isdigit() and int(n[1:]) >= 1)
 
 
+def branch_time_constants(params: ModelParams, names=None, soc: float = 0.5) -> dict:
+    """``{"R1C1": τ_1, …}``: the time constant ``R_j·C_j`` [s] of every RC branch ``j ≥ 1`` among ``names`` (default:
+    every parameter of ``params``) at SOC ``soc``."""
+    vals = params.values
+    out = {}
+    for p in vals if names is None else names:
+        j = p[1:]
+        if p[:1] == "R" and j.isdigit() and int(j) >= 1 and f"C{j}" in vals and p in vals:
+            out[f"R{j}C{j}"] = float(np.ravel(vals[p](soc))[0] * np.ravel(vals[f"C{j}"](soc))[0])
+    return out
+
+
 def _reference_value(ref: ModelParams | None, pname: str) -> float | None:
     if ref is None or pname not in ref.values:
         return None
