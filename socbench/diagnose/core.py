@@ -36,9 +36,8 @@ from functools import partial
 import numpy as np
 
 from ..errors import DataError
-from ..identify import FIT_CANDIDATES, fit_model, ocv_from_slow_test, select_fit, validation_rmse
+from ..identify import FIT_CANDIDATES, fit_model, ocv_from_slow_test, pseudo_ocv, select_fit, validation_rmse
 from ..identify.fit import branch_time_constants
-from ..identify import pseudo_ocv
 from ..models import make_model
 from ..models.base import T_REF_C
 from ..models.effects import EFFECTS
