@@ -9,9 +9,8 @@
    on the evaluation records (:func:`~socbench.identify.select_fit`: constant mode with each sample weighting, then
    the winner in lookup mode; with ``refine_ocv`` and an OCV from the HPPC's rest points, the winner again with that
    curve refined between the points from the record's discharge segments, :mod:`socbench.identify.pseudo_ocv`, kept
-   when it validates ``OCV_REFINE_GAIN`` better and its branches stay within the record's duration), so that the effects
-   are not spent on base-fit error. Nothing is read from names or
-   metadata but the declared capacity.
+   when it validates ``OCV_REFINE_GAIN`` better and its branches stay within the record's duration), so that the
+   effects are not spent on base-fit error. Nothing is read from names or metadata but the declared capacity.
 3. **Search** (:mod:`socbench.diagnose.search`): blocked cross-validation over every evaluation record
    (:func:`~socbench.diagnose.data.make_folds`), signatures, one bounded fit per fold, held-out scores, the forward
    steps while the held-out RMSE falls by ≥ 10 %.

@@ -25,8 +25,9 @@ within them comes off too (with at least three intervals to take it from). The r
 and ``U(z_m) + c̃(z_m) − median shape(u_m)`` at the centres of the bins inside each interval (clipped to the
 voltages of its two rest points and made monotone by isotonic regression) — passes through every rest point as
 measured; only the shape between them comes from the load. PCHIP interpolates it like any OCV curve. Whether the
-refinement helps is for validation to say
-(:func:`socbench.diagnose.core.fit_base` keeps it only when it predicts the validation records better).
+refinement helps is for validation to say: :func:`socbench.diagnose.core.fit_base` (asked to, ``refine_ocv``) keeps
+the refit on it only when it predicts the evaluation records 10 % better and none of its branches is slower than the
+record (such a branch only ramps with the charge moved, trading against the refined curve's slope).
 """
 
 from __future__ import annotations
