@@ -12,10 +12,10 @@ import warnings
 import numpy as np
 import pytest
 
-from socbench.diagnose.core import OCV_REFINE_GAIN, fit_base
-from socbench.identify import fit_model, validation_rmse
+from socbench.diagnose.core import fit_base
+from socbench.identify import fit_model, pseudo_ocv, validation_rmse
 from socbench.identify.fit import branch_time_constants
-from socbench.identify.pseudo_ocv import refine_ocv
+from socbench.identify.pseudo_ocv import REFIT_GAIN, refine_ocv
 
 from . import hppc_records as H
 
@@ -90,7 +90,7 @@ def test_fit_base_keeps_the_refinement_only_when_it_validates_better():
         refined = [k for k in scores if k.endswith("OCV refined")]
         assert len(refined) == 1
         plain = refined[0][: -len(", OCV refined")]
-        kept = info["ocv_refined_branches_identified"] and scores[refined[0]] <= (1 - OCV_REFINE_GAIN) * scores[plain]
+        kept = info["ocv_refinement"]["branches_identified"] and scores[refined[0]] <= (1 - REFIT_GAIN) * scores[plain]
         best = refined[0] if kept else plain
         assert info["selection"]["chosen"] == best
         assert ("refined" in info["ocv"]) == (best == refined[0])
@@ -112,14 +112,13 @@ def test_branch_time_constants_are_r_times_c():
         assert taus[f"R{j}C{j}"] == pytest.approx(float(v[f"R{j}"](0.5)) * float(v[f"C{j}"](0.5)), rel=1e-12)
 
 
-def test_fit_base_rejects_a_refined_fit_whose_branch_is_slower_than_the_record(monkeypatch):
+def test_a_refit_whose_branch_is_slower_than_the_record_is_not_kept(monkeypatch):
     """A branch whose time constant exceeds the fit record's duration only ramps with the charge moved (a capacitor):
-    it stands in for the OCV's slope, so a refined fit that leans on one is not kept, whatever it validates to."""
-    import socbench.diagnose.core as core
-
+    it stands in for the OCV's slope, so a refit on the refined curve that leans on one is not kept, whatever it
+    validates to — by ``refit_on_refined_ocv`` and so by the diagnosis' base fit."""
     rec = H.random_hppc(303)
     drive = _drive(rec, 303)
-    original = core.fit_model
+    original, validate = pseudo_ocv.fit_model, pseudo_ocv.validation_rmse
 
     def degenerate_when_refined(name, prof, **kw):
         fit = original(name, prof, **kw)
@@ -132,11 +131,41 @@ def test_fit_base_rejects_a_refined_fit_whose_branch_is_slower_than_the_record(m
     def refined_validates_best(fit, record):  # the guard must hold whatever the validation says
         return 0.0 if "refined" in fit.params.ocv.source else validate(fit, record)
 
-    validate = core.validation_rmse
-    monkeypatch.setattr(core, "fit_model", degenerate_when_refined)
-    monkeypatch.setattr(core, "validation_rmse", refined_validates_best)
+    monkeypatch.setattr(pseudo_ocv, "fit_model", degenerate_when_refined)
+    monkeypatch.setattr(pseudo_ocv, "validation_rmse", refined_validates_best)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        _, info = core.fit_base(_base(rec), [rec.profile], validation=[drive], refine_ocv=True)
-    assert info["ocv_refined_branches_identified"] is False
+        fit = fit_model(_base(rec), rec.profile, mode="constant")
+        refit, report = pseudo_ocv.refit_on_refined_ocv(fit, rec.profile, [drive], mode="constant")
+        _, info = fit_base(_base(rec), [rec.profile], validation=[drive], refine_ocv=True)
+    assert refit is None and report["branches_identified"] is False and report["kept"] is False
+    assert report["validation_rmse_v"][1] == 0.0  # it did validate best
+    assert info["ocv_refinement"]["branches_identified"] is False
     assert "refined" not in info["selection"]["chosen"] and "refined" not in info["ocv"]
+
+
+def test_cli_fit_refine_ocv(tmp_path, capsys):
+    """``socbench fit --refine-ocv`` on a generated LFP-like HPPC (its OCV bends between the rest points): one line says
+    what the refinement measured; the parameter file carries the refined curve when it was kept, the rest points'
+    curve when not. With ``--ocv`` it is one error line and exit code 2."""
+    from socbench.cli import main
+    from socbench.models import load_params
+
+    cell = H.Cell(5.0, "lfp", 0.012, ((0.006, 30.0),))
+    rec = H.hppc_record(cell, H.Layout(step=0.08), H.Instrument(dt=1.0, v_noise=1e-3), seed=5)
+    data, drive, out = tmp_path / "hppc.csv", tmp_path / "drive.csv", tmp_path / "p.json"
+    H.write_canonical(rec.profile, data)
+    H.write_canonical(_drive(rec, 5), drive)
+    assert main(["fit", "--data", str(data), "--model", "thevenin", "--out", str(out), "--mode", "constant",
+                 "--refine-ocv", "--validation", str(drive)]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("OCV refined")]
+    assert len(lines) == 1 and "validation RMS" in lines[0], lines
+    _, params = load_params(out)
+    n_rest = int(lines[0].split("between its ")[1].split(" rest points")[0])
+    kept = lines[0].endswith("; kept")
+    assert (params.ocv.soc.size > n_rest) == kept
+    assert kept, lines[0]  # the LFP-like curve's bends between 8 % steps: the refit predicts the drive better
+    rc = main(["fit", "--data", str(data), "--model", "thevenin", "--out", str(out), "--refine-ocv", "--ocv",
+               str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "--refine-ocv" in err[0], err

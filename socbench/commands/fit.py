@@ -6,7 +6,9 @@ functions) with a ``"fit"`` block (mode, RMSE, standard errors, warnings, second
 :func:`socbench.domain.domain_report` of the fitted model along the fitted record, with its segment count) that
 ``socbench simulate --params`` reads back. Without ``--ocv`` the OCV curve comes from the record's HPPC rest points. A
 record of several discharges (battery swaps, recharges) is fitted segment by segment (:mod:`socbench.segments`;
-``--no-segments`` fits it as one piece).
+``--no-segments`` fits it as one piece). ``--refine-ocv`` refines that curve between the rest points from the record's
+discharge segments and fits again (:func:`socbench.identify.pseudo_ocv.refit_on_refined_ocv`: the refit is kept when
+no RC branch is slower than the record and, with ``--validation`` records, when it predicts them 10 % better).
 
 Several ``--data`` records (one per temperature: Panasonic HPPCs at 25, 10, 0, −10, −20 °C) are fitted each and
 assembled into one temperature-aware set (:func:`socbench.identify.temperature.fit_temperatures`): parameter tables over
@@ -31,6 +33,7 @@ from ..domain import warn_outside
 from ..errors import ConfigError, DataError
 from ..estimators import model_error
 from ..identify import MODES, fit_model
+from ..identify.pseudo_ocv import REFIT_GAIN, refit_on_refined_ocv
 from ..identify.temperature import fit_temperatures
 from ..io import output_file
 from ..models import make_model, model_class, save_params
@@ -58,6 +61,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--charge-transfer", action="store_true",
                         help="with records at several temperatures: fit the Butler-Volmer charge-transfer term "
                              "(an Arrhenius exchange current I0(T)) together with the model")
+    parser.add_argument("--refine-ocv", action="store_true",
+                        help="one HPPC record, OCV from its rest points: refine the curve between the points from "
+                             "its discharge segments and fit again; the refit is kept when no RC branch is slower "
+                             "than the record and, with --validation records, when it predicts them 10%% better")
     parser.add_argument("--validation", nargs="+", default=(),
                         help="records (with a reference SOC) on which the noise recipe measures the model error "
                              "(default: the identification records)")
@@ -97,6 +104,9 @@ def run(args) -> int:
     if several and (args.soc0 is not None or args.ocv):
         raise ConfigError("--soc0 and --ocv apply to a single record; with several --data records each record's HPPC "
                           "gives its own start and OCV")
+    if args.refine_ocv and (several or args.ocv):
+        raise ConfigError("--refine-ocv refines the OCV of one HPPC record's rest points: not with --ocv or several "
+                          "--data records")
     if args.charge_transfer and not several:
         raise ConfigError("--charge-transfer fits the exchange current's temperature law: give one HPPC record per "
                           "temperature, at least two")
@@ -128,6 +138,10 @@ def run(args) -> int:
         params, summary = res.params, res.fit_summary()
         print(f"{args.model} fitted on {profile.name} ({args.mode} mode): RMS {1000 * res.rmse_v:.1f} mV over "
               f"{res.n_samples} samples in {res.seconds:.1f} s")
+        if args.refine_ocv:
+            res = _refine(res, profile, validation, mode=args.mode, soc0=args.soc0,
+                          segments=False if args.no_segments else None)
+            params, summary = res.params, res.fit_summary()
         if res.lsq is not None and res.lsq.domain.get("samples"):
             warn_outside(res.lsq.domain, f"{args.model} fitted on {profile.name}")
         warnings = res.warnings
@@ -147,6 +161,27 @@ def run(args) -> int:
     if len(warnings) > 5:
         print(f"  ... {len(warnings) - 5} more in {args.out} (fit.warnings)")
     return 0
+
+
+def _refine(res, profile, validation, **fit_kwargs):
+    """``res``, or its refit on the OCV refined between the rest points when that is kept
+    (:func:`socbench.identify.pseudo_ocv.refit_on_refined_ocv`); one line says what was measured."""
+    refit, report = refit_on_refined_ocv(res, profile, validation, **fit_kwargs)
+    if not report["refined"]:
+        print("OCV not refined: the record has no discharge between two of its rest points")
+        return res
+    line = (f"OCV refined between its {report['ocv_points'][0]} rest points ({report['ocv_points'][1]} points): fit "
+            f"RMS {1000 * report['fit_rmse_v'][0]:.1f} → {1000 * report['fit_rmse_v'][1]:.1f} mV")
+    if "validation_rmse_v" in report:
+        line += (f", validation RMS {1000 * report['validation_rmse_v'][0]:.1f} → "
+                 f"{1000 * report['validation_rmse_v'][1]:.1f} mV")
+    if refit is not None:
+        print(line + "; kept")
+        return refit
+    why = "an RC branch slower than the record" if not report["branches_identified"] else \
+        f"validation not {100 * REFIT_GAIN:.0f} % better"
+    print(line + f"; not kept ({why})")
+    return res
 
 
 def _mv(values) -> str:

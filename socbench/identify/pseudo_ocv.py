@@ -25,9 +25,10 @@ within them comes off too (with at least three intervals to take it from). The r
 and ``U(z_m) + c̃(z_m) − median shape(u_m)`` at the centres of the bins inside each interval (clipped to the
 voltages of its two rest points and made monotone by isotonic regression) — passes through every rest point as
 measured; only the shape between them comes from the load. PCHIP interpolates it like any OCV curve. Whether the
-refinement helps is for validation to say: :func:`socbench.diagnose.core.fit_base` (asked to, ``refine_ocv``) keeps
-the refit on it only when it predicts the evaluation records 10 % better and none of its branches is slower than the
-record (such a branch only ramps with the charge moved, trading against the refined curve's slope).
+refinement helps is for validation to say: :func:`refit_on_refined_ocv` keeps the refit on it only when none of its
+branches is slower than the record (such a branch only ramps with the charge moved, trading against the refined
+curve's slope) and, given validation records, when it predicts them :data:`REFIT_GAIN` better. ``socbench fit
+--refine-ocv`` and ``diagnose(…, refine_ocv=True)`` call it.
 """
 
 from __future__ import annotations
@@ -37,7 +38,8 @@ import numpy as np
 from ..models.registry import make_model
 from ..ocv import OCVCurve, monotone_points
 from ..profile import Profile
-from .fit import FitResult, setup_fit
+from .fit import FitResult, branch_time_constants, fit_model, setup_fit
+from .select import validation_rmse
 
 #: SOC bin of the correction (0.5 %: ten points in a 5 % HPPC step)
 BIN_SOC = 0.005
@@ -49,6 +51,10 @@ DISCHARGE_SHARE = 0.5
 MIN_INTERVALS = 3
 #: points of the common shape over the position within an interval
 COMMON_GRID = 21
+#: with validation records, the refit is kept when it lowers their mean open-loop RMSE by this share (the bar the
+#: diagnosis' search holds every addition to: the refinement too fits something — the curve's shape between its
+#: points — on the fit record, and that record's own discharge-side error comes with it)
+REFIT_GAIN = 0.10
 
 
 def refine_ocv(fit: FitResult, profile: Profile, bin_soc: float = BIN_SOC) -> OCVCurve | None:
@@ -119,3 +125,25 @@ def _common_shape(shapes):
     if np.count_nonzero(ok) < 2:
         return lambda u: np.zeros_like(u)
     return lambda u: np.interp(u, grid[ok], med[ok])
+
+
+def refit_on_refined_ocv(fit: FitResult, profile: Profile, validation=(), **fit_kwargs):
+    """``(refit or None, report)``: ``fit`` (fitted on ``profile`` with the OCV of its rest points) fitted again, with
+    the same ``fit_kwargs`` (mode, sample weighting…), on its curve refined by :func:`refine_ocv`. The refit is
+    returned when every branch's time constant is within the record's duration and, with ``validation`` records,
+    when their mean open-loop RMSE falls by :data:`REFIT_GAIN`; else None. ``report``: what was measured."""
+    refined = refine_ocv(fit, profile)
+    if refined is None:
+        return None, {"refined": False}
+    refit = fit_model(fit.name, profile, ocv=refined, capacity_ah=fit.params.capacity_ah, **fit_kwargs)
+    taus = branch_time_constants(refit.params)
+    identified = all(tau <= profile.duration_s for tau in taus.values())
+    report = {"refined": True, "ocv_points": [int(fit.params.ocv.soc.size), int(refined.soc.size)],
+              "fit_rmse_v": [fit.rmse_v, refit.rmse_v], "branches_identified": identified}
+    keep = identified
+    if validation:
+        before, after = (float(np.mean([validation_rmse(f, r) for r in validation])) for f in (fit, refit))
+        report["validation_rmse_v"] = [before, after]
+        keep = keep and after <= (1.0 - REFIT_GAIN) * before
+    report["kept"] = bool(keep)
+    return (refit if keep else None), report
