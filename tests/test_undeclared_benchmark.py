@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from scipy.stats import binom
 
-from socbench.diagnose.randomized import case_kind, draw_case, run_case, soc_not_worse
+from socbench.diagnose.randomized import case_kind, draw_case, markdown, oracle_accepted, rates, run_case, soc_not_worse
 
 SEED = 7
 #: rates of the 200-case run (seed 2026), docs/undeclared_effects.json (rates; pair_first from its cases); a rate the
@@ -65,3 +65,27 @@ def test_hidden_effects_are_named_and_cut_the_error():
     assert cut >= floor(RATES_200["cut_30_single"], len(single)), detail
     assert pair_first >= floor(RATES_200["pair_first"], len(pairs)), detail
     _check_soc(res)
+
+
+def test_oracle_is_an_upper_bound_on_naming_first():
+    """``--oracle``: a single-effect case diagnosed with the hidden effect as the only candidate. Where the full search
+    names the hidden effect first, offered alone it is added too (the oracle bounds what any ranking can name first);
+    a case without one hidden effect has no oracle. Its rates and table come out of ``rates``/``markdown``."""
+    singles = [k for k in range(10) if case_kind(k)[0] == "single"][:3]
+    results = []
+    for k in singles:
+        case = draw_case(k, SEED)
+        r = run_case(case, soc=False)
+        r["oracle_added"] = oracle_accepted(case)
+        if r["first"] == r["effects"][0]:
+            assert r["oracle_added"], (r["effects"], r["added"])
+        results.append(r)
+    assert oracle_accepted(draw_case(0, SEED)) is None  # case 0 is a null case
+    R = rates(results)
+    assert R["oracle_accepted_single"]["n"] == len(results)
+    assert R["oracle_accepted_single"]["hits"] == sum(r["oracle_added"] for r in results)
+    assert R["named_first_where_oracle_accepted"]["n"] == R["oracle_accepted_single"]["hits"]
+    summary = {"command": "test", "cases": len(results), "seed": SEED, "jobs": 1, "machine": "test", "wall_s": 1.0,
+               "cpu_s": 1.0, "case_cpu_median_s": 1.0, "case_cpu_max_s": 1.0, "diagnosis_wall_max_s": 1.0,
+               "rates": R}
+    assert "Only the hidden effect offered" in markdown(summary)
