@@ -57,11 +57,13 @@ COMMON_GRID = 21
 REFIT_GAIN = 0.10
 
 
-def refine_ocv(fit: FitResult, profile: Profile, bin_soc: float = BIN_SOC) -> OCVCurve | None:
+def refine_ocv(fit: FitResult, profile: Profile, bin_soc: float = BIN_SOC,
+               soc0: float | None = None) -> OCVCurve | None:
     """The OCV curve of ``fit`` refined between its points from the discharge segments of ``profile`` (the record it
-    was fitted on; see the module docstring), or None when the record holds no discharge between two of its points."""
+    was fitted on, from ``soc0`` as the fit was (None: the HPPC analysis' start); see the module docstring), or None
+    when the record holds no discharge between two of its points."""
     ocv = fit.params.ocv
-    prob = setup_fit(fit.name, profile, "constant", ocv, fit.params.capacity_ah)
+    prob = setup_fit(fit.name, profile, "constant", ocv, fit.params.capacity_ah, soc0)
     prof = prob.fit_profile(profile)
     model = make_model(fit.name, fit.params)
     with np.errstate(all="ignore"):
@@ -132,7 +134,7 @@ def refit_on_refined_ocv(fit: FitResult, profile: Profile, validation=(), **fit_
     the same ``fit_kwargs`` (mode, sample weighting…), on its curve refined by :func:`refine_ocv`. The refit is
     returned when every branch's time constant is within the record's duration and, with ``validation`` records,
     when their mean open-loop RMSE falls by :data:`REFIT_GAIN`; else None. ``report``: what was measured."""
-    refined = refine_ocv(fit, profile)
+    refined = refine_ocv(fit, profile, soc0=fit_kwargs.get("soc0"))
     if refined is None:
         return None, {"refined": False}
     refit = fit_model(fit.name, profile, ocv=refined, capacity_ah=fit.params.capacity_ah, **fit_kwargs)
