@@ -129,6 +129,21 @@ def resample_rows(X, w, rows, u, h: float, K_rough: float, jitter):
     X[rows] = Xr
 
 
+def resample_degenerate(X, w, threshold: float, failed, u, h: float, K_rough: float, jitter) -> np.ndarray:
+    """In place: the runs whose effective sample size ``1/Σ w²`` fell below ``threshold`` (failed runs left as they
+    are) resampled by :func:`resample_rows`; ``jitter(rows)`` draws their kernel's normals. Returns those runs."""
+    rows = (1.0 / np.sum(w * w, axis=1) < threshold) & ~failed
+    if rows.any():
+        resample_rows(X, w, rows, u, h, K_rough, lambda: jitter(rows))
+    return rows
+
+
+def cloud_moments(w: np.ndarray, X: np.ndarray):
+    """``(mean, var)``, each ``(R, n)``: the weighted mean and variance of every run's particles ``X (R, N, n)``."""
+    mean = np.einsum("rp,rpi->ri", w, X)
+    return mean, np.einsum("rp,rpi->ri", w, (X - mean[:, None, :]) ** 2)
+
+
 def progressive_correction(X, w, ll, gated, opt: dict, stage_draws, relikelihood):
     """Weights ``w ∝ w · L`` (``L = e^ll``, per particle) for the rows not gated, by progressive correction (Oudjane &
     Musso 2000); the particle filters' shared measurement step.
@@ -262,8 +277,7 @@ class ParticleFilter(Estimator):
                 X, w, n_stages = self.assimilate(X, w, log_likelihood(vk[:, None], Y, Rk), gated, vk, ik, tk,
                                                  lambda s, k=k: draws.stage(k, s))
                 staged += (n_stages > 1) & ~rec.failed  # runs failed earlier are frozen: they count nothing
-                mean = np.einsum("rp,rpi->ri", w, X)
-                var = np.einsum("rp,rpi->ri", w, (X - mean[:, None, :]) ** 2)
+                mean, var = cloud_moments(w, X)
                 failed = rec.fail(k, diverged(mean, var[:, 0], nis, opt["var_max"], opt["nis_max"]))
                 restore(X, X_good, failed)
                 restore(w, w_good, failed)
@@ -271,11 +285,8 @@ class ParticleFilter(Estimator):
                 if k + 1 == T:
                     break
                 # ---------------------------------------------------------------- resample
-                ess = 1.0 / np.sum(w * w, axis=1)
-                rs = (ess < threshold) & ~failed
-                if rs.any():
-                    resample_rows(X, w, rs, u, h, K_rough, lambda k=k, rs=rs: draws.roughening(k, rs))
-                    resampled += rs
+                resampled += resample_degenerate(X, w, threshold, failed, u, h, K_rough,
+                                                 lambda rows, k=k: draws.roughening(k, rows))
                 # ---------------------------------------------------------------- predict
                 i_p = ik[:, None] if sd_i is None else ik[:, None] + sd_i * eps_i
                 X = m.step(X, i_p, inputs.dt[k], tk_p)[0]

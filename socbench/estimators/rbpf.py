@@ -52,9 +52,10 @@ from .draws import StepDraws
 from .estimate import Estimate
 from .pf import (
     _clamp_particles,
+    cloud_moments,
     log_likelihood,
     progressive_correction,
-    resample_rows,
+    resample_degenerate,
 )
 from .safety import diverged, symmetrise
 
@@ -165,9 +166,7 @@ class RaoBlackwellPF(Estimator):
                     A = eye - K[:, :, None] * HL[:, None, :]
                     PLu = symmetrise(A @ PL @ np.swapaxes(A, -1, -2) + Rk[:, None, None] * K[:, :, None] * K[:, None])
                     PL = np.where(ok[:, None, None], PLu, PL)
-                mean = np.einsum("rp,rpi->ri", w, X)
-                spread = np.einsum("rp,rpi->ri", w, (X - mean[:, None, :]) ** 2)
-                var = spread.copy()
+                mean, var = cloud_moments(w, X)
                 var[:, 1:] += np.diagonal(PL, axis1=1, axis2=2)
                 failed = rec.fail(k, diverged(mean, var[:, 0], nis, opt["var_max"], opt["nis_max"]))
                 restore(X, X_good, failed)
@@ -177,11 +176,9 @@ class RaoBlackwellPF(Estimator):
                 if k + 1 == T:
                     break
                 # ---------------------------------------------------------------- resample
-                ess = 1.0 / np.sum(w * w, axis=1)
-                rs = (ess < threshold) & ~failed
-                if rs.any():  # the kernel keeps the cloud's mean and covariance (SOC and states jointly)
-                    resample_rows(X, w, rs, u, h, 0.0, lambda k=k, rs=rs: draws.roughening(k, rs))
-                    resampled += rs
+                # the kernel keeps the cloud's mean and covariance (SOC and states jointly)
+                resampled += resample_degenerate(X, w, threshold, failed, u, h, 0.0,
+                                                 lambda rows, k=k: draws.roughening(k, rows))
                 # ---------------------------------------------------------------- predict
                 zbar = np.sum(w * X[..., 0], axis=1)
                 mean = np.einsum("rp,rpi->ri", w, X)
