@@ -169,3 +169,19 @@ def test_cli_fit_refine_ocv(tmp_path, capsys):
                str(out)])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "--refine-ocv" in err[0], err
+
+
+@pytest.mark.realdata
+def test_a_refit_that_fits_its_own_real_record_worse_is_not_kept(data_dir):
+    """The ORNL Nissan Leaf HPPC at 25 °C (a regen pulse runs straight into each step; data we did not make): the
+    refinement there makes the model fit its own record worse, and such a refit is not kept (no validation needed)."""
+    from socbench.datasets import load
+
+    prof = load(data_dir / "nissan_leaf_ornl" / "hppc_25degC.csv", "nissan-leaf")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = fit_model("thevenin", prof, mode="constant")
+        refit, report = pseudo_ocv.refit_on_refined_ocv(fit, prof, mode="constant")
+    assert report["refined"] and report["branches_identified"]
+    assert report["fit_rmse_v"][1] > report["fit_rmse_v"][0]
+    assert refit is None and report["kept"] is False

@@ -8,7 +8,8 @@ functions) with a ``"fit"`` block (mode, RMSE, standard errors, warnings, second
 record of several discharges (battery swaps, recharges) is fitted segment by segment (:mod:`socbench.segments`;
 ``--no-segments`` fits it as one piece). ``--refine-ocv`` refines that curve between the rest points from the record's
 discharge segments and fits again (:func:`socbench.identify.pseudo_ocv.refit_on_refined_ocv`: the refit is kept when
-no RC branch is slower than the record and, with ``--validation`` records, when it predicts them 10 % better).
+no RC branch is slower than the record, it fits the record 10 % better and, with ``--validation`` records, it predicts
+them 10 % better).
 
 Several ``--data`` records (one per temperature: Panasonic HPPCs at 25, 10, 0, −10, −20 °C) are fitted each and
 assembled into one temperature-aware set (:func:`socbench.identify.temperature.fit_temperatures`): parameter tables over
@@ -64,7 +65,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--refine-ocv", action="store_true",
                         help="one HPPC record, OCV from its rest points: refine the curve between the points from "
                              "its discharge segments and fit again; the refit is kept when no RC branch is slower "
-                             "than the record and, with --validation records, when it predicts them 10%% better")
+                             "than the record, it fits the record 10%% better and, with --validation records, it "
+                             "predicts them 10%% better")
     parser.add_argument("--validation", nargs="+", default=(),
                         help="records (with a reference SOC) on which the noise recipe measures the model error "
                              "(default: the identification records)")
@@ -178,8 +180,12 @@ def _refine(res, profile, validation, **fit_kwargs):
     if refit is not None:
         print(line + "; kept")
         return refit
-    why = "an RC branch slower than the record" if not report["branches_identified"] else \
-        f"validation not {100 * REFIT_GAIN:.0f} % better"
+    if not report["branches_identified"]:
+        why = "an RC branch slower than the record"
+    elif report["fit_rmse_v"][1] > (1.0 - REFIT_GAIN) * report["fit_rmse_v"][0]:
+        why = f"fit not {100 * REFIT_GAIN:.0f} % better"
+    else:
+        why = f"validation not {100 * REFIT_GAIN:.0f} % better"
     print(line + f"; not kept ({why})")
     return res
 
