@@ -18,8 +18,9 @@ separated by gaps). Counting charge through them from the first SOC, a model lea
 **Restart.** Each segment after the first starts from rest: every state but SOC at rest (``Model.x0``), and SOC
 
 * for a model (``simulate``, ``fit``, ``diagnose``): the reference SOC at the segment's first sample where the record
-  has one, else the OCV inverse of its first voltage (the pack has rested through the gap), clipped to [0, 1];
-* for an estimator: the OCV inverse of its first voltage, with the initial covariance it started the record with —
+  has one, else the SOC the model reads off its first voltage (``Model.soc_from_voltage``: the OCV inverse, corrected
+  for the load's instantaneous drop when the segment starts under load), clipped to [0, 1];
+* for an estimator: the same reading of its first voltage, with the initial covariance it started the record with —
   an estimator never reads the reference it is scored against, so a restart is a new start, like the record's first.
 
 **The current over a boundary is not integrated.** The zero-order hold would carry the last sample's current across
@@ -129,14 +130,18 @@ def resolve(segments, profile: Profile, ocv=None, capacity_ah: float | None = No
     return segments
 
 
-def restart_soc(profile: Profile, start: int, ocv, rule: str = REFERENCE) -> np.ndarray:
-    """The SOC a segment starting at sample ``start`` restarts from (module docstring), shape like one sample of
-    the current: the reference there (``rule="reference"`` and the record has one), else the OCV inverse of the
-    voltage there, clipped to [0, 1]; 1 when the record has neither."""
-    if rule == REFERENCE and profile.soc_ref is not None:
-        z = profile.soc_ref[..., start]
+def restart_soc(profile: Profile, start: int, model, rule: str = REFERENCE) -> np.ndarray:
+    """The SOC a segment (or the record, ``start = 0``) starting at sample ``start`` starts from (module docstring),
+    shape like one sample of the current: the reference there (``rule="reference"`` and the record has one), else
+    the SOC at which ``model`` at rest reads the voltage there with the current there flowing
+    (:meth:`~socbench.models.base.Model.soc_from_voltage`: the OCV inverse, corrected for the load's instantaneous
+    drop), clipped to [0, 1]; 1 when the record has neither."""
+    ref = profile.get("soc_ref") if rule == REFERENCE else None  # a reference given but refused raises its error
+    if ref is not None:
+        z = ref[..., start]
     elif profile.voltage_v is not None:
-        z = ocv.inverse(profile.voltage_v[..., start], temp=_temp(profile, start))
+        z = model.soc_from_voltage(profile.voltage_v[..., start], profile.current_a[..., start],
+                                   _temp(profile, start))
     else:
         z = np.ones(np.shape(profile.current_a[..., start]))
     return np.clip(np.asarray(z, dtype=float), 0.0, 1.0)

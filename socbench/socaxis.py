@@ -95,7 +95,7 @@ def soc_axis(params, profile: Profile) -> SocAxis:
 
 def run_on_data_axis(estimator, profile: Profile, axis: SocAxis, soc0=None, soc0_sd=None, seed=None, **run_options):
     """Run ``estimator`` on ``profile`` with the initial guess ``soc0`` (and its SD ``soc0_sd``) given on the data's
-    axis; returns the estimate on the data's axis. ``soc0=None``: the filter's own default (OCV inverse of the first
+    axis; returns the estimate on the data's axis. ``soc0=None``: the filter's own default (the SOC read off the first
     voltage, on the model's axis); ``soc0_sd=None``: the filter's option ``soc0_sd`` read on the data's axis.
     ``run_options`` (e.g. ``segments``) go to ``estimator.run``."""
     z0 = None

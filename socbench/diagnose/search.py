@@ -53,6 +53,7 @@ import numpy as np
 
 from ..identify.fit import branch_time_constants
 from ..models.effects import EFFECTS, augment, make_effect, n_cells
+from ..segments import restart_soc
 from .cv import FoldFit, cv_residual, fit_folds, simulate_records
 from .data import Folds
 from .signatures import Trajectory, signatures
@@ -146,10 +147,9 @@ class Candidate:
 
 
 def initial_soc(model, profile) -> float:
-    """The reference SOC at the start when the data carry one, else the OCV inverse of the first voltage."""
-    if profile.soc_ref is not None:
-        return float(profile.soc_ref[0])
-    return float(np.clip(model.ocv.inverse(profile.voltage_v[0]), 0.0, 1.0))
+    """The reference SOC at the start when the data carry one, else the SOC the model reads off the first voltage
+    (:func:`socbench.segments.restart_soc`)."""
+    return float(restart_soc(profile, 0, model))
 
 
 def effective_samples(r: np.ndarray) -> float:

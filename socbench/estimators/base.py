@@ -6,7 +6,8 @@ its time loop in ``_run(inputs, x0, P0, seed)`` with the equations next to the c
 specific to one filter:
 
 * :class:`Inputs`   the profile as ``(R, T)`` arrays (current, voltage, temperature), the step lengths;
-* initial state     ``x0 = model.x0(soc0)``; ``soc0`` scalar or ``(R,)`` (default: OCV inverse of the first voltage);
+* initial state     ``x0 = model.x0(soc0)``; ``soc0`` scalar or ``(R,)`` (default: the SOC the model reads off the
+                    first voltage with the first current flowing, ``Model.soc_from_voltage``);
                     ``P0`` scalar (SOC variance), ``(n,)`` diagonal, ``(n, n)`` or ``(R, n, n)``; by default
                     ``diag(model.initial_sd(soc0_sd, state0_sd)²)`` (``soc0_sd²``, ``state0_sd²``, …; an augmented
                     model's effect states declare their own);
@@ -144,7 +145,7 @@ class Estimator:
         segment: ``segments=None`` finds them, ``False`` filters the record as one piece, or pass a
         :class:`~socbench.segments.Segments`. ``soc0`` (or ``x0``, a full initial state ``(R, n)`` that replaces
         ``model.x0(soc0)``) starts the first segment; every later one restarts the
-        filter as at a record's start — SOC from the OCV inverse of its first voltage (an estimator never reads
+        filter as at a record's start — SOC read off its first voltage (an estimator never reads
         the reference it is scored against), the other states at rest, covariance ``P0`` — and the current across
         a boundary is never used. ``Estimate.domain`` is :func:`socbench.domain.estimate_domain` of the result.
         """
@@ -223,7 +224,7 @@ class Estimator:
     def initial_state(self, inputs: Inputs, soc0) -> np.ndarray:
         R = inputs.n_runs
         if soc0 is None:
-            soc0 = np.clip(self.model.ocv.inverse(inputs.voltage[:, 0]), 0.0, 1.0)
+            soc0 = self.model.soc_from_voltage(inputs.voltage[:, 0], inputs.current[:, 0], inputs.temp_at(0))
         soc0 = np.asarray(soc0, dtype=float)
         if soc0.ndim > 1 or (soc0.ndim == 1 and soc0.size not in (1, R)):
             raise ConfigError(f"soc0 must be a scalar or have one value per run ({R}), got shape {soc0.shape}")

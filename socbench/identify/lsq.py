@@ -134,9 +134,7 @@ def open_loop_segments(model, time_s, current, temp=None, x0=None, soc_jumps=Non
 def _initial_soc(model, profile: Profile, soc0):
     if soc0 is not None:
         return float(soc0)
-    if profile.get("soc_ref") is not None:
-        return float(profile.soc_ref[0])
-    return float(np.clip(model.ocv.inverse(profile.voltage_v[0]), 0.0, 1.0))
+    return float(restart_soc(profile, 0, model))
 
 
 def covariance(jac: np.ndarray, residual: np.ndarray, n_params: int):
@@ -197,12 +195,13 @@ def fit_parameters(
     theta0, lower, upper : array-like (P,)
         Start and bounds (``±inf`` allowed). ``theta0`` is clipped into the bounds.
     soc0, x0 :
-        Initial SOC (default: ``soc_ref[0]``, else the OCV inverse of the first voltage) or a full initial state.
+        Initial SOC (default: ``soc_ref[0]``, else the SOC read off the first voltage, ``Model.soc_from_voltage``) or
+        a full initial state.
     soc_jumps : array (T,) on the *original* samples, optional
         SOC added after the step into a sample (unrecorded charge at gaps; see :func:`simulate_voltage`).
     segments :
         A record of several discharges (:mod:`socbench.segments`) is fitted segment by segment, each later segment
-        from rest at its reference SOC (else the OCV inverse of its first voltage): None finds the segments (with
+        from rest at its reference SOC (else the SOC read off its first voltage): None finds the segments (with
         the model's OCV and capacity at ``theta0``), False fits the record as one piece, or a ``Segments``.
     weights : array (T,) on the original samples, optional
         Residual weights (e.g. to mask samples with 0).
@@ -246,7 +245,7 @@ def fit_parameters(
             prof = _joined(profile, [c.profile for c in comps])
     else:
         prof, idx = profile, np.arange(profile.n)
-    restarts = [(int(np.searchsorted(idx, a)), float(restart_soc(profile, a, model0.ocv)))
+    restarts = [(int(np.searchsorted(idx, a)), float(restart_soc(profile, a, model0)))
                 for a in segs.starts[1:]] or None
     jumps = None
     if soc_jumps is not None:

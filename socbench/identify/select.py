@@ -35,12 +35,7 @@ def validation_rmse(fit: FitResult, record: Profile) -> float:
     inverse of its first voltage, as the diagnosis starts its simulations)."""
     record.require("voltage_v")
     model = make_model(fit.name, fit.params)
-    ref = record.get("soc_ref")
-    if ref is not None:
-        soc0 = float(ref[0])
-    else:
-        soc0 = float(np.clip(model.ocv.inverse(record.voltage_v[0]), 0.0, 1.0))
-    e = record.voltage_v - model.simulate(record, soc0=soc0).voltage_v
+    e = record.voltage_v - model.simulate(record).voltage_v  # from the reference SOC, else the first voltage
     return float(np.sqrt(np.mean(e * e))) if np.all(np.isfinite(e)) else float("inf")
 
 

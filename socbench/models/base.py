@@ -168,6 +168,37 @@ class Model(ABC):
         x[..., 0] = soc
         return x
 
+    def soc_from_voltage(self, v, i=0.0, temp=None, iterations: int = 40) -> np.ndarray:
+        """The SOC at which this model, at rest (every dynamic state 0, :meth:`x0`) and with the current ``i``
+        flowing, reads the voltage ``v`` (shape of ``v``), clipped to [0, 1]: the root in z of::
+
+            g(z) = U(z, T) − ΔV(z) − v,   ΔV(z) = h(x0(z), 0, T) − h(x0(z), I, T)
+
+        ``U`` the OCV at the cell temperature ``T``, ``ΔV`` the load's instantaneous drop (``R0·I`` for an RC model,
+        the static terms' change for the others), found by bisection on [0, 1] (``iterations`` halvings; an end when
+        ``g`` keeps one sign there). At ``I = 0`` exactly it is the OCV inverse. A record that starts under load (a
+        UAV's take-off) would otherwise start ``R0·I`` of OCV away from its SOC."""
+        v = np.asarray(v, dtype=float)
+        i = np.broadcast_to(np.asarray(i, dtype=float), v.shape)
+        if not np.any(i != 0.0):
+            return np.clip(self.ocv.inverse(v, temp=temp), 0.0, 1.0)
+        rest = np.zeros(v.shape)
+
+        def g(z):
+            x = self.x0(z, v.shape)
+            drop = self.output(x, rest, temp)[0] - self.output(x, i, temp)[0]
+            return self.ocv.value(z, temp) - drop - v
+
+        lo, hi = np.zeros(v.shape), np.ones(v.shape)
+        g_lo = g(lo)
+        rising = g(hi) >= g_lo  # the voltage rises with SOC (every model here); the other sign is searched alike
+        for _ in range(iterations):
+            mid = 0.5 * (lo + hi)
+            below = (g(mid) < 0.0) == rising
+            lo = np.where(below, mid, lo)
+            hi = np.where(below, hi, mid)
+        return 0.5 * (lo + hi)
+
     def initial_sd(self, soc0_sd: float, state0_sd: float) -> np.ndarray:
         """SD of every state's initial value for a filter ``(n,)``: ``soc0_sd`` for the SOC, ``state0_sd`` for the
         others (a model with states of other kinds overrides this)."""
@@ -227,13 +258,13 @@ class Model(ABC):
                  segments=None) -> Simulation:
         """Open-loop simulation on a profile's current (and temperature): ``y_k = h(x_k, I_k)``, ``x_{k+1} = f(...)``.
 
-        ``soc0`` defaults to the profile's reference SOC at the first sample, else the OCV inverse of the first
+        ``soc0`` defaults to the profile's reference SOC at the first sample, else the SOC read off the first
         voltage, else 1. Batched profiles simulate all runs in one pass.
 
         A record of several discharges (battery swaps, recharges: :mod:`socbench.segments`) is simulated segment by
         segment: ``segments=None`` finds them, ``False`` runs the record as one piece (the zero-order hold then
         carries the current across every gap), or pass a :class:`~socbench.segments.Segments`. Each segment after
-        the first restarts from rest at the reference SOC of its first sample (else the OCV inverse of its first
+        the first restarts from rest at the reference SOC of its first sample (else the SOC read off its first
         voltage); no current is integrated across a boundary. ``Simulation.domain`` counts the samples outside the
         model's domain (:func:`socbench.domain.domain_report`).
         """
@@ -244,12 +275,7 @@ class Model(ABC):
         segs = resolve(segments, profile, self.ocv, self.capacity_ah)
         if x0 is None:
             if soc0 is None:
-                if profile.get("soc_ref") is not None:
-                    soc0 = profile.soc_ref[..., 0]
-                elif profile.voltage_v is not None:
-                    soc0 = np.clip(self.ocv.inverse(profile.voltage_v[..., 0]), 0.0, 1.0)
-                else:
-                    soc0 = 1.0
+                soc0 = restart_soc(profile, 0, self, REFERENCE)
             x0 = self.x0(soc0, i.shape[:-1])
         log = guards if guards is not None else GuardLog()
         temp = profile.temperature_c
@@ -257,7 +283,7 @@ class Model(ABC):
         for s, (a, b) in enumerate(segs.spans()):
             xs = x0
             if s:  # a restart: from rest, at the SOC the segment starts from
-                z = restart_soc(profile, a, self.ocv, REFERENCE)
+                z = restart_soc(profile, a, self, REFERENCE)
                 xs = self.x0(np.broadcast_to(z, np.broadcast_shapes(np.shape(z), np.shape(x0)[:-1])))
             parts.append(self.open_loop(xs, profile.time_s[a:b], i[..., a:b], None if temp is None else temp[..., a:b],
                                         guards=log))
