@@ -177,3 +177,18 @@ def test_panasonic_loader_on_junk_bytes(workdir, data):
     path.write_bytes(data)
     with pytest.raises(DataError):
         load(path, "panasonic-mat")
+
+
+def test_spreadsheet_byte_order_mark_and_empty_file(tmp_path):
+    """A canonical CSV saved by a spreadsheet with a UTF-8 byte-order mark is detected and loads with its first column
+    intact; an empty file says "empty file", not that no format recognises it."""
+    rows = "time_s,current_a,voltage_v\n0,1.0,3.70\n1,1.0,3.69\n2,0.0,3.72\n"
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes(b"\xef\xbb\xbf" + rows.encode())
+    assert detect_format(bom) == "canonical"
+    prof = load(bom)
+    np.testing.assert_array_equal(prof.time_s, [0.0, 1.0, 2.0])
+    empty = tmp_path / "empty.csv"
+    empty.write_bytes(b"")
+    with pytest.raises(DataError, match="empty file"):
+        load(empty)

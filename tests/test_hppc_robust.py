@@ -268,3 +268,18 @@ def test_real_panasonic_hppc_every_temperature(data_dir, folder):
     per_set = np.bincount([q.level for q in a.pulses])
     assert per_set.max() <= 5 and np.all(np.diff(per_set) <= 0)  # lower SOC: more pulses stopped at the limit
     assert np.all(np.diff(a.ocv_voltage[np.argsort(a.ocv_soc)]) > 0)
+
+
+def test_fit_names_a_bad_reference_column_instead_of_a_missing_hppc(tmp_path, capsys):
+    """A reference SOC written in percent makes the HPPC analysis fail on that column: `socbench fit` says so (file,
+    column, row, exit 2), rather than that the record has no HPPC rest points."""
+    import pandas as pd
+
+    rec = H.random_hppc(4)
+    data = H.write_canonical(rec.profile.with_(soc_ref=None), tmp_path / "percent.csv")
+    frame = pd.read_csv(data)
+    frame["soc_ref"] = 100.0 * np.clip(rec.soc_true, 0.0, 1.0)  # a percent column (a Profile would refuse it)
+    frame.to_csv(data, index=False)
+    assert main(["fit", "--data", str(data), "--model", "thevenin", "--out", str(tmp_path / "p.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "column 'soc_ref', row" in err[0] and "percent" in err[0], err

@@ -295,3 +295,38 @@ def test_inflated_form_counts_the_white_part_at_the_measured_resolution():
     v10 = recipe.inflated_noise(sensor, stats, fast).voltage_sd ** 2
     white = stats.white_var(None)
     assert v10 - v1 == pytest.approx(9.0 * white, rel=1e-9)
+
+
+def test_cli_fit_measures_the_recipe_on_an_hppc_without_a_reference(tmp_path, capsys):
+    """`socbench fit` on an HPPC record that carries no reference SOC still stores a measured model error (on the
+    HPPC's own SOC axis, counted from full), so `socbench estimate` with those parameters runs the recipe instead of
+    warning that there is none; a record that is neither (no reference, no HPPC) gets the note and no block."""
+    import json
+
+    from socbench.cli import main
+
+    from . import hppc_records as H
+
+    rec = H.issue_record(seed=5)
+    assert rec.profile.soc_ref is None
+    hppc = H.write_canonical(rec.profile, tmp_path / "hppc.csv")
+    ins = H.Instrument(dt=1.0, v_noise=1e-3)
+    drive = H.drive_record(H.ISSUE_CELL, ins, seed=6, duration_s=1800.0).profile
+    drive_csv = H.write_canonical(drive, tmp_path / "drive.csv")
+    params = tmp_path / "p.json"
+    assert main(["fit", "--data", str(hppc), "--model", "thevenin", "--out", str(params)]) == 0
+    assert "on its HPPC SOC axis" in capsys.readouterr().out
+    block = json.loads(params.read_text()).get("model_error")
+    assert block is not None and all(np.isfinite(np.asarray(block["slow_sd_v"], dtype=float)).ravel())
+    assert main(["estimate", "--data", str(drive_csv), "--params", str(params), "--estimator", "ekf",
+                 "--out", str(tmp_path / "E")]) == 0
+    assert "no measured model error" not in capsys.readouterr().err
+    # no reference and no HPPC structure: nothing to measure on
+    bare = H.write_canonical(drive.with_(soc_ref=None), tmp_path / "bare.csv")
+    ocv = tmp_path / "ocv.json"
+    z, v = H.OCV_SHAPES["nmc"]
+    ocv.write_text(json.dumps({"soc": z, "voltage": v}))
+    assert main(["fit", "--data", str(bare), "--model", "thevenin", "--ocv", str(ocv), "--capacity", "3.3",
+                 "--out", str(tmp_path / "q.json")]) == 0
+    assert "no model_error block" in capsys.readouterr().out
+    assert "model_error" not in json.loads((tmp_path / "q.json").read_text())

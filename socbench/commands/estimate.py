@@ -52,7 +52,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--estimator", required=True, help=", ".join(estimator_names()))
     parser.add_argument("--format", default="auto", help="data format (default auto)")
     parser.add_argument("--soc0", type=float, default=None,
-                        help="initial SOC guess in [0, 1] on the data's SOC axis (default: OCV inverse of the first "
+                        help="initial SOC guess in [0, 1] on the data's SOC axis (default: read off the first "
                              "voltage)")
     parser.add_argument("--soc0-sd", type=float, default=0.1, help="standard deviation of the initial SOC guess")
     parser.add_argument("--voltage-sd", type=float, default=0.01, help="voltage sensor noise SD [V] (default 0.01)")
@@ -103,8 +103,9 @@ def run(args) -> int:
     stats = model_error_of(args.params) if noise_mode == "model" else None
     if noise_mode == "model" and stats is None:
         if not args.params.startswith("paper:"):  # a reference set has no identification data to measure it on
-            warnings.warn(f"{args.params} has no measured model error (fit it with `socbench fit` to get one): the "
-                          "filter uses the sensor noise alone", SocbenchWarning, stacklevel=2)
+            warnings.warn(f"{args.params} has no measured model error (`socbench fit` measures it on an HPPC or on "
+                          "records with a reference SOC, `--validation`): the filter uses the sensor noise alone",
+                          SocbenchWarning, stacklevel=2)
         noise_mode = "sensor"
     run_model, noise = recipe.apply(model, sensor, stats, profile, noise=noise_mode,
                                     form=estimator_class(args.estimator).model_error_form)

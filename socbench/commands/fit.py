@@ -29,11 +29,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 from ..datasets import load
 from ..domain import warn_outside
 from ..errors import ConfigError, DataError
 from ..estimators import model_error
 from ..identify import MODES, fit_model
+from ..identify.hppc import analyze_hppc
 from ..identify.pseudo_ocv import REFIT_GAIN, refit_on_refined_ocv
 from ..identify.temperature import fit_temperatures
 from ..io import output_file
@@ -195,11 +198,28 @@ def _mv(values) -> str:
 
 
 def _model_error(model, records, validation):
-    """The noise recipe's statistics and which records it used (None when no record has a reference SOC)."""
+    """The noise recipe's statistics and which records it used (None when no record has a known SOC).
+
+    Without ``--validation`` it measures on the identification records; one without a reference SOC gets its HPPC SOC
+    axis (counted from full with the model's capacity, :func:`~socbench.identify.hppc.analyze_hppc`) as the known
+    SOC, the axis the fit itself placed it on."""
     if validation:
         return model_error.estimate(model, validation), f"{len(validation)} validation record(s)"
-    usable = [r for r in records if r.soc_ref is not None]
+    usable = [r if r.soc_ref is not None else _counted_reference(r, model.capacity_ah) for r in records]
+    usable = [r for r in usable if r is not None]
     if not usable:
-        print("note: no identification record has a reference SOC: no model_error block (the noise recipe needs one)")
+        print("note: no identification record has a reference SOC or an HPPC SOC axis: no model_error block (the "
+              "noise recipe needs a known SOC)")
         return None, ""
-    return model_error.estimate(model, usable), f"the {len(usable)} identification record(s) (no --validation)"
+    counted = sum(r.soc_ref is None for r in records)
+    how = f", {counted} on its HPPC SOC axis" if counted else ""
+    return model_error.estimate(model, usable), f"the {len(usable)} identification record(s) (no --validation{how})"
+
+
+def _counted_reference(record, capacity_ah: float):
+    """``record`` with its HPPC SOC axis as the reference SOC, or None when it is not an HPPC."""
+    try:
+        analysis = analyze_hppc(record, capacity_ah=capacity_ah)
+    except DataError:
+        return None
+    return record.with_(soc_ref=np.clip(analysis.soc, 0.0, 1.0))

@@ -35,6 +35,9 @@ def detect_format(path) -> str:
 
     Never guesses: an ambiguous file must be given an explicit ``--format``.
     """
+    p = Path(path)
+    if p.is_file() and p.stat().st_size == 0:  # say so, rather than that no format recognises it
+        raise DataError("empty file", file=str(path))
     hits = []
     for fmt, target in FORMATS.items():
         module = importlib.import_module(target.split(":")[0])

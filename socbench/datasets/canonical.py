@@ -55,7 +55,7 @@ def sniff(path) -> bool:
     if path.suffix.lower() != ".csv":
         return False
     try:
-        with open(path, encoding="utf-8", errors="replace") as fh:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:  # -sig: a spreadsheet's byte-order mark
             header = fh.readline()
     except OSError:
         return False
@@ -109,7 +109,8 @@ def _read_frame(path: Path) -> pd.DataFrame:
             df = pd.read_parquet(path)
         else:
             # everything as text first: numbers are parsed column by column below, so a stray word is reported
-            df = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
+            df = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True,
+                             encoding="utf-8-sig")
     except DataError:
         raise
     except Exception as exc:  # pandas/pyarrow raise many types on junk input; at this boundary all mean "unreadable"

@@ -266,10 +266,11 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
     src = profile.meta.source or profile.name
     notes = []
     offset = 0.0
+    analysis_error = None
     try:
         analysis = analyze_hppc(profile, capacity_ah=capacity_ah)
     except DataError as exc:
-        analysis = None
+        analysis, analysis_error = None, exc
         notes.append(f"no HPPC structure ({exc.message}); scales from current steps")
     if analysis is not None:
         notes += [n for n in analysis.notes if not n.startswith("pulse set at")]
@@ -296,6 +297,8 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
         domain = (0.0 if z_lo < DOMAIN_FULL_BELOW else round(z_lo, 3), 1.0)
     else:
         if ocv is None:
+            if analysis_error is not None and analysis_error.column:  # a bad column, not a missing structure: say so
+                raise analysis_error
             raise DataError("the record has no HPPC rest points to build an OCV curve from; pass an OCV curve",
                             file=src)
         q = capacity_ah or profile.meta.capacity_ah
