@@ -284,6 +284,9 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
         if ocv is None:
             ocv = analysis.ocv(source=f"HPPC rest points of {src}")
             notes.append(f"OCV from {analysis.ocv_soc.size} HPPC rest points")
+            if analysis.ocv_top_extension is not None:
+                notes.append("no rest before the first pulse set: OCV continued linearly from its highest rest point "
+                             "(z = {:.3f}) to the record's top (z = {:.3f})".format(*analysis.ocv_top_extension))
         if soc0 is None:
             soc0 = float(analysis.soc[0])
         extra = unrecorded_charge(profile, current_offset_a=offset)

@@ -123,6 +123,9 @@ EDGE_FRACTION = 0.5
 #: for a coarse sampling of a 5 min rest); after a shorter rest most of the polarisation is still there, and drive
 #: cycles stop for a minute or two
 MIN_OCV_REST_S = 240.0
+#: a record that starts this far (SOC) above its highest rest point gets its OCV continued to its top
+#: (:attr:`HPPCAnalysis.ocv_top_extension`)
+TOP_EXTENSION_MIN = 0.01
 #: an HPPC rests (≥ min_rest_s) before at least this share of its pulse sets; a drive cycle with stops does not
 REST_SHARE = 0.5
 #: OCV point: line through the voltage over the last min(OCV_WINDOW_S, OCV_WINDOW_FRAC × duration) of a rest
@@ -195,9 +198,27 @@ class HPPCAnalysis:
         return self.sensor.offset_a if self.sensor is not None else 0.0
 
     def ocv(self, source: str = "") -> OCVCurve:
-        """Monotone PCHIP through the OCV points (made monotone by isotonic regression first)."""
+        """Monotone PCHIP through the OCV points (made monotone by isotonic regression first), continued to the
+        record's top SOC when it starts above its highest rest point (:attr:`ocv_top_extension`)."""
         z, v = monotone_points(self.ocv_soc, self.ocv_voltage)
+        ext = self.ocv_top_extension
+        if ext is not None and z.size >= 2:
+            z_top = ext[1]
+            v_top = v[-1] + (v[-1] - v[-2]) / (z[-1] - z[-2]) * (z_top - z[-1])
+            z, v = np.append(z, z_top), np.append(v, v_top)
         return OCVCurve(z, v, source or "HPPC rest points")
+
+    @property
+    def ocv_top_extension(self) -> tuple[float, float] | None:
+        """``(z_highest_rest_point, z_top)`` when the record starts more than :data:`TOP_EXTENSION_MIN` above its
+        highest OCV point (no rest at full before the first pulse set), else None. There the curve continues on the
+        line through its two highest points up to the record's top SOC: the rising OCV of a charged cell, where a
+        curve held flat beyond its end leaves the whole first step tens of mV off."""
+        if self.ocv_soc.size < 2:
+            return None
+        z_hi = float(np.max(self.ocv_soc))
+        z_top = float(min(1.0, np.max(self.soc)))
+        return (z_hi, z_top) if z_top > z_hi + TOP_EXTENSION_MIN else None
 
     def resistance_table(self) -> dict:
         """Per pulse set: SOC and the median pulse resistances ``{"soc", "r_inst", "r_pulse", "tau_s"}`` (arrays;
