@@ -31,11 +31,11 @@ FIT_CANDIDATES: dict = {
 
 
 def validation_rmse(fit: FitResult, record: Profile) -> float:
-    """Open-loop voltage RMSE of ``fit`` on ``record``, from the record's reference SOC at its start (else the OCV
-    inverse of its first voltage, as the diagnosis starts its simulations)."""
+    """Open-loop voltage RMSE of ``fit`` on ``record``, from the record's reference SOC at its start (else the SOC
+    the model reads off its first voltage, ``Model.soc_from_voltage``, as the diagnosis starts its simulations)."""
     record.require("voltage_v")
     model = make_model(fit.name, fit.params)
-    e = record.voltage_v - model.simulate(record).voltage_v  # from the reference SOC, else the first voltage
+    e = record.voltage_v - model.simulate(record).voltage_v
     return float(np.sqrt(np.mean(e * e))) if np.all(np.isfinite(e)) else float("inf")
 
 
