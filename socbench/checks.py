@@ -13,6 +13,9 @@ from .profile import Profile
 
 #: share of samples outside a temperature-aware set's measured range above which the user is warned
 TEMPERATURE_OUTSIDE_WARN = 0.01
+#: relative difference between a record's declared capacity and a parameter set's above which a reference SOC scored
+#: as it stands is on another axis than the model's (:func:`check_reference_axis`)
+AXIS_MISMATCH = 0.03
 
 
 def check_voltage_level(profile: Profile, params: ModelParams, params_name: str = "parameters") -> None:
@@ -55,6 +58,28 @@ def check_capacity(profile: Profile, params: ModelParams, params_name: str = "pa
                       "through every discharge; use parameters fitted for this cell or pack (socbench fit)",
                       SocbenchWarning, stacklevel=2)
     return ratio
+
+
+def check_reference_axis(profile: Profile, params: ModelParams, axis, params_name: str = "parameters") -> None:
+    """Warn (one line) when a SOC error is about to compare two SOC axes.
+
+    A reference SOC is converted to the model's axis only when its loader declares it a charge count with a known
+    capacity (:mod:`socbench.socaxis`); otherwise it is scored as it stands. When such a record declares a capacity
+    more than :data:`AXIS_MISMATCH` away from the set's (a fit whose capacity is the charge an HPPC discharged down to
+    its last pulse level, not to empty), a reference counted with the record's capacity and the model's SOC part by
+    ``|1 − Q_ref/Q_data|`` of SOC at empty, and the SOC error measures that as much as the filter. Silent where
+    :func:`check_capacity` already warned (far larger mismatch)."""
+    declared = getattr(profile.meta, "capacity_ah", None)
+    if profile.soc_ref is None or not declared or not params.capacity_ah or not axis.identity:
+        return
+    ratio = float(declared) / float(params.capacity_ah)
+    if abs(ratio - 1.0) > AXIS_MISMATCH and 0.75 <= ratio <= 1.0 / 0.75:
+        src = profile.meta.source or profile.meta.name
+        warnings.warn(f"{src}: the record declares {float(declared):.4g} Ah and {params_name} counts "
+                      f"{float(params.capacity_ah):.4g} Ah (×{ratio:.2f}); its reference SOC is scored as it stands, "
+                      f"so a reference counted with the record's capacity and the model's SOC part by up to "
+                      f"{100 * abs(1.0 - 1.0 / ratio):.0f} points at empty: fit with --capacity {float(declared):.4g} "
+                      "for one axis", SocbenchWarning, stacklevel=2)
 
 
 def check_temperature_range(profile: Profile, params: ModelParams, params_name: str = "parameters") -> dict:

@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
+from socbench.cli import main
 from socbench.errors import ConfigError
 from socbench.estimators import SensorNoise, make_estimator
-from socbench.models import make_model, paper_params
+from socbench.models import make_model, paper_params, save_params
+from socbench.models.params import ModelParams
 from socbench.profile import Profile, ProfileMeta
 from socbench.socaxis import REFERENCE_CAPACITY_KEY, SocAxis, run_on_data_axis, soc_axis
+
+from . import hppc_records as H
 
 
 def test_conversion_is_linear_invertible_and_scales_the_sd():
@@ -64,3 +70,24 @@ def test_coulomb_counting_on_the_model_axis_reproduces_a_reference_counted_with_
     # a guess given on the data's axis lands on the model's axis
     z0 = run_on_data_axis(est, prof, ax, soc0=0.8, soc0_sd=0.1).soc[0, 0]
     assert z0 == pytest.approx(0.8)
+
+
+@pytest.mark.parametrize("declared_over_fitted, warned", [(1.22, True), (1.01, False), (0.9, True)])
+def test_estimate_warns_when_a_plain_reference_is_on_another_axis(tmp_path, capsys, declared_over_fitted, warned):
+    """`socbench estimate` on a plain CSV whose reference SOC is scored as it stands: when the record declares a
+    capacity more than 3 % from the parameter set's, one warning line says the SOC error compares two axes and how to
+    get one (`fit --capacity`); within 3 % nothing is said."""
+    cell = H.Cell(4.0, "nmc", 0.02, ((0.01, 30.0),))
+    rec = H.drive_record(cell, H.Instrument(dt=1.0, v_noise=1e-3), seed=2, duration_s=1200.0)
+    data = H.write_canonical(rec.profile, tmp_path / "drive.csv")
+    meta = json.loads(data.with_suffix(".json").read_text())
+    meta["capacity_ah"] = 4.0 * declared_over_fitted
+    data.with_suffix(".json").write_text(json.dumps(meta))
+    params = ModelParams(4.0, cell.ocv, {"R0": 0.02, "R1": 0.01, "C1": 3000.0}, source="test")
+    save_params(tmp_path / "p.json", "thevenin", params)
+    assert main(["estimate", "--data", str(data), "--params", str(tmp_path / "p.json"), "--estimator", "ekf",
+                 "--out", str(tmp_path / "E")]) == 0
+    err = [ln for ln in capsys.readouterr().err.splitlines() if "scored as it stands" in ln]
+    assert len(err) == (1 if warned else 0), err
+    if warned:
+        assert f"--capacity {4.0 * declared_over_fitted:.4g}" in err[0]

@@ -33,7 +33,7 @@ import json
 import warnings
 from pathlib import Path
 
-from ..checks import check_capacity, check_temperature_range
+from ..checks import check_capacity, check_reference_axis, check_temperature_range
 from ..datasets import load
 from ..domain import guard_fractions, warn_outside
 from ..errors import ConfigError, DataError, SocbenchWarning
@@ -113,6 +113,7 @@ def run(args) -> int:
     if args.estimator == "pf":
         options["n_particles"] = args.particles
     axis = soc_axis(params, profile)
+    check_reference_axis(profile, params, axis, f"the '{args.params}' parameter set")
     est = run_on_data_axis(make_estimator(args.estimator, run_model, noise, **options), profile, axis,
                            soc0=args.soc0, soc0_sd=args.soc0_sd, seed=args.seed,
                            segments=False if args.no_segments else None)
