@@ -60,25 +60,46 @@ def check_capacity(profile: Profile, params: ModelParams, params_name: str = "pa
     return ratio
 
 
+#: the least SOC span of a reference from which the capacity it moves with is read (:func:`implied_reference_capacity`)
+IMPLIED_CAPACITY_MIN_SPAN = 0.10
+
+
+def implied_reference_capacity(profile: Profile) -> float | None:
+    """The capacity [Ah] a record's reference SOC moves with against its counted current: ``−1/slope`` of the
+    least-squares line of ``soc_ref`` on the discharged charge ``Ah`` (``z = z₀ − Ah/Q``), when the reference spans at
+    least :data:`IMPLIED_CAPACITY_MIN_SPAN` (else None). A reference that is a charge count, a simulated truth or a
+    good BMS estimate all move so."""
+    ref = profile.soc_ref
+    if ref is None or ref.ndim != 1 or float(np.ptp(ref)) < IMPLIED_CAPACITY_MIN_SPAN:
+        return None
+    slope = float(np.polyfit(profile.amp_hours(), ref, 1)[0])
+    return -1.0 / slope if slope < 0.0 else None
+
+
 def check_reference_axis(profile: Profile, params: ModelParams, axis, params_name: str = "parameters") -> None:
     """Warn (one line) when a SOC error is about to compare two SOC axes.
 
     A reference SOC is converted to the model's axis only when its loader declares it a charge count with a known
-    capacity (:mod:`socbench.socaxis`); otherwise it is scored as it stands. When such a record declares a capacity
-    more than :data:`AXIS_MISMATCH` away from the set's (a fit whose capacity is the charge an HPPC discharged down to
-    its last pulse level, not to empty), a reference counted with the record's capacity and the model's SOC part by
+    capacity (:mod:`socbench.socaxis`); otherwise it is scored as it stands. When such a record's capacity — the one
+    it declares, else the one its reference moves with (:func:`implied_reference_capacity`) — is more than
+    :data:`AXIS_MISMATCH` away from the set's (a fit whose capacity is the charge an HPPC discharged down to its last
+    pulse level, not to empty), a reference on the record's capacity and the model's SOC part by
     ``|1 − Q_ref/Q_data|`` of SOC at empty, and the SOC error measures that as much as the filter. Silent where
     :func:`check_capacity` already warned (far larger mismatch)."""
-    declared = getattr(profile.meta, "capacity_ah", None)
-    if profile.soc_ref is None or not declared or not params.capacity_ah or not axis.identity:
+    if profile.soc_ref is None or not params.capacity_ah or not axis.identity:
         return
-    ratio = float(declared) / float(params.capacity_ah)
+    declared = getattr(profile.meta, "capacity_ah", None)
+    q_data = float(declared) if declared else implied_reference_capacity(profile)
+    if not q_data:
+        return
+    ratio = q_data / float(params.capacity_ah)
     if abs(ratio - 1.0) > AXIS_MISMATCH and 0.75 <= ratio <= 1.0 / 0.75:
         src = profile.meta.source or profile.meta.name
-        warnings.warn(f"{src}: the record declares {float(declared):.4g} Ah and {params_name} counts "
+        what = "declares" if declared else "has a reference SOC that moves as if counted with"
+        warnings.warn(f"{src}: the record {what} {q_data:.4g} Ah and {params_name} counts "
                       f"{float(params.capacity_ah):.4g} Ah (×{ratio:.2f}); its reference SOC is scored as it stands, "
-                      f"so a reference counted with the record's capacity and the model's SOC part by up to "
-                      f"{100 * abs(1.0 - 1.0 / ratio):.0f} points at empty: fit with --capacity {float(declared):.4g} "
+                      f"so a reference on the record's capacity and the model's SOC part by up to "
+                      f"{100 * abs(1.0 - 1.0 / ratio):.0f} points at empty: fit with --capacity {q_data:.4g} "
                       "for one axis", SocbenchWarning, stacklevel=2)
 
 

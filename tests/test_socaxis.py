@@ -72,22 +72,30 @@ def test_coulomb_counting_on_the_model_axis_reproduces_a_reference_counted_with_
     assert z0 == pytest.approx(0.8)
 
 
-@pytest.mark.parametrize("declared_over_fitted, warned", [(1.22, True), (1.01, False), (0.9, True)])
-def test_estimate_warns_when_a_plain_reference_is_on_another_axis(tmp_path, capsys, declared_over_fitted, warned):
-    """`socbench estimate` on a plain CSV whose reference SOC is scored as it stands: when the record declares a
-    capacity more than 3 % from the parameter set's, one warning line says the SOC error compares two axes and how to
-    get one (`fit --capacity`); within 3 % nothing is said."""
-    cell = H.Cell(4.0, "nmc", 0.02, ((0.01, 30.0),))
-    rec = H.drive_record(cell, H.Instrument(dt=1.0, v_noise=1e-3), seed=2, duration_s=1200.0)
+@pytest.mark.parametrize("declared", [True, False])
+@pytest.mark.parametrize("record_over_fitted, warned", [(1.22, True), (1.01, False), (0.9, True)])
+def test_estimate_warns_when_a_plain_reference_is_on_another_axis(tmp_path, capsys, record_over_fitted, warned,
+                                                                   declared):
+    """`socbench estimate` on a plain CSV whose reference SOC is scored as it stands: when the record's capacity —
+    declared in its sidecar, else the one its reference moves with against the counted current — is more than 3 %
+    from the parameter set's, one warning line says the SOC error compares two axes and how to get one
+    (`fit --capacity`); within 3 % nothing is said."""
+    cell = H.Cell(4.0, "nmc", 0.02, ((0.01, 30.0),))  # the truth; its SOC is the record's reference
+    rec = H.drive_record(cell, H.Instrument(dt=1.0, v_noise=1e-3), seed=2, duration_s=2400.0)
     data = H.write_canonical(rec.profile, tmp_path / "drive.csv")
     meta = json.loads(data.with_suffix(".json").read_text())
-    meta["capacity_ah"] = 4.0 * declared_over_fitted
+    if declared:
+        meta["capacity_ah"] = 4.0
+    else:
+        meta.pop("capacity_ah")
     data.with_suffix(".json").write_text(json.dumps(meta))
-    params = ModelParams(4.0, cell.ocv, {"R0": 0.02, "R1": 0.01, "C1": 3000.0}, source="test")
+    q_fit = 4.0 / record_over_fitted
+    params = ModelParams(q_fit, cell.ocv, {"R0": 0.02, "R1": 0.01, "C1": 3000.0}, source="test")
     save_params(tmp_path / "p.json", "thevenin", params)
     assert main(["estimate", "--data", str(data), "--params", str(tmp_path / "p.json"), "--estimator", "ekf",
                  "--out", str(tmp_path / "E")]) == 0
     err = [ln for ln in capsys.readouterr().err.splitlines() if "scored as it stands" in ln]
     assert len(err) == (1 if warned else 0), err
     if warned:
-        assert f"--capacity {4.0 * declared_over_fitted:.4g}" in err[0]
+        q_said = float(err[0].split("--capacity ")[1].split()[0])
+        assert q_said == pytest.approx(4.0, rel=0.01 if not declared else 1e-9), err[0]
