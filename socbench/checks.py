@@ -16,6 +16,9 @@ TEMPERATURE_OUTSIDE_WARN = 0.01
 #: relative difference between a record's declared capacity and a parameter set's above which a reference SOC scored
 #: as it stands is on another axis than the model's (:func:`check_reference_axis`)
 AXIS_MISMATCH = 0.03
+#: record / parameter-set capacity ratios :func:`check_capacity` lets pass (wider than a cell's capacity change between
+#: 25 and −20 °C, so a temperature-aware set never trips it)
+CAPACITY_RATIO_OK = (0.75, 1.0 / 0.75)
 
 
 def check_voltage_level(profile: Profile, params: ModelParams, params_name: str = "parameters") -> None:
@@ -51,7 +54,7 @@ def check_capacity(profile: Profile, params: ModelParams, params_name: str = "pa
     if not declared or not params.capacity_ah:
         return None
     ratio = float(declared) / float(params.capacity_ah)
-    if not 0.75 <= ratio <= 1.0 / 0.75:
+    if not CAPACITY_RATIO_OK[0] <= ratio <= CAPACITY_RATIO_OK[1]:
         src = profile.meta.source or profile.meta.name
         warnings.warn(f"{src}: the record declares a capacity of {float(declared):.4g} Ah, {params_name} has "
                       f"{float(params.capacity_ah):.4g} Ah (×{ratio:.2f}): the simulated SOC drifts from the record's "
@@ -93,7 +96,7 @@ def check_reference_axis(profile: Profile, params: ModelParams, axis, params_nam
     if not q_data:
         return
     ratio = q_data / float(params.capacity_ah)
-    if abs(ratio - 1.0) > AXIS_MISMATCH and 0.75 <= ratio <= 1.0 / 0.75:
+    if abs(ratio - 1.0) > AXIS_MISMATCH and CAPACITY_RATIO_OK[0] <= ratio <= CAPACITY_RATIO_OK[1]:
         src = profile.meta.source or profile.meta.name
         what = "declares" if declared else "has a reference SOC that moves as if counted with"
         warnings.warn(f"{src}: the record {what} {q_data:.4g} Ah and {params_name} counts "

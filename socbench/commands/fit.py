@@ -37,7 +37,7 @@ from ..errors import ConfigError, DataError
 from ..estimators import model_error
 from ..identify import MODES, fit_model
 from ..identify.hppc import analyze_hppc
-from ..identify.pseudo_ocv import REFIT_GAIN, refit_on_refined_ocv
+from ..identify.pseudo_ocv import refit_on_refined_ocv
 from ..identify.temperature import fit_temperatures
 from ..io import output_file
 from ..models import make_model, model_class, save_params
@@ -183,13 +183,7 @@ def _refine(res, profile, validation, **fit_kwargs):
     if refit is not None:
         print(line + "; kept")
         return refit
-    if not report["branches_identified"]:
-        why = "an RC branch slower than the record"
-    elif report["fit_rmse_v"][1] > (1.0 - REFIT_GAIN) * report["fit_rmse_v"][0]:
-        why = f"fit not {100 * REFIT_GAIN:.0f} % better"
-    else:
-        why = f"validation not {100 * REFIT_GAIN:.0f} % better"
-    print(line + f"; not kept ({why})")
+    print(line + f"; not kept ({report['why_not']})")
     return res
 
 

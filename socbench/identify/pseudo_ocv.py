@@ -135,7 +135,7 @@ def refit_on_refined_ocv(fit: FitResult, profile: Profile, validation=(), **fit_
     the same ``fit_kwargs`` (mode, sample weighting…), on its curve refined by :func:`refine_ocv`. The refit is
     returned when every branch's time constant is within the record's duration, when its RMSE on ``profile`` itself
     falls by :data:`REFIT_GAIN` and, with ``validation`` records, when their mean open-loop RMSE falls by as much; else
-    None. ``report``: what was measured."""
+    None. ``report``: what was measured, and ``why_not`` the first of those rules the refit failed (None: kept)."""
     refined = refine_ocv(fit, profile, soc0=fit_kwargs.get("soc0"))
     if refined is None:
         return None, {"refined": False}
@@ -146,10 +146,13 @@ def refit_on_refined_ocv(fit: FitResult, profile: Profile, validation=(), **fit_
               "fit_rmse_v": [fit.rmse_v, refit.rmse_v], "branches_identified": identified}
     # a curve refined from the record that fits the record no better has added error (on the ORNL Leaf HPPCs the
     # refit's own RMS grew, 34.7 → 44.2 mV at 25 °C): the refit must fit its own record REFIT_GAIN better too
-    keep = identified and refit.rmse_v <= (1.0 - REFIT_GAIN) * fit.rmse_v
+    why = None if identified else "an RC branch slower than the record"
+    if why is None and refit.rmse_v > (1.0 - REFIT_GAIN) * fit.rmse_v:
+        why = f"fit not {100 * REFIT_GAIN:.0f} % better"
     if validation:
         before, after = (float(np.mean([validation_rmse(f, r) for r in validation])) for f in (fit, refit))
         report["validation_rmse_v"] = [before, after]
-        keep = keep and after <= (1.0 - REFIT_GAIN) * before
-    report["kept"] = bool(keep)
-    return (refit if keep else None), report
+        if why is None and after > (1.0 - REFIT_GAIN) * before:
+            why = f"validation not {100 * REFIT_GAIN:.0f} % better"
+    report.update({"kept": why is None, "why_not": why})
+    return (refit if why is None else None), report
