@@ -1,0 +1,117 @@
+"""The OCV points of an HPPC's rests, corrected for what the cell had not yet relaxed when each rest ended.
+
+An HPPC reads the OCV at the end of each rest. A rest shorter than a few of the cell's slowest time constants ends
+before the voltage has settled: after a discharge step its last voltage lies below the OCV by what the slow branch
+still holds (``R₂·I·e^{−t_rest/τ₂}``: with τ₂ ≈ 1000 s and a 15-minute rest, 40 % of that branch's drop). Every
+model fitted on those points learns a curve that is too low along the discharge, and on any later record the miss
+shows as a slow error that hysteresis, a drifting SOC or a current offset can take up.
+
+The model fitted on the record knows its own over-potential at each rest's end. With ``x_k`` its state at the last
+sample of rest ``k`` (open loop over the record, from the fit's start SOC, its record gaps and its current offset)::
+
+    η_k = E(z_k, T_k) − h(x_k, 0, T_k)          E(z, T) = h([z, 0, …], 0, T), the model's equilibrium voltage
+    Û_k = v_k + η_k                              the relaxed OCV point at the rest's SOC z_k
+
+and the model is fitted again on the curve through the relaxed points (same settings). Fitting changes the branches,
+so the correction is repeated :data:`ITERATIONS` times, each from the last refit. Nothing of a later record is used:
+the points move by what the fitted model's own branches hold at the rest ends, read on the record they were fitted on.
+
+The correction is not well posed on its own: on the record, a slow branch's size and the OCV's level trade against
+each other, and repeated rounds can drift (on records whose rests had relaxed, a fitted branch slower than the truth's
+holds a few mV at each rest's end, and each round moves the points further). So it is only tried where the first fit
+holds at least :data:`MIN_SHIFT_V` per cell at some rest's end (below that a refit cannot matter, and the cost of two
+fits is saved), and :func:`refit_on_relaxed_ocv` keeps the refit only when every branch's time constant is within the
+record (a branch slower than the record trades against the OCV offset freely) and, given validation records, when
+their mean open-loop RMSE falls by :data:`~socbench.identify.pseudo_ocv.REFIT_GAIN`, the bar of every other addition
+to the base fit. The diagnosis' base fit calls it (:func:`socbench.diagnose.core.fit_base`, ``diagnose(…,
+relax_ocv=…)``); ``socbench fit`` has no validation record to judge it by and does not.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..models.effects import n_cells
+from ..models.registry import make_model
+from ..ocv import OCVCurve, monotone_points
+from ..profile import Profile
+from .fit import FitResult, branch_time_constants, fit_model, setup_fit
+from .hppc import analyze_hppc
+from .pseudo_ocv import REFIT_GAIN
+from .select import validation_rmse
+
+#: rounds of correction and refit
+ITERATIONS = 2
+#: the least over-potential per cell the first fit must hold at some rest's end for the correction to be tried [V]
+MIN_SHIFT_V = 1e-3
+
+
+def rest_overpotential(fit: FitResult, profile: Profile, soc0: float | None = None):
+    """``(z, v, η)`` of each OCV rest point of ``profile``: its SOC and rest-end voltage as the HPPC analysis read
+    them, and the over-potential ``η_k`` the fitted model still holds there (module docstring); None when the record
+    has no HPPC rest points."""
+    prob = setup_fit(fit.name, profile, "constant", fit.params.ocv, fit.params.capacity_ah, soc0)
+    a = analyze_hppc(profile, capacity_ah=fit.params.capacity_ah)
+    at_rest_end = {(r.soc_end, r.v_end): r.stop - 1 for r in a.rests}
+    idx = [at_rest_end.get((z, v)) for z, v in zip(a.ocv_soc, a.ocv_voltage)]
+    if a.ocv_soc.size < 2 or any(k is None for k in idx):
+        return None
+    idx = np.asarray(idx)
+    model = make_model(fit.name, fit.params)
+    rec = prob.fit_profile(profile)
+    states, _ = model.open_loop(model.x0(float(np.clip(prob.soc0, 0.0, 1.0))), rec.time_s, rec.current_a,
+                               rec.temperature_c, prob.soc_jumps)
+    x = states[idx]
+    temp = None if rec.temperature_c is None else rec.temperature_c[idx]
+    rested = model.x0(x[:, 0])
+    zero = np.zeros(idx.size)
+    eta = model.output(rested, zero, temp)[0] - model.output(x, zero, temp)[0]
+    return np.asarray(a.ocv_soc), np.asarray(a.ocv_voltage), np.asarray(eta)
+
+
+def relaxed_ocv(fit: FitResult, profile: Profile, soc0: float | None = None):
+    """``(curve, largest η)``: the curve through the rest points of ``profile`` moved by the over-potential ``fit``
+    holds at each rest's end (monotone, continued to the record's top like the plain curve), and the largest ``|η_k|``
+    [V]; None without rest points."""
+    got = rest_overpotential(fit, profile, soc0)
+    if got is None:
+        return None
+    z, v, eta = got
+    zm, vm = monotone_points(z, v + eta)
+    top = fit.params.ocv
+    if top.soc[-1] > zm[-1] + 1e-9:  # the plain curve's extension to the record's top, moved with its last point
+        zm = np.append(zm, top.soc[-1])
+        vm = np.append(vm, vm[-1] + (float(top.value(top.soc[-1])) - float(top.value(zm[-2]))))
+    curve = OCVCurve(zm, vm, f"HPPC rest points of {profile.meta.source or profile.name}, relaxed by the fitted model")
+    return curve, float(np.max(np.abs(eta)))
+
+
+def refit_on_relaxed_ocv(fit: FitResult, profile: Profile, validation=(), **fit_kwargs):
+    """``(refit or None, report)``: ``fit`` (fitted on ``profile`` with the OCV of its rest points) fitted again on
+    the relaxed points (:func:`relaxed_ocv`, :data:`ITERATIONS` rounds) with the same ``fit_kwargs``, when the first fit
+    holds :data:`MIN_SHIFT_V` per cell at some rest's end. The refit is returned when every branch is within the
+    record's duration and, with ``validation`` records, when their mean open-loop RMSE falls by :data:`REFIT_GAIN`;
+    else None. ``report``: what was measured and ``why_not`` (None: kept)."""
+    refit, held = fit, []
+    for _ in range(ITERATIONS):
+        got = relaxed_ocv(refit, profile, soc0=fit_kwargs.get("soc0"))
+        if got is None:
+            return None, {"relaxed": False, "why_not": "no HPPC rest points"}
+        curve, eta = got
+        held.append(eta)
+        if eta < MIN_SHIFT_V * n_cells(make_model(fit.name, fit.params)) and refit is fit:
+            return None, {"relaxed": False, "held_v": held,
+                          "why_not": f"the fit holds under {1000 * MIN_SHIFT_V:g} mV per cell at every rest's end"}
+        refit = fit_model(fit.name, profile, ocv=curve, capacity_ah=fit.params.capacity_ah, **fit_kwargs)
+    taus = branch_time_constants(refit.params)
+    identified = all(tau <= profile.duration_s for tau in taus.values())
+    report = {"relaxed": True, "held_v": held, "fit_rmse_v": [fit.rmse_v, refit.rmse_v],
+              "branches_identified": identified}
+    why = None if identified else "an RC branch slower than the record"
+    if validation:
+        before, after = (float(np.mean([validation_rmse(f, r) for r in validation])) for f in (fit, refit))
+        report["validation_rmse_v"] = [before, after]
+        if why is None and after > (1.0 - REFIT_GAIN) * before:
+            why = f"validation not {100 * REFIT_GAIN:.0f} % better"
+    report.update({"kept": why is None, "why_not": why})
+    return (refit if why is None else None), report
