@@ -294,16 +294,18 @@ def _without_first_rest(seed: int):
 
 
 def test_ocv_continues_above_the_highest_rest_point_of_a_record_without_a_first_rest():
-    """Over 12 random HPPCs (three OCV shapes, all layouts and instruments) started without a rest at full, the OCV
-    curve reaches the record's top (no flat hold over the first step). At the top, on the NMC- and NCA-like shapes
-    (a rising curve) its error against the truth's OCV is smaller than the held curve's in all but one draw, with a
-    median at most half of it; on the flat LFP-like shape, whose knee at the top no line from the plateau reaches,
-    it is no worse than the held curve by more than 5 mV."""
+    """Over 24 random HPPCs (three OCV shapes, all layouts and instruments) started without a rest at full, the OCV
+    curve reaches the record's top (no flat hold over the first step). At the top its error against the truth's OCV
+    is compared with the two continuations a user could draw by hand: the curve held flat, and the line through the
+    two highest rest points. Where a pulse edge gives the instantaneous resistance the top point is the OCV the first
+    sample reads (voltage + r_inst·I): within 10 mV of the truth in all but two draws (the line: a median of 12-30 mV
+    on the rising shapes, over 100 mV at the LFP knee), and never worse than the line by more than two SDs of the
+    voltage noise (one sample reads it); elsewhere the line itself."""
     from socbench.identify.hppc import MIN_OCV_REST_S, analyze_hppc
     from socbench.ocv import OCVCurve, monotone_points
 
-    new_err, held_err, lfp = [], [], []
-    for seed in range(500, 560):
+    new_err, line_err, held_err, lfp, read, noise = [], [], [], [], [], []
+    for seed in range(500, 620):
         rec, prof = _without_first_rest(seed)
         if rec.layout.inner_rest_s >= 0.5 * MIN_OCV_REST_S:
             continue  # the rests inside the first pulse set give (nearly) an OCV point at the top: nothing to continue
@@ -312,17 +314,24 @@ def test_ocv_continues_above_the_highest_rest_point_of_a_record_without_a_first_
         assert ext is not None and ext[1] == pytest.approx(1.0, abs=0.02), (seed, ext)
         z_top = ext[1]
         truth = float(rec.cell.ocv(rec.soc_true[int(rec.ocv_rows[0]) + 1]))  # the true OCV at the record's start
-        held = OCVCurve(*monotone_points(a.ocv_soc, a.ocv_voltage))
+        z, v = monotone_points(a.ocv_soc, a.ocv_voltage)
+        line = v[-1] + (v[-1] - v[-2]) / (z[-1] - z[-2]) * (z_top - z[-1])
         new_err.append(abs(float(a.ocv()(z_top)) - truth))
-        held_err.append(abs(float(held(z_top)) - truth))
+        line_err.append(abs(line - truth))
+        held_err.append(abs(float(OCVCurve(z, v)(z_top)) - truth))
         lfp.append(rec.cell.ocv_shape == "lfp")
-        if len(new_err) == 12:
+        read.append(bool(np.isfinite(a.start_ocv_v)))
+        noise.append(rec.instrument.v_noise)
+        if len(new_err) == 24:
             break
-    assert len(new_err) == 12
-    new_err, held_err, lfp = np.array(new_err), np.array(held_err), np.array(lfp)
-    rising = ~lfp
-    assert rising.sum() >= 5 and lfp.sum() >= 2, lfp
-    detail = (np.round(1000 * new_err, 1), np.round(1000 * held_err, 1), lfp)
-    assert np.sum(new_err[rising] < held_err[rising]) >= rising.sum() - 1, detail
-    assert np.median(new_err[rising]) <= 0.5 * np.median(held_err[rising]), detail
-    assert np.all(new_err[lfp] <= held_err[lfp] + 0.005), detail
+    assert len(new_err) == 24
+    new_err, line_err, held_err, lfp, read, noise = (np.array(x) for x in (new_err, line_err, held_err, lfp, read,
+                                                                             noise))
+    detail = (np.round(1000 * new_err, 1), np.round(1000 * line_err, 1), lfp, read)
+    assert lfp.sum() >= 3 and read.sum() >= 16, detail
+    assert np.sum(new_err[read] > 0.010) <= 2, detail
+    assert np.all(new_err[read] <= line_err[read] + 2.0 * noise[read]), detail
+    # what it replaces
+    assert np.median(line_err[read & ~lfp]) > 0.010 and np.median(line_err[read & lfp]) > 0.1, detail
+    np.testing.assert_allclose(new_err[~read], line_err[~read])
+    assert np.median(new_err) < np.median(held_err), detail

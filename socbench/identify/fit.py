@@ -285,8 +285,10 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
             ocv = analysis.ocv(source=f"HPPC rest points of {src}")
             notes.append(f"OCV from {analysis.ocv_soc.size} HPPC rest points")
             if analysis.ocv_top_extension is not None:
-                notes.append("no rest before the first pulse set: OCV continued linearly from its highest rest point "
-                             "(z = {:.3f}) to the record's top (z = {:.3f})".format(*analysis.ocv_top_extension))
+                how = (f"to the OCV its first sample reads ({analysis.start_ocv_v:.4g} V: voltage + instantaneous drop)"
+                       if np.isfinite(analysis.start_ocv_v) else "linearly")
+                notes.append("no rest before the first pulse set: OCV continued {} from its highest rest point "
+                             "(z = {:.3f}) to the record's top (z = {:.3f})".format(how, *analysis.ocv_top_extension))
         if soc0 is None:
             soc0 = float(analysis.soc[0])
         extra = unrecorded_charge(profile, current_offset_a=offset)

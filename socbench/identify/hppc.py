@@ -191,6 +191,10 @@ class HPPCAnalysis:
     notes: tuple = field(default_factory=tuple)
     sensor: RestLevel | None = None
     max_pulse_s: float = float("nan")  # the pulse/step bound used [s]
+    #: the OCV the first sample reads when the record starts at its top: its voltage plus the instantaneous drop
+    #: r_inst·I of its current (offset removed), r_inst the median leading-edge resistance of the pulses [V]; NaN when
+    #: the record reaches its top later (a charge first) or no pulse edge was resolved
+    start_ocv_v: float = float("nan")
 
     @property
     def current_offset_a(self) -> float:
@@ -204,16 +208,22 @@ class HPPCAnalysis:
         ext = self.ocv_top_extension
         if ext is not None and z.size >= 2:
             z_top = ext[1]
-            v_top = v[-1] + (v[-1] - v[-2]) / (z[-1] - z[-2]) * (z_top - z[-1])
+            if np.isfinite(self.start_ocv_v):
+                v_top = max(self.start_ocv_v, float(v[-1]))
+            else:
+                v_top = v[-1] + (v[-1] - v[-2]) / (z[-1] - z[-2]) * (z_top - z[-1])
             z, v = np.append(z, z_top), np.append(v, v_top)
         return OCVCurve(z, v, source or "HPPC rest points")
 
     @property
     def ocv_top_extension(self) -> tuple[float, float] | None:
         """``(z_highest_rest_point, z_top)`` when the record starts more than :data:`TOP_EXTENSION_MIN` above its
-        highest OCV point (no rest at full before the first pulse set), else None. There the curve continues on the
-        line through its two highest points up to the record's top SOC: the rising OCV of a charged cell, where a
-        curve held flat beyond its end leaves the whole first step tens of mV off."""
+        highest OCV point (no rest at full before the first pulse set), else None. There the curve continues up to the
+        record's top SOC: the rising OCV of a charged cell, where a curve held flat beyond its end leaves the whole
+        first step tens of mV off. The top point is the OCV the first sample reads (:attr:`start_ocv_v`: its voltage
+        plus the instantaneous drop of its current; nothing else has built up at a load's first sample), else the line
+        through the two highest points (an LFP cell's knee at full lies far above any line from its plateau: on the
+        independent generator's records the line missed the top by a median 130 mV there, the first sample by 4 mV)."""
         if self.ocv_soc.size < 2:
             return None
         z_hi = float(np.max(self.ocv_soc))
@@ -563,8 +573,10 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
                         f"more, {len(ocv_z)} OCV rest point(s) in all (an HPPC rests before most of its pulse sets; "
                         "an OCV curve needs 2 points)", file=src)
     level_soc = np.array([p.soc for p in firsts.values()])
+    r_inst = _finite_median([p.r_inst for p in pulses])
+    start_ocv = float(v[0] + r_inst * di[0]) if k_full == 0 and r_inst > 0 else float("nan")
     return HPPCAnalysis(tuple(rests), tuple(pulses), np.asarray(ocv_z), np.asarray(ocv_v), q, soc, ah, ah_source,
-                        level_soc, tuple(notes), lev, float(max_pulse_s))
+                        level_soc, tuple(notes), lev, float(max_pulse_s), start_ocv)
 
 
 def ocv_from_hppc(profile: Profile, capacity_ah: float | None = None, **options) -> OCVCurve:
