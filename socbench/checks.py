@@ -10,6 +10,7 @@ from .errors import DataError, SocbenchWarning
 from .models.params import ModelParams
 from .ocv import T_REF_C
 from .profile import Profile
+from .socaxis import REFERENCE_CAPACITY_KEY
 
 #: share of samples outside a temperature-aware set's measured range above which the user is warned
 TEMPERATURE_OUTSIDE_WARN = 0.01
@@ -99,26 +100,48 @@ def check_reference_axis(profile: Profile, params: ModelParams, axis, params_nam
     if abs(ratio - 1.0) > AXIS_MISMATCH and CAPACITY_RATIO_OK[0] <= ratio <= CAPACITY_RATIO_OK[1]:
         src = profile.meta.source or profile.meta.name
         what = "declares" if declared else "has a reference SOC that moves as if counted with"
+        # the remedies: a reference counted with the record's capacity is converted once the record says so; a set
+        # fitted at one temperature can instead be fitted on that capacity (a multi-temperature set counts every
+        # temperature on its reference capacity, and its cold records deliver less: only the first applies)
+        refit = "" if params.capacity_by_temperature is not None else f", or fit with --capacity {q_data:.4g}"
         warnings.warn(f"{src}: the record {what} {q_data:.4g} Ah and {params_name} counts "
                       f"{float(params.capacity_ah):.4g} Ah (×{ratio:.2f}); its reference SOC is scored as it stands, "
                       f"so a reference on the record's capacity and the model's SOC part by up to "
-                      f"{100 * abs(1.0 - 1.0 / ratio):.0f} points at empty: fit with --capacity {q_data:.4g} "
-                      "for one axis", SocbenchWarning, stacklevel=2)
+                      f"{100 * abs(1.0 - 1.0 / ratio):.0f} points at empty: declare it in the record's JSON sidecar "
+                      f'("{REFERENCE_CAPACITY_KEY}": {q_data:.4g}) to score it on the model\'s axis{refit}',
+                      SocbenchWarning, stacklevel=2)
 
 
-def check_temperature_range(profile: Profile, params: ModelParams, params_name: str = "parameters") -> dict:
-    """Warn (one line) when a temperature-aware parameter set meets data outside its measured temperatures.
+#: a single-temperature set used this far from the temperature it was fitted at [K] gets a warning
+SINGLE_TEMPERATURE_K = 5.0
+
+
+def check_temperature_range(profile: Profile, params: ModelParams, params_name: str = "parameters",
+                            fitted_at_c: float | None = None) -> dict:
+    """Warn (one line) when a parameter set meets data away from the temperatures it was measured at.
 
     A set with temperature tables holds its end tables outside ``[T_1, T_K]`` (no extrapolation), and uses the
     reference temperature (:data:`~socbench.ocv.T_REF_C`, held likewise) when the data carry no temperature column.
     Both are fine when rare and misleading when common: warn when more than 1 % of the samples are held, or when
-    there is no temperature at all. Returns ``{"temperatures", "below", "above"}`` (shares of samples; empty for a
-    set measured at one temperature) for the JSON outputs.
+    there is no temperature at all. A set fitted on one record at ``fitted_at_c`` (the median of its temperature
+    column, ``socbench fit`` stores it) has no temperature dependence at all: warn when more than 1 % of the samples
+    lie more than :data:`SINGLE_TEMPERATURE_K` from it (a cell's resistances change by tens of % over that).
+    Returns ``{"temperatures", "below", "above"}`` (shares of samples; for a single-temperature set
+    ``{"fitted_at_c", "away"}``, or empty when its temperature is unknown) for the JSON outputs.
     """
     temps = params.temperatures
-    if len(temps) < 2:
-        return {}
     src = profile.meta.source or profile.meta.name
+    if len(temps) < 2:
+        if fitted_at_c is None or profile.temperature_c is None:
+            return {}
+        away = float(np.mean(np.abs(np.asarray(profile.temperature_c) - fitted_at_c) > SINGLE_TEMPERATURE_K))
+        if away > TEMPERATURE_OUTSIDE_WARN:
+            t = np.asarray(profile.temperature_c)
+            warnings.warn(f"{src}: {100 * away:.1f} % of the samples lie more than {SINGLE_TEMPERATURE_K:g} K from the "
+                          f"{fitted_at_c:.1f} °C {params_name} were fitted at (the record spans {np.min(t):.1f}…"
+                          f"{np.max(t):.1f} °C); the set has no temperature dependence: fit HPPCs at several "
+                          "temperatures (socbench fit --data HPPC_T1 HPPC_T2 …)", SocbenchWarning, stacklevel=2)
+        return {"fitted_at_c": fitted_at_c, "away": away}
     lo, hi = temps[0], temps[-1]
     if profile.temperature_c is None:
         warnings.warn(f"{src}: no temperature column; {params_name} (measured at {lo:g}…{hi:g} °C) are used at "

@@ -58,6 +58,20 @@ def convergence_time(time_s, soc_error, band: float = 0.02) -> float:
     return float(time_s[k] - time_s[0])
 
 
+def longest_stretch(time_s, flag) -> tuple[float, float]:
+    """``(duration, start)`` [s] of the longest run of consecutive samples where ``flag`` holds, from its first sample
+    to the sample after its last (the record's end if it runs to it); ``(0, nan)`` when it never holds."""
+    t = np.asarray(time_s, dtype=float)
+    f = np.asarray(flag, dtype=bool)
+    if not f.any():
+        return 0.0, float("nan")
+    edges = np.diff(np.concatenate([[0], f.astype(np.int8), [0]]))
+    starts, stops = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+    ends = t[np.minimum(stops, t.size - 1)]
+    j = int(np.argmax(ends - t[starts]))
+    return float(ends[j] - t[starts[j]]), float(t[starts[j]])
+
+
 def normalized_error_squared(error, variance, floor: float = 1e-18):
     """``e² / max(var, floor)``: NEES of a scalar state or NIS of a scalar innovation (finite whenever e is)."""
     e = np.asarray(error, dtype=float)

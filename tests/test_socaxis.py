@@ -12,6 +12,7 @@ from socbench.errors import ConfigError
 from socbench.estimators import SensorNoise, make_estimator
 from socbench.models import make_model, paper_params, save_params
 from socbench.models.params import ModelParams
+from socbench.ocv import OCVCurve
 from socbench.profile import Profile, ProfileMeta
 from socbench.socaxis import REFERENCE_CAPACITY_KEY, SocAxis, run_on_data_axis, soc_axis
 
@@ -99,3 +100,35 @@ def test_estimate_warns_when_a_plain_reference_is_on_another_axis(tmp_path, caps
     if warned:
         q_said = float(err[0].split("--capacity ")[1].split()[0])
         assert q_said == pytest.approx(4.0, rel=0.01 if not declared else 1e-9), err[0]
+        assert f'"soc_ref_capacity_ah": {err[0].split("--capacity ")[1].split()[0]}' in err[0]
+
+
+@pytest.mark.parametrize("declared", [True, False])
+def test_the_named_remedy_puts_the_reference_on_the_models_axis(tmp_path, capsys, declared):
+    """A set fitted on an HPPC that stopped above empty counts its SOC with the charge the HPPC moved (here 0.82 × the
+    true capacity), and its OCV curve lies on that axis. The warning's first remedy — the reference's capacity
+    declared in the record's sidecar — converts the reference to the model's axis: no warning, and the SOC error
+    that was the gap between two axes is gone."""
+    cell = H.Cell(4.0, "nmc", 0.02, ((0.01, 30.0),))
+    rec = H.drive_record(cell, H.Instrument(dt=1.0, v_noise=1e-3), seed=2, duration_s=2400.0)
+    data = H.write_canonical(rec.profile, tmp_path / "drive.csv")
+    meta = json.loads(data.with_suffix(".json").read_text())
+    if not declared:
+        meta.pop("capacity_ah")
+    data.with_suffix(".json").write_text(json.dumps(meta))
+    q_fit = 0.82 * 4.0
+    z = np.linspace(0.0, 1.0, 41)  # the model's axis: z_true = 1 − (1 − z)·Q_fit/Q_true
+    ocv = OCVCurve(z, cell.ocv(1.0 - (1.0 - z) * q_fit / 4.0))
+    save_params(tmp_path / "p.json", "thevenin", ModelParams(q_fit, ocv, {"R0": 0.02, "R1": 0.01, "C1": 3000.0},
+                                                             source="test"))
+    run = ["estimate", "--data", str(data), "--params", str(tmp_path / "p.json"), "--estimator", "ekf", "--out"]
+    assert main([*run, str(tmp_path / "E")]) == 0
+    err = [ln for ln in capsys.readouterr().err.splitlines() if "scored as it stands" in ln]
+    assert len(err) == 1, err
+    q_key = float(err[0].split('"soc_ref_capacity_ah": ')[1].split(")")[0])
+    assert q_key == pytest.approx(4.0, rel=0.01)
+    data.with_suffix(".json").write_text(json.dumps({**meta, "soc_ref_capacity_ah": q_key}))
+    assert main([*run, str(tmp_path / "E2")]) == 0
+    assert "scored as it stands" not in capsys.readouterr().err
+    before, after = (json.loads((tmp_path / d / "metrics.json").read_text())["soc_rmse"] for d in ("E", "E2"))
+    assert after < 0.5 * before, (before, after)

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import json
 import warnings
-from pathlib import Path
 
 from ..checks import check_capacity, check_reference_axis, check_temperature_range
 from ..datasets import load
@@ -39,11 +38,11 @@ from ..domain import guard_fractions, warn_outside
 from ..errors import ConfigError, DataError, SocbenchWarning
 from ..estimators import SensorNoise, estimator_class, estimator_names, make_estimator
 from ..estimators import model_error as recipe
-from ..estimators.scoring import score
+from ..estimators.scoring import LOST_MIN_S, LOST_SIGMA, score
 from ..io import atomic_write_frame, atomic_write_text, output_dir
 from ..models import make_model
 from ..socaxis import run_on_data_axis, soc_axis
-from .simulate import resolve_params
+from .simulate import fitted_at_c, params_block, resolve_params
 
 
 def add_arguments(parser) -> None:
@@ -70,13 +69,7 @@ def add_arguments(parser) -> None:
 def model_error_of(spec: str):
     """The ``model_error`` block of a PARAMS.json file as :class:`~socbench.estimators.model_error.ModelErrorStats`,
     or None (a ``paper:`` set, or a file without one)."""
-    if spec.startswith("paper:"):
-        return None
-    try:
-        d = json.loads(Path(spec).read_text())
-    except (OSError, json.JSONDecodeError):
-        return None  # resolve_params has already reported an unreadable file
-    block = d.get("model_error") if isinstance(d, dict) else None
+    block = params_block(spec, "model_error")
     if block is None:
         return None
     try:
@@ -96,7 +89,8 @@ def run(args) -> int:
     profile = load(args.data, args.format)
     profile.require("voltage_v")
     name, params = resolve_params(args.params)
-    temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set")
+    temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set",
+                                          fitted_at_c(args.params))
     capacity_ratio = check_capacity(profile, params, f"the '{args.params}' parameter set")
     model = make_model(name, params)
     noise_mode = args.noise if args.estimator != "coulomb" else "sensor"
@@ -158,6 +152,12 @@ def run(args) -> int:
           f"noise {noise_mode}  failed runs {s['failed_runs']}  out of domain "
           f"{100 * est.domain['outside_fraction']:.1f} %  -> {out}")
     warn_outside(est.domain, f"{args.estimator} on {model.name}, {profile.name}")
+    if s["lost_s"] >= LOST_MIN_S:
+        warnings.warn(f"{args.estimator} on {model.name}, {profile.name}: every innovation lies beyond "
+                      f"{LOST_SIGMA:g} σ for {s['lost_s']:.0f} s from t = {s['lost_from_s']:.0f} s: the filter has "
+                      "lost the measurement there (the model far from this record: its temperature, capacity or a "
+                      "fault; or the SOC held where the OCV curve is flat); its SOC and band from there on are not "
+                      "meaningful", SocbenchWarning, stacklevel=2)
     return 0
 
 

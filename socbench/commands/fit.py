@@ -149,6 +149,8 @@ def run(args) -> int:
             params, summary = res.params, res.fit_summary()
         if res.lsq is not None and res.lsq.domain.get("samples"):
             warn_outside(res.lsq.domain, f"{args.model} fitted on {profile.name}")
+        if profile.temperature_c is not None:  # a set without temperature tables is valid where it was measured
+            summary = {**summary, "temperature_c": float(np.median(profile.temperature_c))}
         warnings = res.warnings
     model = make_model(args.model, params)
     stats, used = _model_error(model, records, validation)

@@ -15,6 +15,7 @@ shares of samples). A warning line is printed when ≥ 1 % of the samples lie ou
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pandas as pd
 
@@ -47,6 +48,25 @@ def resolve_params(spec: str):
     return load_params(spec)
 
 
+def params_block(spec: str, key: str):
+    """The ``key`` block of a PARAMS.json file (``"fit"``, ``"model_error"``…), or None: a ``paper:`` set, a file
+    without it, or one :func:`resolve_params` has already reported as unreadable."""
+    if spec.startswith("paper:"):
+        return None
+    try:
+        d = json.loads(Path(spec).read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    return d.get(key) if isinstance(d, dict) else None
+
+
+def fitted_at_c(spec: str) -> float | None:
+    """The temperature [°C] a single-record fit was made at (``socbench fit`` stores the median of the record's
+    temperature column in its ``"fit"`` block), or None."""
+    t = (params_block(spec, "fit") or {}).get("temperature_c")
+    return float(t) if isinstance(t, (int, float)) else None
+
+
 def run(args) -> int:
     for option, path in (("--out", args.out), ("--json", args.json)):
         if path:
@@ -57,7 +77,8 @@ def run(args) -> int:
     if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
         raise DataError(f"--soc0 must be in [0, 1], got {args.soc0}")
     check_voltage_level(profile, params, f"the '{args.params}' parameter set")
-    temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set")
+    temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set",
+                                          fitted_at_c(args.params))
     capacity_ratio = check_capacity(profile, params, f"the '{args.params}' parameter set")
     model = make_model(name, params)
     axis = soc_axis(params, profile)

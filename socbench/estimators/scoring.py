@@ -5,6 +5,9 @@ Per run r (samples from ``skip_s`` on; SOC error ``ε = ẑ − z_ref``)::
     soc_rmse   √mean ε²           soc_max_abs  max |ε|           rmse_v  √mean (v_meas − v_pred)²
     nis_mean   mean e²/S          nees_mean    mean ε²/σ²          frac_within_3sigma  mean [|ε| ≤ 3σ]
     convergence_time_s  first time after which |ε| stays within ``band`` (from the start of the record)
+    lost_s     the longest stretch [s] over which every innovation lies beyond :data:`LOST_SIGMA` of its predicted SD
+               (``lost_from_s`` its start): a filter that has lost the measurement (its model far from the record —
+               temperature, capacity, a fault — or its SOC held where the OCV curve is flat), whatever it reports after
 
 Aggregates run over the runs that did not fail (``failed_runs`` counts the others): RMSEs pool the squared errors,
 max takes the max, the NIS/NEES means average all samples. Consistency bands (two-sided, ``confidence``):
@@ -24,9 +27,14 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from ..metrics import chi2_band, convergence_time, fraction_within, normalized_error_squared
+from ..metrics import chi2_band, convergence_time, fraction_within, longest_stretch, normalized_error_squared
 from ..profile import Profile
 from .estimate import Estimate
+
+#: an innovation this many predicted SDs out (NIS 25: a consistent filter's odds are 6e-7 per sample) ...
+LOST_SIGMA = 5.0
+#: ... on every sample for this long is a filter that has lost the measurement [s] (socbench estimate warns)
+LOST_MIN_S = 60.0
 
 
 def _f(v):
@@ -49,9 +57,12 @@ def score(estimate: Estimate, profile: Profile, skip_s: float = 0.0, band: float
     v_meas = np.broadcast_to(profile.voltage_v, (R, T))
     ev = (v_meas - estimate.v_pred)[:, keep]
     nis = normalized_error_squared(estimate.innovation, estimate.innovation_var)[:, keep]
+    lost = np.array([longest_stretch(t[keep], nis[r] > LOST_SIGMA**2) for r in range(R)]).reshape(R, 2)
     runs = {
         "rmse_v": np.sqrt(np.mean(ev * ev, axis=1)),
         "nis_mean": np.mean(nis, axis=1),
+        "lost_s": lost[:, 0],
+        "lost_from_s": lost[:, 1],
         "failed": estimate.failed.copy(),
         "clamped": estimate.clamped.sum(axis=1),
         "gated": estimate.gated.sum(axis=1),
@@ -74,6 +85,8 @@ def score(estimate: Estimate, profile: Profile, skip_s: float = 0.0, band: float
         "converged_fraction": None,
         "clamped_steps": int(estimate.clamped[ok].sum()),
         "gated_steps": int(estimate.gated[ok].sum()),
+        "lost_s": float(np.max(lost[:, 0])),
+        "lost_from_s": _f(lost[int(np.argmax(lost[:, 0])), 1]),
         "runs": runs,
     }
     if n_ok:
