@@ -36,10 +36,9 @@ from ..models.effects import n_cells
 from ..models.registry import make_model
 from ..ocv import OCVCurve, monotone_points
 from ..profile import Profile
-from .fit import FitResult, branch_time_constants, fit_model, setup_fit
+from .fit import FitResult, fit_model, setup_fit
 from .hppc import analyze_hppc
-from .pseudo_ocv import REFIT_GAIN
-from .select import validation_rmse
+from .pseudo_ocv import keep_refit
 
 #: rounds of correction and refit
 ITERATIONS = 2
@@ -91,7 +90,8 @@ def refit_on_relaxed_ocv(fit: FitResult, profile: Profile, validation=(), **fit_
     """``(refit or None, report)``: ``fit`` (fitted on ``profile`` with the OCV of its rest points) fitted again on
     the relaxed points (:func:`relaxed_ocv`, :data:`ITERATIONS` rounds) with the same ``fit_kwargs``, when the first fit
     holds :data:`MIN_SHIFT_V` per cell at some rest's end. The refit is returned when every branch is within the
-    record's duration and, with ``validation`` records, when their mean open-loop RMSE falls by :data:`REFIT_GAIN`;
+    record's duration and, with ``validation`` records, when their mean open-loop RMSE falls by
+    :data:`~socbench.identify.pseudo_ocv.REFIT_GAIN` (:func:`~socbench.identify.pseudo_ocv.keep_refit`);
     else None. ``report``: what was measured and ``why_not`` (None: kept)."""
     refit, held = fit, []
     for _ in range(ITERATIONS):
@@ -104,15 +104,5 @@ def refit_on_relaxed_ocv(fit: FitResult, profile: Profile, validation=(), **fit_
             return None, {"relaxed": False, "held_v": held,
                           "why_not": f"the fit holds under {1000 * MIN_SHIFT_V:g} mV per cell at every rest's end"}
         refit = fit_model(fit.name, profile, ocv=curve, capacity_ah=fit.params.capacity_ah, **fit_kwargs)
-    taus = branch_time_constants(refit.params)
-    identified = all(tau <= profile.duration_s for tau in taus.values())
-    report = {"relaxed": True, "held_v": held, "fit_rmse_v": [fit.rmse_v, refit.rmse_v],
-              "branches_identified": identified}
-    why = None if identified else "an RC branch slower than the record"
-    if validation:
-        before, after = (float(np.mean([validation_rmse(f, r) for r in validation])) for f in (fit, refit))
-        report["validation_rmse_v"] = [before, after]
-        if why is None and after > (1.0 - REFIT_GAIN) * before:
-            why = f"validation not {100 * REFIT_GAIN:.0f} % better"
-    report.update({"kept": why is None, "why_not": why})
-    return (refit if why is None else None), report
+    # its own record is no judge here: the points moved by what the branches hold, which the refit fits as well
+    return keep_refit(fit, refit, profile, validation, {"relaxed": True, "held_v": held})
