@@ -15,7 +15,7 @@ from socbench.estimators.scoring import LOST_MIN_S
 from socbench.metrics import longest_stretch
 from socbench.models import make_model, paper_params
 from socbench.profile import Profile
-from tests.hppc_records import ISSUE_CELL, Instrument, drive_record, issue_record, write_canonical
+from tests.hppc_records import ISSUE_CELL, Cell, Instrument, drive_record, issue_record, write_canonical
 
 
 def test_longest_stretch_by_hand():
@@ -94,3 +94,28 @@ def test_a_single_temperature_set_warns_far_from_its_temperature(fitted_at_25, t
         assert ("more than 5 K from the 25.0 °C" in err) == warned, err
     metrics = json.loads((tmp_path / "est" / "metrics.json").read_text())
     assert metrics["temperature_range"]["away"] == (1.0 if warned else 0.0)
+
+
+@pytest.mark.parametrize("resistance_factor, warned", [(1.0, False), (3.0, True)])
+def test_error_states_held_far_out_say_the_recipe_is_exceeded(fitted_at_25, tmp_path, capsys, resistance_factor,
+                                                             warned):
+    """The noise recipe's error states are unit Gauss–Markov states. On a drive record of the cell the set was fitted
+    on they stay within a few SDs; on the same drive with the cell's resistances tripled (an aged or cold cell the
+    set knows nothing of) the miss is far beyond what the HPPC residual showed, the states take it up and stay many
+    SDs out: one warning, and ``error_state_beyond_s`` in metrics.json says for how long."""
+    c = ISSUE_CELL
+    cell = Cell(c.capacity_ah, c.ocv_shape, c.r0 * resistance_factor,
+                tuple((r * resistance_factor, tau) for r, tau in c.branches))
+    drive = drive_record(cell, Instrument(dt=1.0, v_noise=1e-3), seed=5, duration_s=1800.0).profile
+    data = write_canonical(drive.with_(temperature_c=np.full(drive.n, 25.0)), tmp_path / "drive.csv")
+    capsys.readouterr()
+    assert main(["estimate", "--data", str(data), "--params", str(fitted_at_25), "--estimator", "ekf", "--out",
+                 str(tmp_path / "E")]) == 0
+    err = capsys.readouterr().err
+    held = json.loads((tmp_path / "E" / "metrics.json").read_text())["error_state_beyond_s"]
+    assert set(held) == {"eps_slow", "eps_fast", "eps_r"}
+    assert ("model-error state" in err) == warned, err
+    if warned:
+        assert max(held.values()) >= LOST_MIN_S
+    else:
+        assert max(held.values()) == 0.0

@@ -38,7 +38,7 @@ from ..domain import guard_fractions, warn_outside
 from ..errors import ConfigError, DataError, SocbenchWarning
 from ..estimators import SensorNoise, estimator_class, estimator_names, make_estimator
 from ..estimators import model_error as recipe
-from ..estimators.scoring import LOST_MIN_S, LOST_SIGMA, score
+from ..estimators.scoring import LOST_MIN_S, LOST_SIGMA, error_state_excess, score
 from ..io import atomic_write_frame, atomic_write_text, output_dir
 from ..models import make_model
 from ..socaxis import run_on_data_axis, soc_axis
@@ -132,6 +132,8 @@ def run(args) -> int:
         for k in (key, f"{key}_3sigma"):
             v = [float(a) for a in est.info[k]]
             metrics[k] = v[0] if len(v) == 1 else v
+    excess = error_state_excess(est)
+    metrics["error_state_beyond_s"] = {k: v[0] for k, v in excess.items()}
     frame = est.to_frame(0)[["time_s", "soc", "soc_std", "v_pred", "innovation", "innovation_var"]]
     if est.n_runs > 1:
         import pandas as pd
@@ -152,6 +154,13 @@ def run(args) -> int:
           f"noise {noise_mode}  failed runs {s['failed_runs']}  out of domain "
           f"{100 * est.domain['outside_fraction']:.1f} %  -> {out}")
     warn_outside(est.domain, f"{args.estimator} on {model.name}, {profile.name}")
+    held = {k: v for k, v in excess.items() if v[0] >= LOST_MIN_S}
+    if held:
+        k, (d, t0) = max(held.items(), key=lambda kv: kv[1][0])
+        warnings.warn(f"{args.estimator} on {model.name}, {profile.name}: the model-error state {k} stays beyond "
+                      f"{LOST_SIGMA:g} of its unit SD for {d:.0f} s from t = {t0:.0f} s: the model misses this record "
+                      "by far more than its identification records showed (noise recipe), and the SOC band is "
+                      "narrower than its error there", SocbenchWarning, stacklevel=2)
     if s["lost_s"] >= LOST_MIN_S:
         warnings.warn(f"{args.estimator} on {model.name}, {profile.name}: every innovation lies beyond "
                       f"{LOST_SIGMA:g} σ for {s['lost_s']:.0f} s from t = {s['lost_from_s']:.0f} s: the filter has "

@@ -37,6 +37,28 @@ LOST_SIGMA = 5.0
 LOST_MIN_S = 60.0
 
 
+def error_state_excess(estimate: Estimate) -> dict:
+    """``{state: (seconds, start)}`` for each coloured model-error state of the noise recipe the estimate carries
+    (:class:`~socbench.models.effects.ModelError`, unit variance by construction): the longest stretch over which
+    its posterior mean lies beyond :data:`LOST_SIGMA` in any run. The innovations of a filter whose model misses a
+    record by far more than the recipe measured can look fine — the error states take the miss up — but a unit state
+    held at many σ says the record's model error is beyond the one its identification records showed, and the SOC
+    band is narrower than the truth's spread there. Empty without stored states or recipe states."""
+    from ..models.effects import ModelError
+
+    if estimate.x is None:
+        return {}
+    out = {}
+    for name in ModelError.state_names:
+        if name not in estimate.state_names:
+            continue
+        j = estimate.state_names.index(name)
+        runs = [longest_stretch(estimate.time_s, np.abs(estimate.x[r, :, j]) > LOST_SIGMA)
+                for r in range(estimate.x.shape[0])]
+        out[name] = max(runs, key=lambda d: d[0])
+    return out
+
+
 def _f(v):
     v = float(v)
     return v if np.isfinite(v) else None
