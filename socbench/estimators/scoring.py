@@ -28,6 +28,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..metrics import chi2_band, convergence_time, fraction_within, longest_stretch, normalized_error_squared
+from ..models.effects import ModelError
 from ..profile import Profile
 from .estimate import Estimate
 
@@ -44,8 +45,6 @@ def error_state_excess(estimate: Estimate) -> dict:
     record by far more than the recipe measured can look fine — the error states take the miss up — but a unit state
     held at many σ says the record's model error is beyond the one its identification records showed, and the SOC
     band is narrower than the truth's spread there. Empty without stored states or recipe states."""
-    from ..models.effects import ModelError
-
     if estimate.x is None:
         return {}
     out = {}
