@@ -9,7 +9,8 @@
    on the evaluation records (:func:`~socbench.identify.select_fit`: constant mode with each sample weighting, then
    the winner in lookup mode; with an OCV from the HPPC's rest points and ``relax_ocv``, the winner again on the
    points relaxed by the over-potential it still holds at each rest's end, :mod:`socbench.identify.relaxed_ocv`, and
-   with ``refine_ocv`` on that curve refined between the points from the record's discharge segments,
+   with ``refine_ocv`` (where no relaxed fit was kept: the refinement starts from the rest points as measured) on
+   that curve refined between the points from the record's discharge segments,
    :mod:`socbench.identify.pseudo_ocv`, each kept when it validates 10 % better and its branches stay within the
    record's duration), so that the effects are not spent on base-fit error. Nothing is read from names or metadata
    but the declared capacity.
