@@ -32,6 +32,7 @@ import platform
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -53,6 +54,7 @@ from socbench.identify import FIT_CANDIDATES  # noqa: E402
 from socbench.identify.temperature import fit_temperatures  # noqa: E402
 from socbench.metrics import voltage_error_stats  # noqa: E402
 from socbench.models import load_params, make_model, model_names, save_params  # noqa: E402
+from socbench.models.effects import augment  # noqa: E402
 from socbench.socaxis import run_on_data_axis, soc_axis  # noqa: E402
 
 TAGS = ("25degC", "10degC", "0degC", "n10degC", "n20degC")
@@ -204,11 +206,14 @@ def run_job(args) -> dict:
         prof = recipe.bin_average(prof, resolution)
     stats = recipe.ModelErrorStats.from_dict(stats_dict) if stats_dict else None
     unscheduled = noise_mode == "model-unscheduled"  # the ablation: the recipe with the full Jacobian
+    no_mid = noise_mode == "model-no-mid"  # the ablation: the recipe without its mid-period state
     run_model, noise = recipe.apply(m, SENSOR, stats, prof, noise="sensor" if est_name == "coulomb" else
-                                    "model" if unscheduled else noise_mode,
+                                    "model" if unscheduled or no_mid else noise_mode,
                                     form=estimator_class(est_name).model_error_form)
     if unscheduled:
         run_model.schedule_soc = False
+    if no_mid:
+        run_model, noise = _without_mid(run_model, noise)
     est = make_estimator(est_name, run_model, noise, soc0_sd=SOC0_SD)
     axis = soc_axis(params, prof)
     one = prof
@@ -231,6 +236,18 @@ def run_job(args) -> dict:
         out.update({"seeds": n_seeds, "runs_soc_rmse": s["runs"]["soc_rmse"],
                     "runs_within_3sigma": s["runs"]["frac_within_3sigma"]})
     return out
+
+
+def _without_mid(run_model, noise):
+    """The recipe's filter model with ``ε_mid`` held at 0 (initial SD 1e-9, no walk): the recipe as it was before
+    the mid-period state (socbench.estimators.model_error), for the ablation of section 4b."""
+    error = run_model.effects[-1]
+    held = type(error)(initial_sd=(1.0, 1.0, 1.0, 1e-9), **error.values)
+    model = augment(run_model.base, [*run_model.effects[:-1], held])
+    model.schedule_soc = run_model.schedule_soc
+    walk = list(noise.walk_sd)
+    walk[run_model.state_names.index("eps_mid")] = 0.0
+    return model, replace(noise, walk_sd=tuple(walk))
 
 
 def residual_job(args) -> dict:
@@ -555,6 +572,11 @@ def main(argv=None) -> int:
         f"{best}_5T_{est}_{tag}": lambda est=est, tag=tag: (
             best, fit5, stats[(best, "5T")], tag, est, "model-unscheduled", "", args.resolution)
         for est in ("ekf", "ukf") for tag in TAGS})
+    # the same filters without the recipe's mid-period state (what it changes on the measured records)
+    nomid = cached_runs(cache, "nomid", pool, {
+        f"{best}_5T_{est}_{tag}": lambda est=est, tag=tag: (
+            best, fit5, stats[(best, "5T")], tag, est, "model-no-mid", "", args.resolution)
+        for est in ("ekf", "ukf") for tag in TAGS})
     # the second ablation: the same filters started at the true SOC (what the 20-point initial error costs each), and
     # the iterated EKF from the 20-point start too ("_guess")
     truestart = cached_runs(cache, "truestart", pool, {
@@ -749,6 +771,18 @@ def _cli_mode(setting: str) -> str:
     return "MODE" if setting.startswith(PER_TEMPERATURE) else setting.split("/")[0]
 
 
+def _filter_pair_table(w, runs: dict, best: str) -> None:
+    """An ablation's US06 rows: the five-temperature fit's EKF and UKF per temperature."""
+    w("| US06 | EKF SOC RMSE % | EKF within 3σ | EKF NIS | UKF SOC RMSE % | UKF within 3σ | UKF NIS |")
+    w("|---|---|---|---|---|---|---|")
+    for tag in TAGS:
+        cells = []
+        for r in (runs.get(f"{best}_5T_ekf_{tag}"), runs.get(f"{best}_5T_ukf_{tag}")):
+            cells += (["failed", "", ""] if r is None or "error" in r else
+                      [pc(r["soc_rmse"]), f"{r['frac_within_3sigma']:.3f}", nis_txt(r)])
+        w(f"| {LABEL[tag]} | " + " | ".join(cells) + " |")
+
+
 def write_doc(path: Path, v: dict):
     best, top, fits, fit25, runs, stats, resid = (v[k] for k in ("best", "top", "fits", "fit25", "runs", "stats",
                                                                   "resid"))
@@ -856,8 +890,10 @@ def write_doc(path: Path, v: dict):
       "records where the SOC is known — the validation records, never the one scored — and its voltage error is split "
       "into a resistive part (local regression on the current), a slow part (10 s mean), a fast part and a white part; "
       "each gets a scale per temperature × SOC and an integral correlation time. The filter's model is augmented with "
-      "three unit-variance Gauss–Markov states (`ModelError` effect: "
-      "y += σ_s(z,T)·ε_s + σ_f(z,T)·ε_f − σ_r(z,T)·ε_r·I, ε⁺ = e^{−dt/τ}ε + w) whose walk variances "
+      "four unit-variance Gauss–Markov states (`ModelError` effect: "
+      "y += σ_s(z,T)·(ε_s + ε_m) + σ_f(z,T)·ε_f − σ_r(z,T)·ε_r·I, ε⁺ = e^{−dt/τ}ε + w; ε_m carries the slow scale "
+      "again at τ_m = √(10 s·τ_slow), so that an error of that size may also come and go within minutes, section 4b′) "
+      "whose walk variances "
       "1 − e^{−2dt₀/τ} enter Q, and R = σ_V² + the white variance averaged "
       "over the record's temperatures: inside the form the compiled filters take (R_k = σ_V² + σ_I²D_k², "
       "Q_k = σ_I²B_kB_kᵀ + diag(walk)·dt_k/dt₀). The sensor-only covariance stays available (`--noise sensor`).\n")
@@ -919,15 +955,10 @@ def write_doc(path: Path, v: dict):
               f"{e['frac_within_3sigma']:.3f} | {nis_txt(e)} | {pc(u['soc_rmse'])} | {u['frac_within_3sigma']:.3f} | "
               f"{nis_txt(u)} | {100 * abs(e['soc_rmse'] - u['soc_rmse']):.2f} | {ok(met)} |")
     w("\n**4b. The same with the full Jacobian** (the recipe without parameter scheduling; five-temperature fit):\n")
-    w("| US06 | EKF SOC RMSE % | EKF within 3σ | EKF NIS | UKF SOC RMSE % | UKF within 3σ | UKF NIS |")
-    w("|---|---|---|---|---|---|---|")
-    for tag in TAGS:
-        e, u = v["unsched"].get(f"{best}_5T_ekf_{tag}"), v["unsched"].get(f"{best}_5T_ukf_{tag}")
-        cells = []
-        for r in (e, u):
-            cells += (["failed", "", ""] if r is None or "error" in r else
-                      [pc(r["soc_rmse"]), f"{r['frac_within_3sigma']:.3f}", nis_txt(r)])
-        w(f"| {LABEL[tag]} | " + " | ".join(cells) + " |")
+    _filter_pair_table(w, v["unsched"], best)
+    w("\n**4b′. The same without the recipe's mid-period state** (ε_mid held at 0: one slow error state at the "
+      "integral time τ_slow, as the recipe was before it; five-temperature fit, parameter scheduling on):\n")
+    _filter_pair_table(w, v["nomid"], best)
     w(f"\n**4c. The model's error on the validation cycle and on the scored one** ({best}, five-temperature fit, open "
       "loop from the true initial state at the records' own 10 Hz; slow = the 10 s mean; load slope = the "
       "least-squares line of the slow error on the 5-minute mean current):\n")

@@ -22,6 +22,7 @@ STATE_RANGES = {
     "eps_slow": (-3.0, 3.0),  # effects.ModelError: unit-variance Gauss–Markov states
     "eps_fast": (-3.0, 3.0),
     "eps_r": (-3.0, 3.0),
+    "eps_mid": (-3.0, 3.0),
 }
 
 

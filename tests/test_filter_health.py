@@ -113,7 +113,7 @@ def test_error_states_held_far_out_say_the_recipe_is_exceeded(fitted_at_25, tmp_
                  str(tmp_path / "E")]) == 0
     err = capsys.readouterr().err
     held = json.loads((tmp_path / "E" / "metrics.json").read_text())["error_state_beyond_s"]
-    assert set(held) == {"eps_slow", "eps_fast", "eps_r"}
+    assert set(held) == {"eps_slow", "eps_fast", "eps_r", "eps_mid"}
     assert ("model-error state" in err) == warned, err
     if warned:
         assert max(held.values()) >= LOST_MIN_S

@@ -168,9 +168,10 @@ def _model_error(seed=0, n_temps=3, n_soc=6):
     temps = np.sort(rng.choice(np.arange(-20.0, 45.0, 5.0), n_temps, replace=False))
     soc = np.array([0.5]) if n_soc == 1 else np.sort(np.concatenate([[0.0, 1.0], rng.uniform(0.05, 0.95, n_soc - 2)]))
     grid = lambda scale: scale * rng.uniform(0.2, 2.0, (n_temps, n_soc))  # noqa: E731
+    tau_slow = rng.uniform(100, 2000)
     return ModelErrorEffect(temps=tuple(temps), soc=tuple(soc), sd_slow=grid(0.01), sd_fast=grid(0.003),
-                            sd_r=grid(0.005), tau_slow=rng.uniform(100, 2000), tau_fast=rng.uniform(1, 20),
-                            tau_r=rng.uniform(100, 2000))
+                            sd_r=grid(0.005), tau_slow=tau_slow, tau_fast=rng.uniform(1, 20),
+                            tau_r=rng.uniform(100, 2000), tau_mid=np.sqrt(10.0 * tau_slow))
 
 
 @pytest.mark.parametrize("grid", [(3, 6), (1, 2), (2, 1)])
@@ -525,6 +526,11 @@ def test_noise_forms_compiled(name):
         _compare(a, b)
 
 
+#: on the recipe's record the particle filter is rounding-sensitive too: its particles carry four near-deterministic
+#: error states, and ±1 part in 2⁵² of the voltage moves numpy's own state means by 2e-8 (as far as the compiled loop
+#: lies from it), while SOC, band and innovations agree to 1e-10
+RECIPE_CHAOTIC = CHAOTIC + ("pf",)
+
 #: estimators without a compiled kernel (the square-root UKF; the iterated EKF, whose update the EKF kernel does not
 #: iterate; the Rao–Blackwellised PF): they run numpy and say why
 NUMPY_ONLY = ("srukf", "iekf", "rbpf")
@@ -541,7 +547,7 @@ def test_the_noise_recipe_runs_compiled_like_numpy(name, schedule):
     model.schedule_soc = schedule
     p = _record(model, T=200, temp=True)
     walk = np.zeros(model.n_states)
-    walk[-3:] = np.sqrt(eff.walk_var(1.0))
+    walk[-eff.n_states:] = np.sqrt(eff.walk_var(1.0))
     noise = SensorNoise(voltage_sd=0.01, current_sd=0.2, walk_sd=tuple(walk))
     o = {**_options(name), "store_states": True}
     try:
@@ -552,7 +558,7 @@ def test_the_noise_recipe_runs_compiled_like_numpy(name, schedule):
     a = numpy_engine.run(p, soc0=0.55, seed=4)
     est = make_estimator(name, model, noise, **o)
     b = est.run(p, soc0=0.55, seed=4)
-    _compare(a, b, _rounding_spread(numpy_engine, p, 0.55, a, seed=4) if name in CHAOTIC else None)
+    _compare(a, b, _rounding_spread(numpy_engine, p, 0.55, a, seed=4) if name in RECIPE_CHAOTIC else None)
     if name not in NUMPY_ONLY:
         assert b.info["engine"] == "compiled", b.info.get("engine_note")
 

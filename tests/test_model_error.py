@@ -127,36 +127,39 @@ def test_stats_survive_json_and_reject_bad_shapes():
         recipe.ModelErrorStats((25.0,), (0.0, 1.0), [[1, 2]], [[0, 0]], [[0, 0]], (0.01,), 0.0, 2.0, 500.0)
 
 
-def test_apply_adds_three_states_inside_the_kernel_noise_form():
+def test_apply_adds_four_states_inside_the_kernel_noise_form():
     model = make_model("dp", paper_params("dp"))
     st = recipe.ModelErrorStats((25.0,), (0.0, 1.0), [[0.02, 0.01]], [[0.003, 0.003]], [[1e-3, 2e-3]], (0.004,),
                                 400.0, 2.0, 600.0)
     prof = Profile(np.arange(100) * 0.5, np.ones(100), np.full(100, 22.0))
     sensor = SensorNoise(voltage_sd=0.002, current_sd=0.05)
     m, n = recipe.apply(model, sensor, st, prof)
-    assert m.n_states == model.n_states + 3 and m.state_names[-3:] == ("eps_slow", "eps_fast", "eps_r")
+    assert m.n_states == model.n_states + 4
+    assert m.state_names[-4:] == ("eps_slow", "eps_fast", "eps_r", "eps_mid")
     # white at 1 s resolution: a record sampled every 0.5 s gets twice the variance per sample
     assert n.voltage_sd == pytest.approx(0.004 * np.sqrt(2.0)) and n.current_sd == 0.05 and n.dt == 0.5
     walk = np.asarray(n.walk_sd) ** 2
     assert np.all(walk[: model.n_states] == 0)
-    np.testing.assert_allclose(walk[-3:], 1 - np.exp(-2 * 0.5 / np.array([400.0, 2.0, 600.0])))
+    # the mid state: the geometric middle of the 10 s window and the slow part's 400 s, 63.2 s
+    np.testing.assert_allclose(walk[-4:], 1 - np.exp(-2 * 0.5 / np.array([400.0, 2.0, 600.0, 63.2456])), rtol=1e-5)
     assert recipe.apply(model, sensor, st, prof, noise="sensor") == (model, sensor)
     with pytest.raises(ConfigError, match="unknown noise"):
         recipe.apply(model, sensor, st, prof, noise="wild")
     # a record that does not start at rest: the error states start at their stationary spread
     P = make_estimator("ekf", m, n).initial_cov(1, None)[0]
-    np.testing.assert_allclose(np.diag(P)[-3:], 1.0)
+    np.testing.assert_allclose(np.diag(P)[-4:], 1.0)
 
 
 def test_model_error_effect_jacobians_match_finite_differences():
     eff = ModelError(temps=(-10.0, 25.0), soc=(0.0, 0.5, 1.0), sd_slow=((0.03, 0.02, 0.05), (0.01, 0.008, 0.02)),
                      sd_fast=((0.004, 0.004, 0.006), (0.002, 0.002, 0.003)),
-                     sd_r=((0.01, 0.004, 0.008), (0.002, 0.001, 0.002)), tau_slow=300.0, tau_fast=2.0, tau_r=500.0)
+                     sd_r=((0.01, 0.004, 0.008), (0.002, 0.001, 0.002)), tau_slow=300.0, tau_fast=2.0, tau_r=500.0,
+                     tau_mid=60.0)
     m = augment(make_model("thevenin", paper_params("thevenin")), [eff])
     rng = np.random.default_rng(3)
     x = m.x0(rng.uniform(0.05, 0.95, 30), (30,))
     x[:, 1] = rng.normal(0, 0.05, 30)
-    x[:, -3:] = rng.normal(0, 1, (30, 3))
+    x[:, -4:] = rng.normal(0, 1, (30, 4))
     i = rng.uniform(-20, 40, 30)
     temp = rng.uniform(-20, 35, 30)
     y, H, D = m.output(x, i, temp, jac=True)
@@ -169,8 +172,8 @@ def test_model_error_effect_jacobians_match_finite_differences():
     fd = (m.h(x, i + h, temp) - m.h(x, i - h, temp)) / (2 * h)
     np.testing.assert_allclose(D, fd, rtol=1e-5, atol=1e-7)
     xn, F, B = m.step(x, i, 1.0, temp, jac=True)
-    np.testing.assert_allclose(np.diagonal(F[:, -3:, -3:], 0, -2, -1), np.exp(-1.0 / np.array([300.0, 2.0, 500.0]))
-                               * np.ones((30, 3)))
+    np.testing.assert_allclose(np.diagonal(F[:, -4:, -4:], 0, -2, -1),
+                               np.exp(-1.0 / np.array([300.0, 2.0, 500.0, 60.0])) * np.ones((30, 4)))
     # open loop: without noise the error states only decay; the whole-record path equals the step loop
     t = np.arange(50.0)
     s1, v1 = m.open_loop(x[:2], t, np.full((2, 50), 10.0), np.full((2, 50), 5.0))

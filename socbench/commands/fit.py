@@ -159,8 +159,9 @@ def run(args) -> int:
     if stats is not None:
         sm = stats.summary()
         print(f"noise recipe on {used}: model error (RMS over SOC) slow {_mv(sm['slow'])} mV "
-              f"(τ {stats.tau_slow_s:.0f} s), fast {_mv(sm['fast'])} mV (τ {stats.tau_fast_s:.1f} s), resistive "
-              f"{_mv(sm['r'])} mΩ (τ {stats.tau_r_s:.0f} s), white {_mv(sm['white'])} mV at "
+              f"(τ {stats.tau_slow_s:.0f} s and {stats.tau_mid_s:.0f} s), fast {_mv(sm['fast'])} mV "
+              f"(τ {stats.tau_fast_s:.1f} s), resistive {_mv(sm['r'])} mΩ (τ {stats.tau_r_s:.0f} s), "
+              f"white {_mv(sm['white'])} mV at "
               f"{', '.join(f'{t:.1f}' for t in stats.temps)} °C")
     print(f"{len(warnings)} fit warning(s); wrote {args.out}")
     for w in warnings[:5]:

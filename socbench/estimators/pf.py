@@ -191,7 +191,7 @@ class ParticleFilter(Estimator):
     """Batched bootstrap particle filter."""
 
     name = "pf"
-    #: a bootstrap PF cannot carry the recipe's coloured states: five near-deterministic dimensions sampled through a
+    #: a bootstrap PF cannot carry the recipe's coloured states: near-deterministic dimensions sampled through a
     #: likelihood narrower than the error they explain collapse onto a few particles (measured: pngv on flight-0kg,
     #: SOC RMSE 12 %, NIS 5e5 with the states; see socbench.estimators.model_error, inflated form)
     model_error_form = "inflated"

@@ -30,7 +30,7 @@ Conditioned on the sampled current noise the linear states move deterministicall
 override array splits the same way (its SOC–state cross terms are left out). For a model whose other states are not
 linear, the update and prediction of ``P_L`` are the EKF's linearisation at the mean.
 
-Why it exists: the bootstrap PF (:mod:`~socbench.estimators.pf`) cannot carry the recipe's coloured states (five
+Why it exists: the bootstrap PF (:mod:`~socbench.estimators.pf`) cannot carry the recipe's coloured states (its
 near-deterministic dimensions collapse onto a few particles), so it takes the model error as white noise and its
 band is far too narrow where the error persists. Here the coloured states sit in the Kalman part, as in the EKF, and
 the particles resolve one dimension. Numpy engine only. Random numbers are the PF's counter-based draws

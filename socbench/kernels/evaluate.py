@@ -840,9 +840,9 @@ def model_error_scale(fm, v, j, z, t):
     """``(s_j, ds_j/dz)`` of :meth:`~socbench.models.effects.ModelError.scale`: component ``j`` of the model-error
     effect whose values start at ``fm[v]`` (its ``kernel_values`` layout), bilinear in SOC and temperature, held
     outside both grids; the SOC derivative 0 outside the SOC grid."""
-    KT = int(fm[v + 3])
-    KZ = int(fm[v + 4])
-    ot = v + 5
+    KT = int(fm[v + 4])
+    KZ = int(fm[v + 5])
+    ot = v + 6
     oz = ot + KT
     g = oz + KZ + j * KT * KZ
     kz = _count_le(fm, oz, KZ, z) - 1
@@ -960,8 +960,8 @@ def step_loaded(im, fm, x, i, dt, temp, has_temp, jac, xn, F, B, work):
             if jac:
                 F[s0 * nn + s0] = a
                 B[s0] = b
-        elif code == 10:  # model error: three Gauss–Markov states ε⁺ = e^{−dt/τ} ε [τ_slow, τ_fast, τ_r, …]
-            for c in range(3):
+        elif code == 10:  # model error: four Gauss–Markov states ε⁺ = e^{−dt/τ} ε [τ_slow, τ_fast, τ_r, τ_mid, …]
+            for c in range(4):
                 phi = math.exp(-dt / fm[v + c])
                 xn[s0 + c] = phi * x[s0 + c]
                 if jac:
@@ -1045,18 +1045,20 @@ def output_loaded(im, fm, x, i, temp, has_temp, jac, H, work):
             D = D + -x[s0] * 1.0
             if jac:
                 H[s0] += -ie
-        elif code == 10:  # model error: s_slow ε_slow + s_fast ε_fast − s_r ε_r I
+        elif code == 10:  # model error: s_slow (ε_slow + ε_mid) + s_fast ε_fast − s_r ε_r I
             z = x[0]
             s1, d1 = model_error_scale(fm, v, 0, z, t)
             s2, d2 = model_error_scale(fm, v, 1, z, t)
             s3, d3 = model_error_scale(fm, v, 2, z, t)
-            y = y + (s1 * x[s0] + s2 * x[s0 + 1] - s3 * x[s0 + 2] * ie)
+            slow = x[s0] + x[s0 + 3]
+            y = y + (s1 * slow + s2 * x[s0 + 1] - s3 * x[s0 + 2] * ie)
             D = D + -s3 * x[s0 + 2]
             if jac:
                 H[s0] += s1
                 H[s0 + 1] += s2
                 H[s0 + 2] += -s3 * ie
-                H[0] += d1 * x[s0] + d2 * x[s0 + 1] - d3 * x[s0 + 2] * ie
+                H[s0 + 3] += s1
+                H[0] += d1 * slow + d2 * x[s0 + 1] - d3 * x[s0 + 2] * ie
         elif code == 6:  # butler_volmer [I0, dR, n_cells, Ea, t_ref]: I0(T) = I0·exp[−(Ea/R)(1/T − 1/T_ref)]
             tk = (temp if has_temp else T_REF_C) + KELVIN
             g = fm[v + 2] * 2.0 * R_GAS * tk / FARADAY

@@ -30,8 +30,9 @@ Effects (ECM_SPEC §9 numbering in brackets):
 * :class:`ButlerVolmer` [6] — asinh charge-transfer over-potential (no state).
 * :class:`CoulombicEfficiency` [5] — η_c < 1 on charge.
 * :class:`SelfDischarge` [8] — a leak ``ż = −r_sd·U_oc(z)/U_oc(1)/3600``.
-* :class:`ModelError` — not a physical effect: the model's own voltage error as three coloured (Gauss–Markov)
-  states (slow, fast, resistive), for the filters' noise recipe (:mod:`socbench.estimators.model_error`).
+* :class:`ModelError` — not a physical effect: the model's own voltage error as four coloured (Gauss–Markov)
+  states (slow, fast, resistive, and the slow scale at a mid period), for the filters' noise recipe
+  (:mod:`socbench.estimators.model_error`).
 """
 
 from __future__ import annotations
@@ -579,44 +580,50 @@ class SelfDischarge(Effect):
 
 
 class ModelError(Effect):
-    """The model's voltage error as three coloured-noise states: Gauss–Markov processes of unit variance (slow
-    additive, fast additive, resistive), each scaled by its standard deviation at the SOC and cell temperature.
+    """The model's voltage error as four coloured-noise states: Gauss–Markov processes of unit variance (slow
+    additive, fast additive, resistive, and the slow error's scale again at a shorter time), each scaled by its
+    standard deviation at the SOC and cell temperature.
 
     For each component ``c``: ``ε_c⁺ = φ_c ε_c + w_c``, ``φ_c = e^{−dt/τ_c}``, ``w_c ~ N(0, 1 − φ_c²)`` (so
     ``Var ε_c = 1`` in steady state), and::
 
-        y += s_slow(z, T)·ε_slow + s_fast(z, T)·ε_fast − s_r(z, T)·ε_r·I
+        y += s_slow(z, T)·(ε_slow + ε_mid) + s_fast(z, T)·ε_fast − s_r(z, T)·ε_r·I
+
+    ``ε_mid`` (``τ_mid``, :attr:`socbench.estimators.model_error.ModelErrorStats.tau_mid_s`) says that an error of
+    the slow part's size may also come and go within minutes: the slow part's integral time is set by its most
+    persistent component, and a filter told only that would read a slow error that changes faster as SOC.
 
     ``s_c(z, T)`` bilinear on a grid: piecewise linear in SOC over ``soc`` and in temperature over ``temps`` (both
     held outside, the rule of every temperature table); a model's error is largest near the ends of the SOC range
     (the knee, the hysteresis left by a charge), and the scale says so. ``s_r`` is a resistance [Ω]: the part of the
     error that scales with the current (a resistance the model has wrong), which must not be read as SOC information
-    wherever a parameter varies with SOC. Jacobians: ``∂ε_c⁺/∂ε_c = φ_c``; ``∂y/∂ε_slow = s_slow``,
-    ``∂y/∂ε_fast = s_fast``, ``∂y/∂ε_r = −s_r I``, ``∂y/∂z += s_slow' ε_slow + s_fast' ε_fast − s_r' ε_r I``,
+    wherever a parameter varies with SOC. Jacobians: ``∂ε_c⁺/∂ε_c = φ_c``; ``∂y/∂ε_slow = ∂y/∂ε_mid = s_slow``,
+    ``∂y/∂ε_fast = s_fast``, ``∂y/∂ε_r = −s_r I``, ``∂y/∂z += s_slow' (ε_slow + ε_mid) + s_fast' ε_fast − s_r' ε_r I``,
     ``∂y/∂I += −s_r ε_r``.
 
     The process noise ``w`` is not part of the effect (a model is deterministic): a filter gets it through its
     covariance ``Q`` as these states' walk variances :meth:`walk_var` (``(1 − φ_c(dt₀)²)·dt/dt₀``, first order in
     dt). In open loop (no noise) ε stays at its initial value 0. Settings (not fitted): ``temps`` [°C], ``soc``,
     ``sd_slow``, ``sd_fast`` [V], ``sd_r`` [Ω] (each ``(len(temps), len(soc))``), ``tau_slow``, ``tau_fast``,
-    ``tau_r`` [s]. Estimated from residuals by :func:`socbench.estimators.model_error.estimate`.
+    ``tau_r``, ``tau_mid`` [s]. Estimated from residuals by :func:`socbench.estimators.model_error.estimate`.
     """
 
     name = "model_error"
-    state_names = ("eps_slow", "eps_fast", "eps_r")
+    state_names = ("eps_slow", "eps_fast", "eps_r", "eps_mid")
     #: a record may start anywhere: the error starts at its stationary spread; its walk is not declared here (it
     #: depends on the step: :meth:`walk_var`, which the noise recipe puts in ``SensorNoise.walk_sd``)
-    state_sd = (1.0, 1.0, 1.0)
+    state_sd = (1.0, 1.0, 1.0, 1.0)
     settings = {"temps": (25.0,), "soc": (0.0, 1.0), "sd_slow": ((0.01, 0.01),), "sd_fast": ((0.0, 0.0),),
-                "sd_r": ((0.0, 0.0),), "tau_slow": 600.0, "tau_fast": 5.0, "tau_r": 600.0}
+                "sd_r": ((0.0, 0.0),), "tau_slow": 600.0, "tau_fast": 5.0, "tau_r": 600.0, "tau_mid": 80.0}
     KEYS = ("sd_slow", "sd_fast", "sd_r")
 
     def bounds(self, model):
         return {}
 
     def kernel_values(self, base):
-        """``τ_slow, τ_fast, τ_r, K_T, K_z``, the temperatures, the SOC grid, then the three scale grids (row-major
-        ``(K_T, K_z)``) — the layout socbench.kernels.evaluate.model_error_scale reads."""
+        """``τ_slow, τ_fast, τ_r, τ_mid, K_T, K_z``, the temperatures, the SOC grid, then the three scale grids
+        (row-major ``(K_T, K_z)``; ε_mid reads the slow grid) — the layout
+        socbench.kernels.evaluate.model_error_scale reads."""
         temps = np.atleast_1d(np.asarray(self["temps"], dtype=float))
         soc = np.atleast_1d(np.asarray(self["soc"], dtype=float))
         grids = [np.asarray(self[k], dtype=float) for k in self.KEYS]
@@ -626,13 +633,13 @@ class ModelError(Effect):
 
     @property
     def taus(self) -> np.ndarray:
-        return np.array([float(self["tau_slow"]), float(self["tau_fast"]), float(self["tau_r"])])
+        return np.array([float(self[k]) for k in ("tau_slow", "tau_fast", "tau_r", "tau_mid")])
 
     def _phi(self, dt):
         return np.exp(-np.asarray(dt, dtype=float)[..., None] / self.taus)
 
     def walk_var(self, dt0: float) -> np.ndarray:
-        """Variances of ``(w_slow, w_fast, w_r)`` per step ``dt0`` (unit stationary variances)."""
+        """Variances of ``(w_slow, w_fast, w_r, w_mid)`` per step ``dt0`` (unit stationary variances)."""
         return 1.0 - np.exp(-2.0 * float(dt0) / self.taus)
 
     def scale(self, z, temp, shape):
@@ -668,15 +675,16 @@ class ModelError(Effect):
         en = phi * e
         if not jac:
             return en, None, None, None
-        Fe = np.zeros(e.shape + (3,))
-        for j in range(3):
+        Fe = np.zeros(e.shape + (self.n_states,))
+        for j in range(self.n_states):
             Fe[..., j, j] = phi[..., j]
         return en, Fe, np.zeros(e.shape), np.zeros(e.shape)
 
     def record_states(self, e0, i, dt, base):
         """``ε_k = φ^k ε_0`` over the record (no noise in open loop), by the affine scan."""
-        phi = np.broadcast_to(self._phi(dt), i.shape + (3,))
-        return np.stack([affine_scan(phi[..., j], np.zeros(i.shape), e0[..., j]) for j in range(3)], axis=-1)
+        phi = np.broadcast_to(self._phi(dt), i.shape + (self.n_states,))
+        return np.stack([affine_scan(phi[..., j], np.zeros(i.shape), e0[..., j]) for j in range(self.n_states)],
+                        axis=-1)
 
     def rate(self, e, z, i, temp, base):
         return -e / self.taus
@@ -684,11 +692,12 @@ class ModelError(Effect):
     def output_term(self, e, z, i, temp, base, jac):
         s, ds = self.scale(z, temp, e.shape[:-1])
         i = np.broadcast_to(i, e.shape[:-1])
-        dy = s[..., 0] * e[..., 0] + s[..., 1] * e[..., 1] - s[..., 2] * e[..., 2] * i
+        slow = e[..., 0] + e[..., 3]
+        dy = s[..., 0] * slow + s[..., 1] * e[..., 1] - s[..., 2] * e[..., 2] * i
         if not jac:
             return dy, None, None, None
-        He = np.stack([s[..., 0], s[..., 1], -s[..., 2] * i], axis=-1)
-        dz = ds[..., 0] * e[..., 0] + ds[..., 1] * e[..., 1] - ds[..., 2] * e[..., 2] * i
+        He = np.stack([s[..., 0], s[..., 1], -s[..., 2] * i, s[..., 0]], axis=-1)
+        dz = ds[..., 0] * slow + ds[..., 1] * e[..., 1] - ds[..., 2] * e[..., 2] * i
         return dy, He, dz, -s[..., 2] * e[..., 2]
 
 
