@@ -32,7 +32,6 @@ import platform
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +53,6 @@ from socbench.identify import FIT_CANDIDATES  # noqa: E402
 from socbench.identify.temperature import fit_temperatures  # noqa: E402
 from socbench.metrics import voltage_error_stats  # noqa: E402
 from socbench.models import load_params, make_model, model_names, save_params  # noqa: E402
-from socbench.models.effects import augment  # noqa: E402
 from socbench.socaxis import run_on_data_axis, soc_axis  # noqa: E402
 
 TAGS = ("25degC", "10degC", "0degC", "n10degC", "n20degC")
@@ -213,7 +211,7 @@ def run_job(args) -> dict:
     if unscheduled:
         run_model.schedule_soc = False
     if no_mid:
-        run_model, noise = _without_mid(run_model, noise)
+        run_model, noise = recipe.without_mid(run_model, noise)
     est = make_estimator(est_name, run_model, noise, soc0_sd=SOC0_SD)
     axis = soc_axis(params, prof)
     one = prof
@@ -236,18 +234,6 @@ def run_job(args) -> dict:
         out.update({"seeds": n_seeds, "runs_soc_rmse": s["runs"]["soc_rmse"],
                     "runs_within_3sigma": s["runs"]["frac_within_3sigma"]})
     return out
-
-
-def _without_mid(run_model, noise):
-    """The recipe's filter model with ``ε_mid`` held at 0 (initial SD 1e-9, no walk): the recipe as it was before
-    the mid-period state (socbench.estimators.model_error), for the ablation of section 4b."""
-    error = run_model.effects[-1]
-    held = type(error)(initial_sd=(1.0, 1.0, 1.0, 1e-9), **error.values)
-    model = augment(run_model.base, [*run_model.effects[:-1], held])
-    model.schedule_soc = run_model.schedule_soc
-    walk = list(noise.walk_sd)
-    walk[run_model.state_names.index("eps_mid")] = 0.0
-    return model, replace(noise, walk_sd=tuple(walk))
 
 
 def residual_job(args) -> dict:

@@ -39,6 +39,16 @@ SOC_TOLERANCE = 1e-6
 SOC_WARN_MARGIN = 0.05
 
 
+#: a sample step longer than this many median steps is a gap in the record (a logger that paused), not a sample
+GAP_FACTOR = 5.0
+
+
+def gap_steps(dt, factor: float = GAP_FACTOR) -> np.ndarray:
+    """Which sample steps ``dt`` are gaps: longer than ``factor`` × the median step."""
+    dt = np.asarray(dt, dtype=float)
+    return dt > factor * float(np.median(dt)) if dt.size else np.zeros(0, dtype=bool)
+
+
 @dataclass(frozen=True)
 class ProfileMeta:
     """What a profile is: the cell or pack it was measured on and where it came from."""
@@ -242,13 +252,12 @@ class Profile:
             raise self.soc_ref_error
         return value
 
-    def gaps(self, factor: float = 5.0) -> list[tuple[int, float]]:
+    def gaps(self, factor: float = GAP_FACTOR) -> list[tuple[int, float]]:
         """Sample gaps longer than ``factor`` × the median step: ``[(row, gap_s), ...]`` (rows from 1)."""
         if self.n < 3:
             return []
         dt = self.dt
-        med = float(np.median(dt))
-        idx = np.nonzero(dt > factor * med)[0]
+        idx = np.nonzero(gap_steps(dt, factor))[0]
         return [(int(k) + 2, float(dt[k])) for k in idx]
 
     def amp_hours(self) -> np.ndarray:

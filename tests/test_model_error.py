@@ -333,3 +333,50 @@ def test_cli_fit_measures_the_recipe_on_an_hppc_without_a_reference(tmp_path, ca
                  "--out", str(tmp_path / "q.json")]) == 0
     assert "no model_error block" in capsys.readouterr().out
     assert "model_error" not in json.loads((tmp_path / "q.json").read_text())
+
+
+def _hppc_recipe_on_a_drive(seed: int, tmp_path) -> dict:
+    """One draw of the test generator (tests/hppc_records: random cell, layout, instrument): thevenin fitted by
+    `socbench fit` on the HPPC, so the recipe is measured on the identification record itself (in sample, as a user
+    without validation records gets it); then the EKF from the true SOC on a 1-hour drive of the same cell, with the
+    recipe as it is and with ``ε_mid`` held at 0. ``{variant: (SOC RMSE, share within 3σ)}``."""
+    import contextlib
+    import io
+    import json
+
+    from socbench.cli import main
+    from socbench.models import load_params
+
+    from . import hppc_records as H
+
+    rec = H.random_hppc(seed)
+    hppc = H.write_canonical(rec.profile, tmp_path / f"hppc{seed}.csv")
+    params = tmp_path / f"p{seed}.json"
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["fit", "--data", str(hppc), "--model", "thevenin", "--out", str(params)]) == 0
+    name, p = load_params(params)
+    stats = recipe.ModelErrorStats.from_dict(json.loads(params.read_text())["model_error"])
+    ins = H.Instrument(dt=1.0, v_noise=rec.instrument.v_noise, i_noise_c=rec.instrument.i_noise_c)
+    drive = H.drive_record(rec.cell, ins, seed=seed + 100, duration_s=3600.0).profile
+    out = {}
+    for variant in ("as is", "without mid"):
+        model, noise = recipe.apply(make_model(name, p), SensorNoise(voltage_sd=0.01, current_sd=0.0), stats, drive)
+        if variant == "without mid":
+            model, noise = recipe.without_mid(model, noise)
+        s = score(make_estimator("ekf", model, noise, soc0_sd=0.01).run(drive, soc0=float(drive.soc_ref[0])), drive)
+        out[variant] = (s["soc_rmse"], s["frac_within_3sigma"])
+    return out
+
+
+def test_mid_state_keeps_the_band_on_a_drive_the_hppc_recipe_did_not_see(tmp_path):
+    """The recipe measured on an HPPC (in sample) meets a drive cycle whose error moves at periods of minutes, which
+    one persistent slow state does not describe (module docstring). Over 24 random cells of the test generator the
+    band holds the truth (≥ 0.9 of the samples) in at least 80 % of the draws with ``ε_mid``, and in at least three
+    draws more than with it held at 0; the median SOC error is not larger. Measured: 22 of 24 against 17
+    (thevenin; seeds 1000–1047: 0.90 against 0.71; dp on seeds 2000–2047: 0.81 against 0.67)."""
+    runs = [_hppc_recipe_on_a_drive(seed, tmp_path) for seed in range(24)]
+    held = {v: sum(r[v][1] >= 0.9 for r in runs) for v in ("as is", "without mid")}
+    assert held["as is"] >= 0.8 * len(runs), held
+    assert held["as is"] >= held["without mid"] + 3, held
+    med = {v: np.median([r[v][0] for r in runs]) for v in held}
+    assert med["as is"] <= med["without mid"], med

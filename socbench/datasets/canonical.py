@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import DataError
-from ..profile import Profile, ProfileMeta
+from ..profile import Profile, ProfileMeta, gap_steps
 
 REQUIRED = ("time_s", "current_a", "voltage_v")
 OPTIONAL = ("temperature_c", "soc_ref")
@@ -181,9 +181,12 @@ def check_current_sign(t, i, v, soc=None, *, src: str, column: str = "current_a"
     if t.size < 3 or np.any(dt <= 0):
         return  # the Profile reports the time problem itself
     if soc is not None:
-        q = np.r_[0.0, np.cumsum(-i[:-1] * dt)] / 3600.0  # charge in [Ah]
-        ds = soc - soc[0]
-        if np.ptp(soc) >= MIN_SOC_SWING and np.dot(q, q) > 0 and np.dot(q, ds) < 0:  # Δsoc ≈ q/C needs C > 0
+        # counted only over sampled steps: across a gap (a logger that paused while the cell was discharged, as in
+        # the Panasonic HPPCs) the last current held is not the charge that moved, but the reference saw it move
+        sampled = ~gap_steps(dt)
+        q = np.r_[0.0, np.cumsum(np.where(sampled, -i[:-1] * dt, 0.0))] / 3600.0  # charge in [Ah]
+        ds = np.r_[0.0, np.cumsum(np.where(sampled, np.diff(soc), 0.0))]
+        if np.ptp(ds) >= MIN_SOC_SWING and np.dot(q, q) > 0 and np.dot(q, ds) < 0:  # Δsoc ≈ q/C needs C > 0
             wrong = (np.sign(q) == -np.sign(ds)) & (q != 0) & (np.abs(ds) >= MIN_SOC_SWING / 2)
             flipped("the reference SOC rises while the current says discharge", int(np.argmax(wrong)))
     di, dv = np.diff(i), np.diff(v)

@@ -497,6 +497,20 @@ def apply(model, sensor: SensorNoise, stats: ModelErrorStats | None, profile: Pr
     return aug, tuned
 
 
+def without_mid(run_model, noise: SensorNoise):
+    """``(model, noise)`` of :func:`apply` (the states form) with ``ε_mid`` held at 0 (initial SD 1e-9, no walk): the
+    recipe as it was before its mid-period state, for ablations (docs/real_data.md section 4b′, the tests)."""
+    from ..models.effects import augment
+
+    error = run_model.effects[-1]
+    held = type(error)(initial_sd=(1.0, 1.0, 1.0, 1e-9), **error.values)
+    model = augment(run_model.base, [*run_model.effects[:-1], held])
+    model.schedule_soc = run_model.schedule_soc
+    walk = list(noise.walk_sd)
+    walk[run_model.state_names.index("eps_mid")] = 0.0
+    return model, replace(noise, walk_sd=tuple(walk))
+
+
 def _typical_step(profile: Profile | None, sensor: SensorNoise) -> float:
     """The record's median sample period (the sensor's ``dt`` without a record)."""
     return float(np.median(profile.dt)) if profile is not None and profile.n > 1 else sensor.dt
