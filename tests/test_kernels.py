@@ -604,7 +604,7 @@ def test_the_hinf_exception_is_numpy_s_own_sensitivity():
     model = MODEL_CASES["dp"]()
     p = _record(model)
     soc0 = np.array([0.6, 0.75, 0.02, 0.45])
-    a, b, est, spread = _pair("hinf", model, p, soc0)
+    a, b, est, spread = _pair("hinf", model, p, soc0, theta=1e3)  # a θ that caps on some of these runs, not all
     assert b.info["engine"] == "compiled"
     capped = a.info["theta_capped"] > 0
     assert capped.any() and (~capped).any()
