@@ -30,13 +30,13 @@ counted per run in ``info["theta_capped"]``. Then (Sherman–Morrison for the ra
     P⁺ = (P_K⁺⁻¹ − θ_k s sᵀ)⁻¹ = P_K⁺ + θ_k P_K⁺ s sᵀ P_K⁺ / (1 − θ_k P_K⁺[z, z])
     K  = P⁺ Hᵀ / R_k      (= P⁻ A⁻¹ Hᵀ R_k⁻¹ above)
 
-Default ``θ = 1e2`` (per SOC²). With the noise recipe's three error states, θ = 1e3 was stable on the flight
-scenarios and 3e3 already destabilised the ``harsh`` case (docs/estimators.md). The recipe's fourth state (the slow
-error at a mid period, :mod:`~socbench.estimators.model_error`) leaves more of the voltage to explain in the SOC's
-direction, and θ = 1e3 then drove every run away: ``socbench leaderboard --models thevenin,dp --estimators hinf
---scenarios flight-10kg,flight-0kg,dji-m100-replay --seeds 2`` gave SOC RMSE 11–29 % at θ = 1e3, 0.2–1.5 % at 3e2
-and 0.1–0.7 % at 1e2 (the EKF: 0.1–0.5 %) — the larger gain drives the states away while the SOC sits at its clamp,
-so the default buys robustness only within that range.
+Default ``θ = 1e2`` (per SOC²). With the noise recipe's three error states, θ = 1e3 was stable on the flight scenarios
+and 3e3 already destabilised the ``harsh`` case (docs/estimators.md). The recipe's fourth state (the slow error at a
+mid period, :mod:`~socbench.estimators.model_error`) leaves more of the voltage to explain in the SOC's direction, and
+θ = 1e3 then drove every run away: ``socbench leaderboard --models thevenin,dp --estimators hinf --scenarios
+flight-10kg,flight-0kg,dji-m100-replay --seeds 2``, run with the default set to each θ, gave SOC RMSE 11–29 % at θ =
+1e3, 0.2–1.5 % at 3e2 and 0.1–0.7 % at 1e2 (the EKF: 0.1–0.5 %) — the larger gain drives the states away while the SOC
+sits at its clamp, so the default buys robustness only within that range.
 
 ``P`` here is not a covariance but the Riccati matrix of the game; the reported ``soc_std = √P[0, 0]`` is therefore an
 upper-bound-style spread, and the NEES is read with that in mind.

@@ -503,7 +503,8 @@ def without_mid(run_model, noise: SensorNoise):
     from ..models.effects import augment
 
     error = run_model.effects[-1]
-    held = type(error)(initial_sd=(1.0, 1.0, 1.0, 1e-9), **error.values)
+    held = type(error)(initial_sd=tuple(1e-9 if n == "eps_mid" else sd
+                                        for n, sd in zip(error.state_names, error.state_sd)), **error.values)
     model = augment(run_model.base, [*run_model.effects[:-1], held])
     model.schedule_soc = run_model.schedule_soc
     walk = list(noise.walk_sd)
