@@ -134,9 +134,9 @@ def check_temperature_range(profile: Profile, params: ModelParams, params_name: 
     if len(temps) < 2:
         if fitted_at_c is None or profile.temperature_c is None:
             return {}
-        away = float(np.mean(np.abs(np.asarray(profile.temperature_c) - fitted_at_c) > SINGLE_TEMPERATURE_K))
+        t = np.asarray(profile.temperature_c)
+        away = float(np.mean(np.abs(t - fitted_at_c) > SINGLE_TEMPERATURE_K))
         if away > TEMPERATURE_OUTSIDE_WARN:
-            t = np.asarray(profile.temperature_c)
             warnings.warn(f"{src}: {100 * away:.1f} % of the samples lie more than {SINGLE_TEMPERATURE_K:g} K from the "
                           f"{fitted_at_c:.1f} °C {params_name} were fitted at (the record spans {np.min(t):.1f}…"
                           f"{np.max(t):.1f} °C); the set has no temperature dependence: fit HPPCs at several "

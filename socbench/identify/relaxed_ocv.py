@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..estimators.base import equilibrium
 from ..models.effects import n_cells
 from ..models.registry import make_model
 from ..ocv import OCVCurve, monotone_points
@@ -63,9 +64,7 @@ def rest_overpotential(fit: FitResult, profile: Profile, soc0: float | None = No
                                rec.temperature_c, prob.soc_jumps)
     x = states[idx]
     temp = None if rec.temperature_c is None else rec.temperature_c[idx]
-    rested = model.x0(x[:, 0])
-    zero = np.zeros(idx.size)
-    eta = model.output(rested, zero, temp)[0] - model.output(x, zero, temp)[0]
+    eta = equilibrium(model, x[:, 0], temp)[0] - model.output(x, np.zeros(idx.size), temp)[0]
     return np.asarray(a.ocv_soc), np.asarray(a.ocv_voltage), np.asarray(eta)
 
 
