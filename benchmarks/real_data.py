@@ -45,12 +45,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from socbench.datasets.panasonic import find_panasonic, load_panasonic  # noqa: E402
-from socbench.errors import DataError, ModelError  # noqa: E402
 from socbench.estimators import SensorNoise, estimator_class, make_estimator  # noqa: E402
 from socbench.estimators import model_error as recipe  # noqa: E402
 from socbench.estimators.scoring import score  # noqa: E402
-from socbench.identify import FIT_CANDIDATES  # noqa: E402
-from socbench.identify.temperature import fit_temperatures  # noqa: E402
+from socbench.identify.select import CT_SUFFIX, FIT_SETTINGS, PER_TEMPERATURE, select_temperature_fit  # noqa: E402
 from socbench.metrics import voltage_error_stats  # noqa: E402
 from socbench.models import load_params, make_model, model_names, save_params  # noqa: E402
 from socbench.socaxis import run_on_data_axis, soc_axis  # noqa: E402
@@ -110,18 +108,6 @@ def _jsonable(v):
 
 
 # ------------------------------------------------------------------------------------------------ 1-2: fits
-#: how each model is fitted, chosen per model by validation (socbench.identify.select: the sample weighting of the
-#: fit; here also the SOC form): the paper's SOC polynomials or a piecewise-linear lookup, × FIT_CANDIDATES
-FIT_SETTINGS = {f"{mode}/{label}": {"mode": mode, **kw} for mode in ("paper", "lookup")
-                for label, kw in FIT_CANDIDATES.items()}
-
-
-#: the label suffix of a setting fitted with the charge-transfer term (``fit_temperatures(charge_transfer=True)``): for
-#: a fit over several temperatures, each model's chosen setting is fitted again with it and kept when its mean Cycle_1
-#: RMSE is lower
-CT_SUFFIX = " + charge transfer"
-
-
 def _validation_rmse(m, tags) -> dict:
     """Open-loop voltage RMSE of model ``m`` on the Cycle_1 run of each temperature in ``tags``."""
     out = {}
@@ -131,60 +117,23 @@ def _validation_rmse(m, tags) -> dict:
     return out
 
 
-#: the label of the setting chosen per temperature: each HPPC fitted with the setting whose fit validates best on the
-#: Cycle_1 run of its own temperature (``fit_temperatures(per_record=)``), kept if the assembled set's mean is lower
-PER_TEMPERATURE = "per temperature"
-
-
-def _fit_tried(model, tags, label, tried, fits, **kwargs):
-    """Fit setting ``label`` (``fit_temperatures`` keywords ``kwargs``) at ``tags``; its Cycle_1 RMSE per tag into
-    ``tried`` and the fit into ``fits`` (a failed fit: its error into ``tried``)."""
-    try:
-        res = fit_temperatures(model, [_record(t, "HPPC") for t in tags], **kwargs)
-        val = _validation_rmse(make_model(model, res.params), tags)
-    except (ModelError, DataError, FloatingPointError, np.linalg.LinAlgError) as exc:
-        tried[label] = {"error": f"{type(exc).__name__}: {exc}"}
-        return
-    tried[label] = {"mean_rmse_v": float(np.mean(list(val.values()))), "rmse_v": val}
-    fits[label] = res
-
-
 def fit_job(args) -> dict:
-    """Fit ``model`` on the HPPCs of ``tags`` with every setting of :data:`FIT_SETTINGS`; keep the one with the lowest
-    mean open-loop RMSE on the Cycle_1 runs of those temperatures (validation: a 25 °C campaign validates on the
-    25 °C run alone); save its PARAMS.json; its RMSE on every Cycle_1 run.
-
-    Over several temperatures two more candidates: :data:`PER_TEMPERATURE` (each temperature's HPPC fitted with the
-    setting that validates best at that temperature), and the chosen one with the charge-transfer term
-    (:data:`CT_SUFFIX`); each is kept if it lowers the mean."""
+    """Fit ``model`` on the HPPCs of ``tags``, the setting chosen by validation on the Cycle_1 runs of those
+    temperatures (a 25 °C campaign validates on the 25 °C run alone; :func:`socbench.identify.select_temperature_fit`:
+    every setting of :data:`~socbench.identify.FIT_SETTINGS`, and over several temperatures a setting per temperature
+    and the charge-transfer term, each kept if it lowers the mean); save its PARAMS.json; its RMSE on every Cycle_1
+    run."""
     model, tags, params_path = args
     t0 = time.perf_counter()
-    tried, fits, settings = {}, {}, {}
-    for label, kw in FIT_SETTINGS.items():
-        settings[label] = dict(kw)
-        _fit_tried(model, tags, label, tried, fits, **kw)
-    if not fits:
-        raise ModelError(f"{model}: no fit setting gave a usable model ({tried})")
-    chosen = min(fits, key=lambda k: tried[k]["mean_rmse_v"])
-    if len(tags) > 1:
-        # per temperature, the setting whose fit predicts that temperature's Cycle_1 best
-        per_t = [min(fits, key=lambda k, t=t: tried[k]["rmse_v"][t]) for t in tags]
-        if len(set(per_t)) > 1:
-            settings[PER_TEMPERATURE] = {"per_record": [FIT_SETTINGS[k] for k in per_t]}
-            _fit_tried(model, tags, PER_TEMPERATURE, tried, fits, **settings[PER_TEMPERATURE])
-            if PER_TEMPERATURE in fits:
-                tried[PER_TEMPERATURE]["per_temperature"] = dict(zip(tags, per_t))
-                if tried[PER_TEMPERATURE]["mean_rmse_v"] < tried[chosen]["mean_rmse_v"]:
-                    chosen = PER_TEMPERATURE
-        # the charge-transfer term (Arrhenius I0(T), fitted with the model): kept if validation says so
-        label = chosen + CT_SUFFIX
-        _fit_tried(model, tags, label, tried, fits, charge_transfer=True, **settings[chosen])
-        if label in fits and tried[label]["mean_rmse_v"] < tried[chosen]["mean_rmse_v"]:
-            chosen = label
-    res = fits[chosen]
+    sel = select_temperature_fit(model, [_record(t, "HPPC") for t in tags], [_record(t, "Cycle") for t in tags])
+    tried = {label: ({**out, "rmse_v": dict(zip(tags, out["rmse_v"]))} if "rmse_v" in out else out)
+             for label, out in sel.tried.items()}
+    if PER_TEMPERATURE in tried and "per_temperature" in tried[PER_TEMPERATURE]:
+        tried[PER_TEMPERATURE]["per_temperature"] = dict(zip(tags, tried[PER_TEMPERATURE]["per_temperature"]))
+    res = sel.fit
     save_params(params_path, model, res.params, fit=res.fit_summary())
     val = _validation_rmse(make_model(model, res.params), TAGS)
-    return {"model": model, "seconds": time.perf_counter() - t0, "validation_rmse_v": val, "setting": chosen,
+    return {"model": model, "seconds": time.perf_counter() - t0, "validation_rmse_v": val, "setting": sel.chosen,
             "settings": tried, "fit": res.fit_summary(), "temps": list(res.temps), "capacities": list(res.capacities),
             "notes": list(res.notes)}
 

@@ -72,7 +72,8 @@ def markdown(result, figures: list[str]) -> str:
         "",
         f"{_n(len(cfg.models), 'model')} × {_n(len(cfg.estimators), 'estimator')} × "
         f"{_n(len(cfg.scenarios), 'scenario')} × {_n(len(cfg.seeds), 'seed')} (seeds {cfg.seeds[0]}–{cfg.seeds[-1]}); "
-        f"models fitted on each scenario's own characterisation test (mode '{cfg.fit_mode}'); filter noise: "
+        f"models fitted on each scenario's own characterisation test (mode '{cfg.fit_mode}'; a measured "
+        "scenario's fit setting chosen on its validation records); filter noise: "
         f"{_NOISE_TEXT.get(getattr(cfg, 'noise', 'model'), '?')}. "
         f"Backend {result.backend} ({_n(result.jobs, 'job')}), "
         f"{len(result.computed)} cells computed and {len(result.reused)} reused from the store in "

@@ -5,7 +5,8 @@
 * :func:`fit_model` — any registered model in the paper's modes (``paper``, ``constant``, ``lookup``)
 * :func:`fit_parameters` — the generic bounded least-squares building block (batched finite-difference Jacobian)
 * :func:`compress_profile` — exact merging of constant-current steps before fitting
-* :func:`select_fit` — choose the fit setting by validation on other records (:mod:`socbench.identify.select`)
+* :func:`select_fit`, :func:`select_temperature_fit` — choose the fit setting by validation on other records
+  (:mod:`socbench.identify.select`)
 """
 
 from .compress import Compression, compress_profile
@@ -25,7 +26,15 @@ from .hppc import (
     unrecorded_charge,
 )
 from .lsq import LsqResult, covariance, fit_parameters, simulate_voltage
-from .select import FIT_CANDIDATES, Selection, select_fit, validation_rmse
+from .select import (
+    FIT_CANDIDATES,
+    FIT_SETTINGS,
+    CampaignSelection,
+    Selection,
+    select_fit,
+    select_temperature_fit,
+    validation_rmse,
+)
 
 __all__ = [
     "Compression",
@@ -55,5 +64,8 @@ __all__ = [
     "FIT_CANDIDATES",
     "Selection",
     "select_fit",
+    "select_temperature_fit",
+    "CampaignSelection",
+    "FIT_SETTINGS",
     "validation_rmse",
 ]
