@@ -788,8 +788,9 @@ def write_doc(path: Path, v: dict):
       + ("; so is a setting per temperature, the one chosen here: `fit_temperatures(..., per_record=)`, the command "
          "fits one `--mode` at every temperature" if fits[best]["setting"].startswith(PER_TEMPERATURE) else "")
       + ").\n")
-    w("**How each model is fitted is chosen by validation** (`FIT_SETTINGS` here; `socbench.identify.select` for one "
-      "record): the paper's SOC polynomials or a piecewise-linear SOC lookup, each with the three sample weightings "
+    w("**How each model is fitted is chosen by validation** (`socbench.identify.select_temperature_fit`, "
+      "the same choice the measured scenarios of the leaderboard make on their validation records, section 6): "
+      "the paper's SOC polynomials or a piecewise-linear SOC lookup, each with the three sample weightings "
       "of `socbench.identify.FIT_CANDIDATES` (`edges`: the samples right after each current edge; `dense`; "
       "`time-weighted`: each kept sample weighted by the time it stands for, so the long relaxations count as much "
       "as they last). Each setting is fitted at every temperature and scored open loop on the Cycle_1 runs of those "
@@ -1097,8 +1098,9 @@ def write_doc(path: Path, v: dict):
           "cells reused from the cache's store cost nothing). Every scenario replays a measured "
           "record with its own voltage; seeds perturb the initial SOC guess (20 points low ± 2); the models are fitted "
           "on characterisation tests only (Panasonic: the five HPPCs; CALCE: the C/22 OCV test + one other dynamic "
-          "record; DJI: 8 other flights) and the noise recipe uses each scenario's validation records (catalog TOML "
-          "files say which).\n")
+          "record; DJI: 8 other flights), each model with the fit setting its scenario's validation records choose "
+          "(the choice of section 1: `socbench.identify.select_temperature_fit`, `select_fit` for one record), and "
+          "the noise recipe uses the same validation records (catalog TOML files say which).\n")
         if subset:
             w(f"**Shrunk to meet the deadline of this run** (`--lb-scenarios {v['args'].lb_scenarios}`, "
               f"`--lb-models {v['args'].lb_models}`): {len(lb.config.scenarios)} of the {len(every)} scenarios of "
