@@ -38,3 +38,30 @@ def test_soc_drift_swapped_beside_the_later_steps():
     assert d.effects_added == ["capacity"], [(s.effect, s.evidence) for s in d.steps]
     assert any("swapped" in s.evidence for s in d.steps)
     assert d.after["rmse_v"] <= 0.3 * d.before["rmse_v"]
+
+
+def test_an_effect_the_final_model_does_not_need_is_dropped_at_the_end():
+    """The backward half of stepwise selection (``Search._prune``): a named effect whose removal, everything else
+    refitted jointly, costs less than the forward step's gain is dropped; the effect the records hold stays. The
+    spurious step is real: the best-scoring of the effects left out, fitted beside the final model."""
+    from socbench.diagnose.search import effective_samples
+
+    case = draw_case(18, 7)
+    d = diagnose(case.base, case.fit, case.evals, soc=False)
+    s, final = d.search, d.steps[-1]
+    assert d.effects_added == ["capacity"]
+    names = [n for n, _ in final.layout]
+    empty = {g: {} for g in s.groups}
+    n_eff = effective_samples(final.held_residual)
+    extras = [s._try(e, names, final.fit.thetas, empty, None, final.rmse_after, n_eff)
+              for e in ("coulombic_efficiency", "self_discharge", "hysteresis", "extra_rc")
+              if e not in names and s.applicable(e) is None]
+    extra = min((c for c in extras if c.fit is not None), key=lambda c: c.rmse_after)
+    # it explains less than an added effect must (else the forward search would have taken it)
+    assert extra.rmse_after > (1.0 - s.min_gain) * final.rmse_after
+    pruned = s._prune(list(d.steps) + [extra], final.held_residual)
+    assert [st.effect for st in pruned if st.effect != "base_refit"] == ["capacity"], [st.effect for st in pruned]
+    assert "dropped at the end" in pruned[-1].evidence and extra.effect in pruned[-1].evidence
+    assert pruned[-1].rmse_after <= final.rmse_after / (1.0 - s.min_gain)
+    # the fade itself is needed: pruning the search's own answer leaves it as it is
+    assert [st.effect for st in s._prune(list(d.steps), final.held_residual)] == [st.effect for st in d.steps]

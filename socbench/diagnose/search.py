@@ -20,7 +20,10 @@ One round, on the current model ``m`` (the base model, then the base model with 
    The noise is measured again on the residual of the model as it grows (:meth:`Search._remeasure_noise`: a base
    model far off, in the cold, reads its own error at the current's edges as noise);
 5. at the end, each SOC drift named is swapped for another when that one, fitted beside everything else added, cuts
-   the held-out RMSE by ``min_gain`` (:meth:`Search._swap_drift`).
+   the held-out RMSE by ``min_gain`` (:meth:`Search._swap_drift`);
+6. then each named effect the final model does not need is dropped: refitted without it (everything else jointly, every
+   fold), the model is within ``min_gain`` of the final held-out RMSE (:meth:`Search._prune`, the backward half of
+   stepwise selection).
 
 Candidates. The bounded fit (the expensive part) runs for the ``max_fits`` best-supported families by signature R² (at
 least ``MIN_SIGNATURE_R2``); the four SOC drifts (capacity, current bias, leak, efficiency: one regressor shape up to
@@ -459,7 +462,7 @@ class Search:
             rmse_now, r_now, sse_now = best.rmse_after, best.held_residual, best.fold_sse
             self._remeasure_noise(model)
         if steps:
-            steps = self._swap_drift(steps, r_now)
+            steps = self._prune(self._swap_drift(steps, r_now), r_now)
             model, self.offsets = self.builder([n for n, _ in steps[-1].layout])[0](steps[-1].fit.row(None))
         return model, steps, rounds, before
 
@@ -478,14 +481,8 @@ class Search:
         empty = {g: {} for g in self.groups}
         # a current offset the rests measure is direct evidence (no model needed): it is never swapped away
         for e in [n for n, _ in last.layout if n in SOC_DRIFT and not (n == "current_bias" and self.bias_measured)]:
-            layout = steps[-1].layout
-            names = [n for n, _ in layout]
-            keep = [m for m, n in enumerate(names) if n != e]
-            cols = np.concatenate([np.arange(sum(len(ps) for _, ps in layout[:m]),
-                                             sum(len(ps) for _, ps in layout[:m + 1])) for m in keep]) \
-                if keep else np.zeros(0, dtype=int)
-            rest = [names[m] for m in keep]
-            thetas = steps[-1].fit.thetas[:, cols] if keep else None
+            rest, thetas = self._without(steps[-1], e)
+            names = [n for n, _ in steps[-1].layout]
             best = steps[-1]
             for d in SOC_DRIFT:
                 if d in names or self.applicable(d) is not None:
@@ -505,6 +502,57 @@ class Search:
                                             fold_sse=best.fold_sse, fit=best.fit, layout=best.layout,
                                             effects=best.effects)
         return steps
+
+    @staticmethod
+    def _without(step: Candidate, effect: str):
+        """``(names, rows)``: what ``step`` fitted, without ``effect`` — the other names and their columns of every
+        group's θ (None when nothing is left)."""
+        layout = step.layout
+        keep = [m for m, (n, _) in enumerate(layout) if n != effect]
+        if not keep:
+            return [], None
+        cols = np.concatenate([np.arange(sum(len(ps) for _, ps in layout[:m]), sum(len(ps) for _, ps in layout[:m + 1]))
+                               for m in keep])
+        return [layout[m][0] for m in keep], step.fit.thetas[:, cols]
+
+    def _prune(self, steps, r_now):
+        """``steps`` without the named effects the final model does not need: the backward half of stepwise
+        selection. Each named effect is refitted out (everything else fitted jointly again, every fold); the one whose
+        removal costs least goes when the model without it is within :attr:`min_gain` of the final held-out RMSE
+        (``RMSE_final ≥ (1 − min_gain)·RMSE_without``, the forward acceptance read backwards); then again on what is
+        left. An effect that won an early round by taking up what a later one explains better (a leak standing in for a
+        fade before the base refit took the aged cell's grown resistances) adds nothing beside it at the end, and a
+        diagnosis should not name it. Measured inputs are never dropped (a current offset the rests measure, the
+        temperature where the records' measured temperature differs from the fit's)."""
+        n_eff = effective_samples(r_now)
+        empty = {g: {} for g in self.groups}
+        while True:
+            final = steps[-1]
+            names = [n for n, _ in final.layout]
+            droppable = [n for n in names if n != BASE_REFIT
+                         and not (n == "current_bias" and self.bias_measured)
+                         and not (n == "temperature" and self.temperature_measured)]
+            trials = []
+            for e in droppable:
+                rest, rows = self._without(final, e)
+                if not rest:  # the only thing added: the forward step already measured it against the base model
+                    continue
+                c = self._try(rest[-1], rest[:-1], None, empty, None, final.rmse_after, n_eff, start=rows)
+                if c.fit is not None and np.isfinite(c.rmse_after):
+                    trials.append((c.rmse_after, e, c))
+            if not trials:
+                return steps
+            rmse_without, e, c = min(trials, key=lambda x: x[0])
+            if final.rmse_after < (1.0 - self.min_gain) * rmse_without:
+                return steps
+            steps = [st for st in steps if st.effect != e]
+            if not steps:
+                return steps
+            note = (f"; {e} dropped at the end: refitted without it, held-out RMSE {1000 * final.rmse_after:.1f} → "
+                    f"{1000 * c.rmse_after:.1f} mV (less than {100 * self.min_gain:.0f} % worse)")
+            steps[-1] = dataclasses.replace(steps[-1], evidence=steps[-1].evidence + note, rmse_after=c.rmse_after,
+                                            held_residual=c.held_residual, fold_sse=c.fold_sse, fit=c.fit,
+                                            layout=c.layout, effects=c.effects)
 
     @staticmethod
     def worst_block(c: Candidate, sse_before) -> float:
