@@ -480,7 +480,7 @@ class Search:
         n_eff = effective_samples(r_now)
         empty = {g: {} for g in self.groups}
         # a current offset the rests measure is direct evidence (no model needed): it is never swapped away
-        for e in [n for n, _ in last.layout if n in SOC_DRIFT and not (n == "current_bias" and self.bias_measured)]:
+        for e in [n for n, _ in last.layout if n in SOC_DRIFT and not self.measured_input(n)]:
             rest, thetas = self._without(steps[-1], e)
             names = [n for n, _ in steps[-1].layout]
             best = steps[-1]
@@ -502,6 +502,12 @@ class Search:
                                             fold_sse=best.fold_sse, fit=best.fit, layout=best.layout,
                                             effects=best.effects)
         return steps
+
+    def measured_input(self, name: str) -> bool:
+        """Whether the records measure effect ``name`` directly (a current offset their rests read, a temperature that
+        differs from the fit's): such an effect is evidence, not an inference, and no later step takes it away."""
+        return (name == "current_bias" and bool(self.bias_measured)) or (name == "temperature"
+                                                                         and self.temperature_measured)
 
     @staticmethod
     def _without(step: Candidate, effect: str):
@@ -529,9 +535,7 @@ class Search:
         while True:
             final = steps[-1]
             names = [n for n, _ in final.layout]
-            droppable = [n for n in names if n != BASE_REFIT
-                         and not (n == "current_bias" and self.bias_measured)
-                         and not (n == "temperature" and self.temperature_measured)]
+            droppable = [n for n in names if n != BASE_REFIT and not self.measured_input(n)]
             trials = []
             for e in droppable:
                 rest, rows = self._without(final, e)

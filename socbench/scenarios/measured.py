@@ -144,7 +144,8 @@ class Characterisation:
 
     def fit(self, model: str, mode: str = "paper", **kw):
         """Fit ``model``: a result with ``params``, ``rmse_v`` and ``warnings``. With validation records the setting
-        (``mode`` included) is chosen on them (module docstring); else ``mode``."""
+        (``mode`` included) is chosen on them (module docstring; ``kw`` then reaches only a single-record fit); else
+        ``mode``."""
         from ..identify import FIT_SETTINGS, fit_model, select_fit, select_temperature_fit
         from ..identify.hppc import ocv_from_slow_test
         from ..identify.temperature import fit_temperatures
