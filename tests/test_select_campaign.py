@@ -88,3 +88,13 @@ def test_the_measured_characterisation_chooses_its_setting_on_its_validation_rec
     assert plain.fit("thevenin", "paper").mode == "paper"
     with pytest.raises(ConfigError, match="validation record"):
         select_temperature_fit("thevenin", hppcs, [])
+
+
+def test_validation_records_without_a_temperature_still_choose_a_setting():
+    """A validation record that tells no temperature (the ORNL Leaf's discharges have neither a column nor an ambient
+    in the file) cannot judge one temperature's setting: the per-temperature candidate is not tried, the rest is."""
+    hppcs, validation, _ = _campaign(1)
+    blind = [p.with_(temperature_c=None) for p in validation]
+    sel = select_temperature_fit("thevenin", hppcs, blind)
+    assert PER_TEMPERATURE not in sel.tried and set(FIT_SETTINGS) <= set(sel.tried)
+    assert any(k.endswith(CT_SUFFIX) for k in sel.tried) and sel.chosen in sel.tried

@@ -143,9 +143,13 @@ def select_temperature_fit(name: str, records, validation, score=None) -> Campai
         raise ModelError(f"{name}: no fit setting gave a usable model ({tried})")
     chosen = min(fits, key=lambda k: tried[k]["mean_rmse_v"])
     if len(records) > 1:
-        # the validation records nearest each identification record's temperature judge that record's setting
+        # the validation records nearest each identification record's temperature judge that record's setting (none
+        # when a validation record tells no temperature: then every record keeps the chosen one)
         temps = np.array([record_temperature(r)[0] for r in records])
-        near = [int(np.argmin(np.abs(temps - record_temperature(v)[0]))) for v in validation]
+        try:
+            near = [int(np.argmin(np.abs(temps - record_temperature(v)[0]))) for v in validation]
+        except DataError:
+            near = []
         own = [[j for j, k in enumerate(near) if k == i] for i in range(len(records))]
         per_t = [min(fits, key=lambda k, js=js: float(np.mean([tried[k]["rmse_v"][j] for j in js])))
                  if js else chosen for js in own]
