@@ -98,3 +98,29 @@ def test_validation_records_without_a_temperature_still_choose_a_setting():
     sel = select_temperature_fit("thevenin", hppcs, blind)
     assert PER_TEMPERATURE not in sel.tried and set(FIT_SETTINGS) <= set(sel.tried)
     assert any(k.endswith(CT_SUFFIX) for k in sel.tried) and sel.chosen in sel.tried
+
+
+def test_the_fit_command_chooses_the_setting_on_validation_records(tmp_path, capsys):
+    """``socbench fit --mode auto``: the campaign fitted with the setting the --validation records choose, every
+    candidate's score printed; without --validation one error line and exit code 2."""
+    from socbench.cli import main
+    from socbench.models import load_params
+
+    from .hppc_records import write_canonical
+
+    hppcs, validation, held_out = _campaign(2)
+    data = [str(write_canonical(p, tmp_path / f"hppc{k}.csv")) for k, p in enumerate(hppcs)]
+    val = [str(write_canonical(p, tmp_path / f"drive{k}.csv")) for k, p in enumerate(validation)]
+    out = tmp_path / "P.json"
+    assert main(["fit", "--data", *data, "--model", "thevenin", "--mode", "auto", "--validation", *val,
+                 "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "chosen by validation" in text and all(label in text for label in FIT_SETTINGS)
+    kept = [line for line in text.splitlines() if line.strip().startswith("* ")]
+    assert len(kept) == 1, text
+    _, params = load_params(out)
+    paper = _held_out_rmse(fit_temperatures("thevenin", hppcs, mode="paper").params, held_out)
+    assert _held_out_rmse(params, held_out) < 0.5 * paper
+    assert main(["fit", "--data", *data, "--model", "thevenin", "--mode", "auto", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--validation" in err[0]

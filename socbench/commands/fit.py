@@ -19,6 +19,12 @@ temperature of its file name); the command says which. ``--charge-transfer`` add
 term with an Arrhenius exchange current ``I0(T)``, fitted with the base model on each record (``fit_temperatures(...,
 charge_transfer=True)``); the file carries it as an ``"effects"`` entry, which every command that reads the file runs.
 
+``--mode auto`` chooses how to fit by validation on the ``--validation`` records (needed then): every SOC form and
+sample weighting of :data:`socbench.identify.FIT_SETTINGS`, and over several records also a setting per temperature
+and the charge-transfer term, each kept when it predicts the validation records better
+(:func:`socbench.identify.select_temperature_fit`; :func:`~socbench.identify.select_fit` for one record). The command
+prints every candidate's validation RMSE and the one kept.
+
 The noise recipe (:mod:`socbench.estimators.model_error`) measures the fitted model's voltage error on the
 ``--validation`` records (other drive cycles of the same cell, never one you will score), else on the identification
 records, and stores it as ``"model_error"``; ``socbench estimate`` builds the filter covariances from it by default.
@@ -35,13 +41,16 @@ from ..datasets import load
 from ..domain import warn_outside
 from ..errors import ConfigError, DataError
 from ..estimators import model_error
-from ..identify import MODES, fit_model
+from ..identify import FIT_SETTINGS, MODES, fit_model, select_fit, select_temperature_fit
 from ..identify.hppc import analyze_hppc
 from ..identify.pseudo_ocv import refit_on_refined_ocv
 from ..identify.temperature import fit_temperatures
 from ..io import output_file
 from ..models import make_model, model_class, save_params
 from ..ocv import OCVCurve
+
+#: the --mode that chooses the fit setting by validation
+AUTO = "auto"
 
 
 def add_arguments(parser) -> None:
@@ -50,9 +59,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--model", required=True, help="model name (see `socbench models`)")
     parser.add_argument("--out", required=True, help="write the fitted PARAMS.json here")
     parser.add_argument("--format", default="auto", help="data format (default auto)")
-    parser.add_argument("--mode", default="paper", choices=MODES,
+    parser.add_argument("--mode", default="paper", choices=MODES + (AUTO,),
                         help="paper: SOC polynomials for models 1-6, constants otherwise (default); "
-                             "constant; lookup: piecewise linear in SOC")
+                             "constant; lookup: piecewise linear in SOC; auto: the setting that predicts the "
+                             "--validation records best (SOC form, sample weighting; over several records also a "
+                             "setting per temperature and the charge-transfer term)")
     parser.add_argument("--capacity", type=float, default=None,
                         help="capacity [Ah] of the SOC axis (default: the charge the HPPC discharges from full to "
                              "empty; with several records the largest of them)")
@@ -112,6 +123,12 @@ def run(args) -> int:
     if args.refine_ocv and (several or args.ocv):
         raise ConfigError("--refine-ocv refines the OCV of one HPPC record's rest points: not with --ocv or several "
                           "--data records")
+    auto = args.mode == AUTO
+    if auto and not args.validation:
+        raise ConfigError("--mode auto chooses the fit setting on --validation records: give at least one")
+    if auto and (args.charge_transfer or args.refine_ocv):
+        raise ConfigError("--mode auto tries the charge-transfer term itself and does not refine the OCV: drop "
+                          "--charge-transfer / --refine-ocv")
     if args.charge_transfer and not several:
         raise ConfigError("--charge-transfer fits the exchange current's temperature law: give one HPPC record per "
                           "temperature, at least two")
@@ -125,10 +142,15 @@ def run(args) -> int:
             raise DataError("a validation record needs a reference SOC (the model error is measured at the true "
                             "SOC)", file=v.meta.source or v.name, column="soc_ref")
     if several:
-        res = fit_temperatures(args.model, records, mode=args.mode, capacity_ah=args.capacity,
-                               charge_transfer=args.charge_transfer)
+        if auto:
+            sel = select_temperature_fit(args.model, records, validation, capacity_ah=args.capacity)
+            _print_choice(sel.tried, sel.chosen)
+            res = sel.fit
+        else:
+            res = fit_temperatures(args.model, records, mode=args.mode, capacity_ah=args.capacity,
+                                   charge_transfer=args.charge_transfer)
         params, summary = res.params, res.fit_summary()
-        print(f"{args.model} fitted at {len(res.temps)} temperatures ({args.mode} mode) on one SOC axis "
+        print(f"{args.model} fitted at {len(res.temps)} temperatures ({res.mode} mode) on one SOC axis "
               f"(Q_ref {res.capacity_ref:.4g} Ah) in {res.seconds:.1f} s:")
         for t, name, how, q, f in zip(res.temps, res.sources, res.temperature_notes, res.capacities, res.fits):
             print(f"  {t:6.1f} °C  {name}: RMS {1000 * f.rmse_v:.1f} mV over {f.n_samples} samples, "
@@ -138,10 +160,16 @@ def run(args) -> int:
         warnings = res.warnings
     else:
         profile = records[0]
-        res = fit_model(args.model, profile, mode=args.mode, ocv=ocv, capacity_ah=args.capacity, soc0=args.soc0,
-                        segments=False if args.no_segments else None)
+        kw = {"ocv": ocv, "capacity_ah": args.capacity, "soc0": args.soc0,
+              "segments": False if args.no_segments else None}
+        if auto:
+            sel = select_fit(args.model, profile, validation, candidates=FIT_SETTINGS, **kw)
+            _print_choice({k: {"mean_rmse_v": float(np.mean(v))} for k, v in sel.scores.items()}, sel.chosen)
+            res = sel.fit
+        else:
+            res = fit_model(args.model, profile, mode=args.mode, **kw)
         params, summary = res.params, res.fit_summary()
-        print(f"{args.model} fitted on {profile.name} ({args.mode} mode): RMS {1000 * res.rmse_v:.1f} mV over "
+        print(f"{args.model} fitted on {profile.name} ({res.mode} mode): RMS {1000 * res.rmse_v:.1f} mV over "
               f"{res.n_samples} samples in {res.seconds:.1f} s")
         if args.refine_ocv:
             res = _refine(res, profile, validation, mode=args.mode, soc0=args.soc0,
@@ -169,6 +197,15 @@ def run(args) -> int:
     if len(warnings) > 5:
         print(f"  ... {len(warnings) - 5} more in {args.out} (fit.warnings)")
     return 0
+
+
+def _print_choice(tried: dict, chosen: str) -> None:
+    """One line per candidate setting of ``--mode auto``: its mean validation RMSE (or why it failed), the kept one
+    marked."""
+    print("fit setting chosen by validation (mean open-loop RMSE on the --validation records):")
+    for label, out in tried.items():
+        text = f"{1000 * out['mean_rmse_v']:.1f} mV" if "mean_rmse_v" in out else f"failed ({out['error']})"
+        print(f"  {'*' if label == chosen else ' '} {label}: {text}")
 
 
 def _refine(res, profile, validation, **fit_kwargs):

@@ -113,12 +113,14 @@ class CampaignSelection:
         return self.fit.warnings
 
 
-def select_temperature_fit(name: str, records, validation, score=None) -> CampaignSelection:
+def select_temperature_fit(name: str, records, validation, score=None, capacity_ah: float | None = None
+                           ) -> CampaignSelection:
     """Fit ``name`` on the identification ``records`` (one per temperature, or one) with every setting of
     :data:`FIT_SETTINGS`, keep the one whose assembled set has the lowest mean ``score`` over the ``validation``
     records; over several temperatures try :data:`PER_TEMPERATURE` and the chosen setting + :data:`CT_SUFFIX` (module
     docstring). ``score(model, record)`` is an open-loop voltage RMSE (default: from the record's reference SOC on the
-    model's axis, the noise recipe's residual). Raises :class:`~socbench.errors.ModelError` when no setting fits."""
+    model's axis, the noise recipe's residual); ``capacity_ah`` the SOC axis' ``Q_ref`` (:func:`fit_temperatures`).
+    Raises :class:`~socbench.errors.ModelError` when no setting fits."""
     records, validation = list(records), list(validation)
     if not validation:
         raise ConfigError("select_temperature_fit needs at least one validation record")
@@ -128,7 +130,7 @@ def select_temperature_fit(name: str, records, validation, score=None) -> Campai
     def attempt(label, **kw):
         settings[label] = kw
         try:
-            res = fit_temperatures(name, records, **kw)
+            res = fit_temperatures(name, records, capacity_ah=capacity_ah, **kw)
             model = make_model(name, res.params)
             rmse = [float(score(model, rec)) for rec in validation]
         except FIT_ERRORS as exc:
