@@ -48,7 +48,7 @@ from socbench.datasets.panasonic import find_panasonic, load_panasonic  # noqa: 
 from socbench.estimators import SensorNoise, estimator_class, make_estimator  # noqa: E402
 from socbench.estimators import model_error as recipe  # noqa: E402
 from socbench.estimators.scoring import score  # noqa: E402
-from socbench.identify.select import CT_SUFFIX, FIT_SETTINGS, PER_TEMPERATURE, select_temperature_fit  # noqa: E402
+from socbench.identify.select import FIT_SETTINGS, PER_TEMPERATURE, select_temperature_fit  # noqa: E402
 from socbench.metrics import voltage_error_stats  # noqa: E402
 from socbench.models import load_params, make_model, model_names, save_params  # noqa: E402
 from socbench.socaxis import run_on_data_axis, soc_axis  # noqa: E402
@@ -723,11 +723,6 @@ def verdict(v: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _cli_mode(setting: str) -> str:
-    """The ``--mode`` of ``socbench fit`` for a setting label (a setting per temperature has none: "MODE")."""
-    return "MODE" if setting.startswith(PER_TEMPERATURE) else setting.split("/")[0]
-
-
 def _slow_note(args, what: str = "the iterated EKF") -> str:
     """Where the slow filters run at another resolution than section 4: say so."""
     if args.slow_resolution == args.resolution:
@@ -781,13 +776,9 @@ def write_doc(path: Path, v: dict):
       "its own (`socbench.identify.temperature.fit_temperatures`), and the parameters become tables over "
       "SOC × temperature (log-linear in T for positive quantities, exact at each fitted temperature, held outside); "
       "the OCV is each HPPC's own rest points (a cold HPPC covers only the top of the axis: below it the lowest-"
-      "reaching curve is shifted to meet it). The same command: `socbench fit --data HPPC25 HPPC10 HPPC0 HPPCn10 "
-      f"HPPCn20 --model {best} --mode {_cli_mode(fits[best]['setting'])}"
-      f"{' --charge-transfer' if fits[best]['setting'].endswith(CT_SUFFIX) else ''} --out P.json` (the sample "
-      "weighting of the chosen setting is a library option, `fit_temperatures(..., compress=, time_weighted=)`"
-      + ("; so is a setting per temperature, the one chosen here: `fit_temperatures(..., per_record=)`, the command "
-         "fits one `--mode` at every temperature" if fits[best]["setting"].startswith(PER_TEMPERATURE) else "")
-      + ").\n")
+      "reaching curve is shifted to meet it). The same command, the choice below included: `socbench fit --data "
+      f"HPPC25 HPPC10 HPPC0 HPPCn10 HPPCn20 --model {best} --mode auto --validation CYCLE25 CYCLE10 CYCLE0 CYCLEn10 "
+      "CYCLEn20 --out P.json` (it prints the scores of the table below and the setting it keeps).\n")
     w("**How each model is fitted is chosen by validation** (`socbench.identify.select_temperature_fit`, "
       "the same choice the measured scenarios of the leaderboard make on their validation records, section 6): "
       "the paper's SOC polynomials or a piecewise-linear SOC lookup, each with the three sample weightings "
