@@ -115,18 +115,23 @@ def _cold_hppc(temp_c: float, truth_params: ModelParams, bv: ButlerVolmer, cell:
     return prof.with_(voltage_v=v + noise)
 
 
-@pytest.mark.parametrize("draw", range(3))
-def test_the_fit_recovers_a_planted_exchange_current_law(draw):
-    rng = np.random.default_rng(2026 + draw)
+def _random_bv_cell(rng):
+    """``(cell, dp parameters, Butler–Volmer term)`` of a random 2–3.5 Ah dp truth whose exchange current follows an
+    Arrhenius law: I0 at 25 °C 0.5–1.5 × the 1C current, Ea 30–60 kJ/mol (nearly linear warm, strong cold)."""
     q = float(rng.uniform(2.0, 3.5))
     r0, r1, r2 = (float(rng.uniform(a, b)) / q for a, b in ((0.03, 0.06), (0.01, 0.03), (0.01, 0.03)))
     tau1, tau2 = float(rng.uniform(8.0, 30.0)), float(rng.uniform(200.0, 600.0))
     cell = Cell(q, "nmc", r0, ((r1, tau1), (r2, tau2)))
-    truth_params = ModelParams(capacity_ah=q, ocv=cell.ocv, values={
+    params = ModelParams(capacity_ah=q, ocv=cell.ocv, values={
         "R0": Constant(r0), "R1": Constant(r1), "R2": Constant(r2), "C1": Constant(tau1 / r1),
         "C2": Constant(tau2 / r2)})
-    # I0 at 25 °C 0.5–1.5 × the 1C current, Ea 30–60 kJ/mol: the term is nearly linear warm and strong cold
-    planted = ButlerVolmer(I0=float(rng.uniform(0.5, 1.5)) * q, Ea=float(rng.uniform(30e3, 60e3)))
+    bv = ButlerVolmer(I0=float(rng.uniform(0.5, 1.5)) * q, Ea=float(rng.uniform(30e3, 60e3)))
+    return cell, params, bv
+
+
+@pytest.mark.parametrize("draw", range(3))
+def test_the_fit_recovers_a_planted_exchange_current_law(draw):
+    cell, truth_params, planted = _random_bv_cell(np.random.default_rng(2026 + draw))
     temps = (-20.0, 0.0, 25.0)
     records = [_cold_hppc(t, truth_params, planted, cell, 10 * draw + k) for k, t in enumerate(temps)]
     res = fit_temperatures("dp", records, mode="constant", charge_transfer=True)

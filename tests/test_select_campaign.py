@@ -17,27 +17,19 @@ from socbench.estimators.model_error import residual
 from socbench.identify import FIT_SETTINGS, select_temperature_fit
 from socbench.identify.select import CT_SUFFIX, PER_TEMPERATURE
 from socbench.identify.temperature import fit_temperatures
-from socbench.models import Constant, ModelParams, make_model
-from socbench.models.effects import ButlerVolmer, augment
+from socbench.models import make_model
+from socbench.models.effects import augment
 from socbench.scenarios.measured import Characterisation
 
-from .hppc_records import Cell, Instrument, drive_record
-from .test_charge_transfer import _cold_hppc
+from .hppc_records import Instrument, drive_record
+from .test_charge_transfer import _cold_hppc, _random_bv_cell
 
 TEMPS = (-10.0, 25.0)
 
 
 def _campaign(draw: int):
     """``(HPPCs, validation drives, held-out drives)`` of a random dp + Butler–Volmer cell at :data:`TEMPS`."""
-    rng = np.random.default_rng(3030 + draw)
-    q = float(rng.uniform(2.0, 3.5))
-    r0, r1, r2 = (float(rng.uniform(a, b)) / q for a, b in ((0.03, 0.06), (0.01, 0.03), (0.01, 0.03)))
-    tau1, tau2 = float(rng.uniform(8.0, 30.0)), float(rng.uniform(200.0, 600.0))
-    cell = Cell(q, "nmc", r0, ((r1, tau1), (r2, tau2)))
-    params = ModelParams(capacity_ah=q, ocv=cell.ocv, values={
-        "R0": Constant(r0), "R1": Constant(r1), "R2": Constant(r2), "C1": Constant(tau1 / r1),
-        "C2": Constant(tau2 / r2)})
-    bv = ButlerVolmer(I0=float(rng.uniform(0.5, 1.5)) * q, Ea=float(rng.uniform(30e3, 60e3)))
+    cell, params, bv = _random_bv_cell(np.random.default_rng(3030 + draw))
     truth = augment(make_model("dp", params), [bv])
 
     def drive(temp, seed):
