@@ -116,3 +116,32 @@ def test_the_fit_command_chooses_the_setting_on_validation_records(tmp_path, cap
     assert main(["fit", "--data", *data, "--model", "thevenin", "--mode", "auto", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--validation" in err[0]
+
+
+def test_the_fit_command_says_when_nothing_validated_its_model_error(tmp_path, capsys):
+    """Without --validation the noise recipe is measured on the identification HPPCs: the parameter file records it
+    (``model_error.measured_on``), ``socbench fit`` prints one note and ``socbench estimate`` warns with such a file;
+    with --validation neither does, and a --validation without --mode auto gets the note that auto would choose."""
+    import json
+
+    from socbench.cli import main
+
+    from .hppc_records import write_canonical
+
+    hppcs, validation, held_out = _campaign(2)
+    data = [str(write_canonical(p, tmp_path / f"hppc{k}.csv")) for k, p in enumerate(hppcs)]
+    val = [str(write_canonical(p, tmp_path / f"drive{k}.csv")) for k, p in enumerate(validation)]
+    drive = str(write_canonical(held_out[0], tmp_path / "held_out.csv"))
+    runs = {"hppc": [], "paper+val": ["--validation", *val], "auto": ["--mode", "auto", "--validation", *val]}
+    for label, extra in runs.items():
+        out = tmp_path / f"{label}.json"
+        assert main(["fit", "--data", *data, "--model", "thevenin", *extra, "--out", str(out)]) == 0
+        notes = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note: ")]
+        measured_on = json.loads(out.read_text())["model_error"]["measured_on"]
+        assert measured_on == ("identification" if label == "hppc" else "validation")
+        assert any("identification records only" in n for n in notes) == (label == "hppc")
+        assert any("--mode auto would choose" in n for n in notes) == (label == "paper+val")
+        assert main(["estimate", "--data", drive, "--params", str(out), "--estimator", "ekf",
+                     "--out", str(tmp_path / f"est-{label}")]) == 0
+        err = capsys.readouterr().err
+        assert ("measured on the identification records only" in err) == (label == "hppc"), err

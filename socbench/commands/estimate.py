@@ -101,6 +101,10 @@ def run(args) -> int:
                           "records with a reference SOC, `--validation`): the filter uses the sensor noise alone",
                           SocbenchWarning, stacklevel=2)
         noise_mode = "sensor"
+    if noise_mode == "model" and stats.measured_on == "identification":
+        warnings.warn(f"{args.params}: its model error was measured on the identification records only (`socbench fit` "
+                      "without --validation): on a drive cycle the ±3σ band is likely too narrow; refit with "
+                      "--validation DRIVE... for an honest band", SocbenchWarning, stacklevel=2)
     run_model, noise = recipe.apply(model, sensor, stats, profile, noise=noise_mode,
                                     form=estimator_class(args.estimator).model_error_form)
     options = {"soc0_sd": args.soc0_sd, "store_states": True}  # states: the domain report counts guards along them

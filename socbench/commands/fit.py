@@ -27,7 +27,9 @@ prints every candidate's validation RMSE and the one kept.
 
 The noise recipe (:mod:`socbench.estimators.model_error`) measures the fitted model's voltage error on the
 ``--validation`` records (other drive cycles of the same cell, never one you will score), else on the identification
-records, and stores it as ``"model_error"``; ``socbench estimate`` builds the filter covariances from it by default.
+records, and stores it as ``"model_error"`` (with ``measured_on``: which of the two); ``socbench estimate`` builds the
+filter covariances from it by default. Measured on the identification records it is too small for a drive cycle (an
+HPPC shows no sustained load; docs/real_data.md section 4g): both commands say so.
 """
 
 from __future__ import annotations
@@ -191,6 +193,8 @@ def run(args) -> int:
               f"(τ {stats.tau_fast_s:.1f} s), resistive {_mv(sm['r'])} mΩ (τ {stats.tau_r_s:.0f} s), "
               f"white {_mv(sm['white'])} mV at "
               f"{', '.join(f'{t:.1f}' for t in stats.temps)} °C")
+    for note in _validation_notes(args, stats):
+        print(f"note: {note}")
     print(f"{len(warnings)} fit warning(s); wrote {args.out}")
     for w in warnings[:5]:
         print(f"  warning: {w}")
@@ -231,6 +235,20 @@ def _mv(values) -> str:
     return "/".join(f"{1000 * v:.1f}" for v in values)
 
 
+def _validation_notes(args, stats) -> list[str]:
+    """What the fit and its noise recipe did not validate (measured on the Panasonic US06 runs: docs/real_data.md
+    section 4g, the HPPC-only campaign's filters against the validated one's)."""
+    notes = []
+    if stats is not None and stats.measured_on == "identification":
+        notes.append("the model error was measured on the identification records only (an HPPC shows no sustained "
+                     "load): on a drive cycle the error is larger and the filters' ±3σ band too narrow; give "
+                     "--validation DRIVE... (records of the same cell with a reference SOC) for an honest band")
+    if args.validation and args.mode != AUTO:
+        notes.append(f"fitted in the {args.mode} mode as asked: --mode auto would choose the setting that predicts "
+                     "the --validation records best")
+    return notes
+
+
 def _model_error(model, records, validation):
     """The noise recipe's statistics and which records it used (None when no record has a known SOC).
 
@@ -238,7 +256,8 @@ def _model_error(model, records, validation):
     axis (counted from full with the model's capacity, :func:`~socbench.identify.hppc.analyze_hppc`) as the known
     SOC, the axis the fit itself placed it on."""
     if validation:
-        return model_error.estimate(model, validation), f"{len(validation)} validation record(s)"
+        return (model_error.estimate(model, validation, measured_on="validation"),
+                f"{len(validation)} validation record(s)")
     usable = [r if r.soc_ref is not None else _counted_reference(r, model.capacity_ah) for r in records]
     usable = [r for r in usable if r is not None]
     if not usable:
@@ -247,7 +266,8 @@ def _model_error(model, records, validation):
         return None, ""
     counted = sum(r.soc_ref is None for r in records)
     how = f", {counted} on its HPPC SOC axis" if counted else ""
-    return model_error.estimate(model, usable), f"the {len(usable)} identification record(s) (no --validation{how})"
+    return (model_error.estimate(model, usable, measured_on="identification"),
+            f"the {len(usable)} identification record(s) (no --validation{how})")
 
 
 def _counted_reference(record, capacity_ah: float):

@@ -112,6 +112,8 @@ from .noise import SensorNoise
 WINDOW_S = 10.0
 #: the time resolution the error is measured at [s]: faster records are bin-averaged to it first
 RESOLUTION_S = 1.0
+#: what the records the error is measured on can be (ModelErrorStats.measured_on)
+MEASURED_ON = ("", "validation", "identification")
 #: longest lag searched for the slow part's correlation time [s]
 MAX_LAG_S = 4 * 3600.0
 #: longest lag searched for the fast part's correlation time [s]
@@ -145,6 +147,9 @@ class ModelErrorStats:
     window_s: float = WINDOW_S
     records: tuple = ()
     samples: tuple = ()  # per temperature: seconds of residual that weighed on it
+    #: which records the error was measured on: "validation" (other loads of the cell), "identification" (the test
+    #: the model was fitted on: it saw those samples, and an HPPC shows no sustained load), "" (not said)
+    measured_on: str = ""
 
     def __post_init__(self):
         t = tuple(float(x) for x in np.ravel(self.temps))
@@ -174,6 +179,8 @@ class ModelErrorStats:
             object.__setattr__(self, k, float(getattr(self, k)))
         object.__setattr__(self, "records", tuple(str(r) for r in self.records))
         object.__setattr__(self, "samples", tuple(float(x) for x in self.samples))
+        if self.measured_on not in MEASURED_ON:
+            raise ConfigError(f"model_error: 'measured_on' must be one of {', '.join(map(repr, MEASURED_ON))}")
 
     # ---------------------------------------------------------------- use
     def white_var(self, temperature_c=None) -> float:
@@ -219,7 +226,7 @@ class ModelErrorStats:
                                                                                    self.resistance_sd],
                 "white_sd_v": list(self.white_sd), "tau_slow_s": self.tau_slow_s, "tau_fast_s": self.tau_fast_s,
                 "tau_r_s": self.tau_r_s, "window_s": self.window_s, "records": list(self.records),
-                "seconds_per_temperature": list(self.samples),
+                "seconds_per_temperature": list(self.samples), "measured_on": self.measured_on,
                 "recipe": "socbench.estimators.model_error: open-loop residual; slow, fast and resistive parts -> "
                           "coloured states (ModelError effect), white part -> R"}
 
@@ -229,7 +236,7 @@ class ModelErrorStats:
             return cls(tuple(d["temps"]), tuple(d["soc"]), d["slow_sd_v"], d["fast_sd_v"], d["resistance_sd_ohm"],
                        tuple(d["white_sd_v"]), float(d["tau_slow_s"]), float(d["tau_fast_s"]), float(d["tau_r_s"]),
                        float(d.get("window_s", WINDOW_S)), tuple(d.get("records", ())),
-                       tuple(d.get("seconds_per_temperature", ())))
+                       tuple(d.get("seconds_per_temperature", ())), str(d.get("measured_on", "")))
         except (KeyError, TypeError, ValueError):
             raise ConfigError("model_error needs keys temps, soc, slow_sd_v, fast_sd_v, resistance_sd_ohm, "
                               "white_sd_v, tau_slow_s, tau_fast_s, tau_r_s") from None
@@ -412,10 +419,11 @@ def bin_average(profile: Profile, width_s: float = RESOLUTION_S) -> Profile:
 
 
 def estimate(model, records, temps=None, window_s: float = WINDOW_S, soc=SOC_GRID,
-             resolution_s: float = RESOLUTION_S) -> ModelErrorStats:
+             resolution_s: float = RESOLUTION_S, measured_on: str = "") -> ModelErrorStats:
     """Measure the model error of ``model`` on ``records`` (see the module docstring). ``temps``: the temperature
     nodes (default: the parameter set's measured temperatures, else one node at the records' median temperature);
-    ``soc``: the SOC grid of the scales; ``resolution_s``: records sampled faster are bin-averaged to it first."""
+    ``soc``: the SOC grid of the scales; ``resolution_s``: records sampled faster are bin-averaged to it first;
+    ``measured_on``: what the records are (:attr:`ModelErrorStats.measured_on`), kept with the result."""
     records = [bin_average(p, resolution_s) for p in records]
     if not records:
         raise ConfigError("the noise recipe needs at least one record with a reference SOC")
@@ -466,7 +474,8 @@ def estimate(model, records, temps=None, window_s: float = WINDOW_S, soc=SOC_GRI
     tau_r = _pooled_time(r_cov, 1.0, max_lag)
     return ModelErrorStats(temps, soc, slow, np.sqrt(np.maximum(fast_var, 0.0)), res, white,
                            max(tau_slow, window_s), min(max(tau_fast, fast_step), window_s),
-                           max(tau_r, RESISTANCE_WINDOW_S), window_s, tuple(p.name for p in records), tuple(w_T))
+                           max(tau_r, RESISTANCE_WINDOW_S), window_s, tuple(p.name for p in records), tuple(w_T),
+                           measured_on)
 
 
 # ------------------------------------------------------------------------------------------------ the recipe
