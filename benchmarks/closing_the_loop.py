@@ -41,6 +41,7 @@ from socbench.diagnose.search import (
     NOISE_FLOOR,
     NOISE_FLOOR_REFIT,
     PARSIMONY,
+    TWIN_TAU,
     initial_soc,
 )
 
@@ -296,12 +297,17 @@ WHY_WEAK = {
                 "with grown resistances here; on a flat LFP curve the drift shows only in the end-of-discharge knee.",
     "current_bias": "without rests in the record nothing measures the offset directly, and its drift is then "
                     "nearly a capacity error or a leak.",
-    "extra_rc": "the fit test shows the missing branch too, so on a DP base the DP's own second branch, fitted on "
-                "the HPPC, takes up much of it, and the base refit (the branches rescaled) most of the rest; it is "
-                "named when, fitted jointly with the refit, it still cuts the error by 10 % above the noise floor.",
+    "extra_rc": f"the fit test shows the missing branch too. Its time constant is drawn outside ×{TWIN_TAU:g} of the "
+                "truth base's branches, yet on a DP base one between the DP's two is taken up by the fitted DP (its "
+                "slow branch moves onto whichever of the two slower branches is larger), and one slower than the "
+                "HPPC's rests is read into the OCV points at their ends; what is left the base refit (the branches "
+                "rescaled) often takes. It is named when, fitted jointly with the refit, it still cuts the error by "
+                "10 % above the noise floor and lies outside that window of the branches as refitted.",
     "butler_volmer": "with I₀ of 0.3–2 C the asinh is nearly linear over the loads' currents, so the base fit's R0 "
                      "absorbs most of it, and averaging a record to at most 4000 bins blurs the current peaks where "
-                     "the curvature shows.",
+                     "the curvature shows. Where the base refit wins the first round (a slow branch the HPPC "
+                     "misfitted, an OCV offset), the curvature is fitted beside it (I₀ near the truth) but what it "
+                     "explains is under the 10 % gain asked of it against what the refitted base still leaves.",
     "coulombic_efficiency": "at η_c = 0.99–0.999 the SOC lost per charged capacity is 0.1–1 %: nothing in a drive "
                             "record (regeneration only), little against the voltage noise elsewhere.",
     "self_discharge": "a leak of 0.1–2 %/h drifts the SOC like a current offset or a capacity error; a rest with no "

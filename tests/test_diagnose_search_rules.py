@@ -8,7 +8,9 @@ the outcome (seed 7 of socbench.diagnose.randomized; the CI rates run its first 
   (the cold) hides what it does to the voltage, and the temperature is found beside it;
 * an SOC drift named in one round is swapped for the drift the records hold once the later steps are in the model
   (a fade with grown resistances: a leak at its bound won the round alone; with the base refit beside it the fade
-  explains more).
+  explains more);
+* an extra RC branch within ×TWIN_TAU of a branch of the base *as the base refit made it* is not named (a constant
+  twin beside a looked-up branch buys that branch a new SOC shape: base-fit error, not a branch the structure lacks).
 """
 
 from __future__ import annotations
@@ -65,3 +67,29 @@ def test_an_effect_the_final_model_does_not_need_is_dropped_at_the_end():
     assert pruned[-1].rmse_after <= final.rmse_after / (1.0 - s.min_gain)
     # the fade itself is needed: pruning the search's own answer leaves it as it is
     assert [st.effect for st in s._prune(list(d.steps), final.held_residual)] == [st.effect for st in d.steps]
+
+
+def test_an_extra_branch_that_twins_a_refitted_branch_is_not_named():
+    """A null case on a DP base (no hidden effect): the base refit wins the first round; fitted beside it, the extra
+    RC branch lands within ×TWIN_TAU of one of the base's branches as the refit rescaled it (``τ_j·s_Rj·s_Cj``). It
+    is scored out and says why (before, the rule was not applied once the refit was in the model)."""
+    from socbench.diagnose.search import BASE_REFIT, TWIN_TAU
+    from socbench.identify.fit import branch_time_constants
+
+    case = draw_case(30, 7)
+    assert case.effects == () and case.base == "dp"
+    d = diagnose(case.base, case.fit, case.evals, soc=False)
+    assert d.steps and d.steps[0].effect == BASE_REFIT and "extra_rc" not in d.effects_added
+    base_taus = branch_time_constants(d.base_model.params, d.base_model.required_params())
+    twins = 0
+    for c in [c for r in d.rounds[1:] for c in r["candidates"] if c.effect == "extra_rc" and c.fit is not None]:
+        layout = [n for name, ps in c.layout for n in ((name, p) for p in ps)]
+        row = dict(zip(layout, c.fit.row(None)))
+        tau = 10.0 ** c.params["log10_tau"]
+        refitted = {b: t * np.exp(row[(BASE_REFIT, f"log_R{b[1]}")] + row[(BASE_REFIT, f"log_C{b[1]}")])
+                    for b, t in base_taus.items()}
+        near_refitted = min(abs(np.log(tau / t)) for t in refitted.values()) <= np.log(TWIN_TAU)
+        if near_refitted:
+            assert c.score == -np.inf and "as refitted" in c.evidence, c.evidence
+            twins += 1
+    assert twins >= 1  # the case holds one

@@ -5,7 +5,9 @@ the effect search on field records shaped like its loads.
   could take the cell to 0 % and its voltage to a fraction of a volt, a record no instrument delivers);
 * a vehicle's stop (a small steady auxiliary current, below C/20, for a minute or two) is not a rest that measures
   the current sensor: the search reads no offset from such records, and reads the offset when there is one;
-* the footprint of each hidden effect alone, and the rates by detectability.
+* the footprint of each hidden effect alone, and the rates by detectability;
+* a hidden extra RC branch is one the truth base lacks: its time constant lies outside the ×TWIN_TAU window of every
+  branch of the truth's base structure (the window in which the search calls a branch a misfit of the base's own).
 """
 
 from __future__ import annotations
@@ -14,14 +16,19 @@ import numpy as np
 import pytest
 
 from socbench.diagnose.randomized import (
+    EFFECT_NAMES,
+    EFFECT_RANGES,
+    EXTRA_RC_TAU_MAX_S,
     FOOTPRINT_BINS,
     by_footprint,
     case_kind,
     draw_case,
     eval_current,
     footprint,
+    missing_time_constant,
 )
-from socbench.diagnose.search import FIELD_REST_MIN_S, REST_OFFSET_C, rest_current
+from socbench.diagnose.search import FIELD_REST_MIN_S, REST_OFFSET_C, TWIN_TAU, rest_current
+from socbench.identify.fit import branch_time_constants
 from socbench.profile import Profile
 
 
@@ -98,3 +105,39 @@ def test_rates_by_detectability_put_each_case_in_its_footprint_class():
     assert high["named_first_single"] == {"n": 1, "hits": 1, "rate": 1.0} and high["cut_30_single"]["hits"] == 1
     assert mid["named_in_pair"] == {"n": 1, "hits": 0, "rate": 0.0}
     assert high["named_in_pair"] == {"n": 1, "hits": 1, "rate": 1.0}
+
+
+def _outside_every_window(tau, branch_taus) -> bool:
+    # the search's rule for a twin branch is |ln(τ/τ_j)| ≤ ln TWIN_TAU; the window's edge itself is measure zero
+    return all(abs(np.log(tau / tj)) >= np.log(TWIN_TAU) * (1.0 - 1e-9) for tj in branch_taus)
+
+
+def test_missing_time_constant_skips_the_base_branches_windows():
+    rng = np.random.default_rng(3)
+    lo, hi = EFFECT_RANGES["extra_rc"]["tau_s"]
+    for _ in range(300):
+        taus = (float(rng.uniform(5.0, 60.0)),) + ((float(rng.uniform(150.0, 1500.0)),) if rng.random() < 0.7 else ())
+        tau = missing_time_constant(float(rng.random()), lo, hi, taus)
+        assert lo <= tau <= EXTRA_RC_TAU_MAX_S and _outside_every_window(tau, taus), (tau, taus)
+    # no window above lo: the plain log-uniform draw over [lo, hi], the same value for the same uniform number
+    for u in (0.0, 0.3, 0.9):
+        assert missing_time_constant(u, lo, hi, (20.0,)) == pytest.approx(lo * (hi / lo) ** u, rel=1e-12)
+    # DP branches at 30 s and 1000 s: from lo to 1000/TWIN_TAU s, then from 1000·TWIN_TAU s on, and no further than
+    # the cap (the log-length of [lo, hi] would reach beyond it), each part by its share of the log-length
+    taus, gap = (30.0, 1000.0), (1000.0 / TWIN_TAU, 1000.0 * TWIN_TAU)
+    share = np.log(gap[0] / lo) / (np.log(gap[0] / lo) + np.log(EXTRA_RC_TAU_MAX_S / gap[1]))
+    assert missing_time_constant(share - 1e-9, lo, hi, taus) == pytest.approx(gap[0], rel=1e-6)
+    assert missing_time_constant(share + 1e-9, lo, hi, taus) == pytest.approx(gap[1], rel=1e-6)
+    assert missing_time_constant(1.0 - 1e-12, lo, hi, taus) == pytest.approx(EXTRA_RC_TAU_MAX_S, rel=1e-9)
+
+
+def test_hidden_extra_rc_lies_outside_the_truth_branches_windows():
+    extra = EFFECT_NAMES.index("extra_rc")
+    bases = []
+    for k in [k for k in range(120) if case_kind(k) == ("single", extra)]:
+        case = draw_case(k, 13)
+        taus = list(branch_time_constants(case.truth_without.params).values())
+        tau = 10.0 ** case.draws["extra_rc"]["log10_tau"]
+        assert _outside_every_window(tau, taus), (k, case.base, tau, taus)
+        bases.append(case.base)
+    assert "dp" in bases  # a DP base (τ2 150–1500 s) is the case the rule is for

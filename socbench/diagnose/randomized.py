@@ -28,13 +28,24 @@ rates spanning decades)
     grown by up to as much;
   * current_bias — the field current sensor reads 0.2–2 % of 1C off (a Hall sensor's offset after drift, relative to
     the cell's 1C);
-  * extra_rc — a diffusion branch the fitted structure lacks: R 0.2–1 × R0, τ 100–2000 s;
+  * extra_rc — a diffusion branch the fitted structure lacks: R 0.2–1 × R0, τ 100–2000 s, drawn outside the
+    ×``TWIN_TAU`` window of every branch the truth base has (:func:`missing_time_constant`, below);
   * butler_volmer — the charge-transfer over-potential ``(2RT/F)·asinh(I/2I₀)`` with I₀ 0.3–2 × the 1C current;
   * coulombic_efficiency — η_c 0.99–0.999 on charge (healthy commercial cells measure above 0.999 with
     high-precision coulometry: Smith et al., J. Electrochem. Soc. 157, A196, 2010; the range is that of worn or hot
     cells);
   * self_discharge — a soft internal short: 0.1–2 % of the capacity per hour (normal self-discharge, a few % per
     month, is invisible within a test day).
+
+A missing time constant is one the structure lacks. A branch within ×``TWIN_TAU`` (the factor of
+:mod:`socbench.diagnose.search`) of one the base has is, to a base model fitted on an HPPC that holds it, a misfit of
+that branch: the fit moves the branch to take it up, and the search (rightly) never names an extra RC there. On a DP
+base (τ2 150–1500 s) most of 100–2000 s lies in that window, so drawn from the whole range the effect was, in most DP
+cases, not an effect the structure lacks. The draw therefore skips the windows ``[τ_j/×, τ_j·×]`` of the truth base's
+branches (``τ_j = R_j·C_j`` at SOC 0.5): log-uniform over the first ln(2000/100) of log-length outside them, counted
+up from 100 s, and no further than ``EXTRA_RC_TAU_MAX_S`` (2 h: a slow diffusion time constant a 2–10 h record still
+shows; the search fits τ up to 10⁴ s). A Thevenin base with τ1 ≤ 33 s keeps exactly the 100–2000 s draw; a DP base
+with τ2 = 1000 s draws from above 3τ1 to 333 s and from 3000 s to 2 h.
 
 The first four of the "change" kind (temperature, capacity, current sensor, a leak) live only in the evaluation
 records: the fit test is the fresh cell at 25 °C on a lab cycler; the others are properties of the cell and show in
@@ -65,10 +76,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..identify.fit import branch_time_constants
 from ..models import Lookup, ModelParams, make_model
 from ..models.effects import EFFECTS, augment, make_effect
 from ..ocv import OCVCurve
 from ..profile import Profile, ProfileMeta
+from .search import TWIN_TAU
 
 EFFECT_NAMES = tuple(EFFECTS)
 
@@ -129,6 +142,8 @@ EFFECT_RANGES = {
     "coulombic_efficiency": {"eta_c": (0.99, 0.999)},
     "self_discharge": {"rate_per_h": (0.001, 0.02)},
 }
+#: the slowest extra RC branch drawn [s] (when the base's own branches push the draw beyond EFFECT_RANGES' 2000 s)
+EXTRA_RC_TAU_MAX_S = 7200.0
 #: effects that change between the characterisation and the use (absent from the fit test)
 IN_USE_ONLY = ("temperature", "capacity", "current_bias", "self_discharge")
 
@@ -327,8 +342,38 @@ def _truth_params(rng, chemistry, q, base):
     return ModelParams(q, ocv, values, source="socbench.diagnose.randomized"), draws
 
 
-def _draw_effect(rng, name, chemistry, q, r0):
-    """``(effect values, draws, eval ambient °C or None)`` for ``name``."""
+def missing_time_constant(u: float, lo: float, hi: float, branch_taus, tau_max: float = EXTRA_RC_TAU_MAX_S) -> float:
+    """The time constant [s] at ``u`` ∈ [0, 1) of a log-uniform draw over time constants outside every base branch's
+    window ``[τ_j/TWIN_TAU, τ_j·TWIN_TAU]``: the first ``ln(hi/lo)`` of log-length outside the windows, counted up
+    from ``lo``, cut at ``tau_max``. Without a window above ``lo`` it is ``lo·(hi/lo)^u``, the plain log-uniform
+    draw."""
+    a, b = math.log(lo), math.log(tau_max)
+    width = math.log(TWIN_TAU)
+    windows = sorted((math.log(t) - width, math.log(t) + width) for t in branch_taus if t > 0)
+    allowed, x = [], a  # the log-intervals outside the windows, in [a, b]
+    for w0, w1 in windows:
+        if w0 > x:
+            allowed.append((x, min(w0, b)))
+        x = max(x, w1)
+        if x >= b:
+            break
+    if x < b:
+        allowed.append((x, b))
+    allowed = [(s, e) for s, e in allowed if e > s]
+    if not allowed:
+        raise ValueError(f"no time constant in [{lo:g}, {tau_max:g}] s lies outside the base branches' windows")
+    total = sum(e - s for s, e in allowed)
+    left = u * min(math.log(hi / lo), total)
+    for s, e in allowed:
+        if left <= e - s:
+            return float(math.exp(s + left))
+        left -= e - s
+    return float(math.exp(allowed[-1][1]))
+
+
+def _draw_effect(rng, name, chemistry, q, r0, branch_taus=()):
+    """``(effect values, draws, eval ambient °C or None)`` for ``name``; ``branch_taus`` are the truth base's RC
+    time constants [s] (an extra RC branch is drawn outside their windows: :func:`missing_time_constant`)."""
     rg = EFFECT_RANGES[name]
     if name == "temperature":
         lo, hi = rg["ambient_c"][int(rng.random() < 0.4)]  # cold in 60 % of the cases, hot in 40 %
@@ -348,7 +393,9 @@ def _draw_effect(rng, name, chemistry, q, r0):
         b = float(rng.uniform(*rg["b_c"])) * q * (1.0 if rng.random() < 0.5 else -1.0)
         return {"b0": b}, {"b0": b}, None
     if name == "extra_rc":
-        v = {"R": r0 * float(rng.uniform(*rg["R_over_R0"])), "log10_tau": math.log10(_loguniform(rng, *rg["tau_s"]))}
+        r = r0 * float(rng.uniform(*rg["R_over_R0"]))
+        tau = missing_time_constant(float(rng.random()), *rg["tau_s"], branch_taus)
+        v = {"R": r, "log10_tau": math.log10(tau)}
         return v, dict(v), None
     if name == "butler_volmer":
         v = {"I0": float(rng.uniform(*rg["I0_c"])) * q, "dR": 0.0}
@@ -390,7 +437,8 @@ def draw_case(index: int, seed: int = 0) -> Case:
     fit_effects, use_effects, hidden = [], [], {}
     growth = 0.0
     for name in effects:
-        values, d, amb = _draw_effect(rng, name, chemistry, q, draws["cell"]["R0_ohm"])
+        values, d, amb = _draw_effect(rng, name, chemistry, q, draws["cell"]["R0_ohm"],
+                                      tuple(branch_time_constants(params).values()))
         draws[name] = d
         if amb is not None:
             ambient = amb

@@ -33,7 +33,11 @@ one-sided like the leak (it only removes charge) and the efficiency (it only los
 way. It stands for what a better base fit would absorb (an OCV read from unrelaxed rests, a slow branch a short pulse
 cannot identify) and is never named an effect; an effect within ``PARSIMONY`` of a winning base refit is preferred to
 it. For the same reason an extra RC branch whose time constant lies within ×``TWIN_TAU`` of one of the base model's
-branches is not named while the base is not refitted: it cannot be told from a misfit of that branch. Nested tests
+branches is not named: it cannot be told from a misfit of that branch. Once the base refit is in the model the branches
+are those the refit made (``τ_j·s_Rj·s_Cj``, the refit's scales of the candidate's own fit): beside a refitted branch, a
+twin buys the branch the freedom the refit's scaling lacks — a new SOC shape of its resistance (a constant twin beside
+a looked-up branch), a time constant beyond the refit's bounds — which is base-fit error, not a branch the structure
+lacks. Nested tests
 against the refit (:meth:`Search._beyond_refit`): an effect that wins a round in which the refit also cut the error is
 named only if, fitted jointly with the refit, it cuts the refit's error by ``min_gain`` (else the refit is taken); after
 a refit is adopted, the ``CARRY`` best-scoring effects of its round are fitted again jointly with it, whatever their
@@ -699,20 +703,35 @@ class Search:
                         f"{1000 * rmse_after:.1f} mV ({100 * (1 - rmse_after / rmse_now):.0f} % lower)")
         if name == "current_bias" and self.bias_rest is not None:
             evidence += f"; rests read {1000 * self.bias_rest[0]:.1f} mA (bounds b to it)"
-        if name == "extra_rc" and BASE_REFIT not in names:  # with the base refit, its branches are refitted too
-            twin = self.twin_branch(10.0 ** params["log10_tau"])
+        if name == "extra_rc":
+            refit = dict(zip(dict(layout).get(BASE_REFIT, ()), self._refit_row(layout, row)))
+            twin = self.twin_branch(10.0 ** params["log10_tau"], refit)
             if twin is not None:  # not an effect the structure lacks: a branch it has, misfitted
                 score = -np.inf
                 evidence += (f"; its τ = {10.0 ** params['log10_tau']:.0f} s lies within ×{TWIN_TAU:g} of the base "
-                             f"model's branch {twin[0]} (τ = {twin[1]:.0f} s): a misfit of that branch, left to the "
-                             "base refit")
+                             f"model's branch {twin[0]} (τ = {twin[1]:.0f} s{', as refitted' if refit else ''}): a "
+                             "misfit of that branch, left to the base refit")
         return Candidate(name, score, rmse_now, rmse_after, params, r2, evidence,
                          tuple(getattr(final, "effects", ())), _time.perf_counter() - t0, r_after, sse, fit, layout)
 
-    def twin_branch(self, tau: float):
-        """``(branch, τ_j)`` of a base-model RC branch whose time constant (``R_j·C_j`` at SOC 0.5) lies within
-        ×``TWIN_TAU`` of ``tau``, or None: a further branch there cannot be told from a misfit of that one."""
+    @staticmethod
+    def _refit_row(layout, row) -> np.ndarray:
+        """The base refit's entries of the parameter row ``row`` (empty when the refit is not in ``layout``)."""
+        j = 0
+        for name, params in layout:
+            if name == BASE_REFIT:
+                return np.asarray(row[j:j + len(params)])
+            j += len(params)
+        return np.zeros(0)
+
+    def twin_branch(self, tau: float, refit: dict | None = None):
+        """``(branch, τ_j)`` of a base-model RC branch whose time constant (``R_j·C_j`` at SOC 0.5, times
+        ``exp(log_Rj + log_Cj)`` of the base refit's parameters ``refit`` when given) lies within ×``TWIN_TAU`` of
+        ``tau``, or None: a further branch there cannot be told from a misfit of that one."""
+        refit = refit or {}
         for branch, tj in branch_time_constants(self.base.params, self.base.required_params()).items():
+            j = branch[1:branch.index("C")]
+            tj = tj * float(np.exp(refit.get(f"log_R{j}", 0.0) + refit.get(f"log_C{j}", 0.0)))
             if tj > 0 and abs(np.log(tau / tj)) <= np.log(TWIN_TAU):
                 return branch, tj
         return None
