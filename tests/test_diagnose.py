@@ -64,6 +64,29 @@ def test_rest_current_reads_the_sensor_offset():
     assert mean == pytest.approx(0.04, abs=5 * se + 1e-4) and seconds > 1500
 
 
+def test_rest_current_reads_a_sub_step_offset_of_a_quantised_sensor():
+    """A field current sensor with an ADC step of 1 % of 1C, dithered by noise of 0.5-1 step, reads a 0.15-0.5 %-of-1C
+    offset at the rests: the plain median sticks to the zero level; the rest current (read through the dither,
+    socbench.identify.hppc.reading_level) recovers the offset within three of its standard errors, in every one of
+    20 random draws."""
+    from socbench.identify.hppc import reading_level
+
+    rng = np.random.default_rng(2611)
+    for _ in range(20):
+        q = float(np.exp(rng.uniform(np.log(2.0), np.log(40.0))))
+        lsb, offset = 0.01 * q, float(rng.uniform(0.0015, 0.005) * q * rng.choice([-1.0, 1.0]))
+        t = np.arange(0.0, 6 * 3600.0, float(rng.choice([1.0, 2.0, 5.0])))
+        load = np.where((t % 3600.0) < 1800.0, q * rng.uniform(0.5, 1.5), 0.0)  # half-hour loads, half-hour rests
+        raw = load + offset + rng.normal(0.0, rng.uniform(0.5, 1.0) * lsb, t.size)
+        p = Profile(t, np.round(raw / lsb) * lsb, voltage_v=np.full(t.size, 3.7))
+        rest = p.current_a[load == 0.0]
+        assert np.median(rest) == 0.0 or abs(np.median(rest) - offset) > 0.3 * abs(offset)  # what the median read
+        b, se, seconds = rest_current(p, q)
+        assert abs(b - offset) <= 3 * se and se < 0.5 * abs(offset) and seconds > 2.5 * 3600
+    x = np.random.default_rng(1).normal(0.02, 0.002, 999)  # not quantised: the plain median
+    assert reading_level(x)[0] == np.median(x)
+
+
 #: load that shows each effect's signature (ECM_SPEC §9)
 SIGNATURE_LOADS = {
     "temperature": "pulses", "hysteresis": "pulses", "capacity": "pulses", "current_bias": "rests",

@@ -59,6 +59,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..identify.fit import branch_time_constants
+from ..identify.hppc import reading_level
 from ..models.effects import EFFECTS, augment, make_effect, n_cells
 from ..segments import restart_soc
 from .cv import FoldFit, cv_residual, fit_folds, simulate_records
@@ -221,9 +222,12 @@ def rest_current(profiles, capacity_ah: float, quiet_a: float | None = None, min
         return None
     allv = np.concatenate(vals)
     # the median: a rest that begins or ends with a few seconds of load (a stop's auxiliary current before the
-    # vehicle is switched off) would pull a mean; the standard error is that of the median of normal noise
-    se = float(1.2533 * robust_sd(allv) / np.sqrt(allv.size)) if allv.size > 1 else 0.0
-    return float(np.median(allv)), se, float(sum(weights))
+    # vehicle is switched off) would pull a mean; read through its dither when the sensor is quantised, whose plain
+    # median sticks to a level and reads a sub-step offset as none (reading_level). The standard error is that of
+    # the median of normal noise
+    level, sd = reading_level(allv)
+    se = float(1.2533 * sd / np.sqrt(allv.size)) if allv.size > 1 else 0.0
+    return level, se, float(sum(weights))
 
 
 class Search:
