@@ -356,10 +356,10 @@ def reading_level(x) -> tuple[float, float]:
     levels, counts = np.unique(x, return_counts=True)
     if levels.size < 2 or 4 * levels.size > x.size:
         med = float(np.median(x))
-        return med, 1.4826 * float(np.median(np.abs(x - med)))
+        return med, _robust_sd(x - med)
     q = quantisation_step(levels)
     m = _grouped_median(x, levels, counts, q)
-    s = max(1.4826 * float(np.median(np.abs(x - m))), q)
+    s = max(_robust_sd(x - m), q)
     for _ in range(50):
         kept = x[np.abs(x - m) <= 3.0 * s]
         m_next = float(np.mean(kept))
