@@ -518,16 +518,21 @@ class Search:
                                                                          and self.temperature_measured)
 
     @staticmethod
+    def _columns(layout) -> list:
+        """The slice of the parameter row (θ's columns) that each ``(name, params)`` entry of ``layout`` holds, in
+        order."""
+        ends = np.cumsum([0] + [len(ps) for _, ps in layout])
+        return [slice(int(a), int(b)) for a, b in zip(ends[:-1], ends[1:])]
+
+    @staticmethod
     def _without(step: Candidate, effect: str):
         """``(names, rows)``: what ``step`` fitted, without ``effect`` — the other names and their columns of every
         group's θ (None when nothing is left)."""
-        layout = step.layout
-        keep = [m for m, (n, _) in enumerate(layout) if n != effect]
-        if not keep:
+        kept = [(n, sl) for (n, _), sl in zip(step.layout, Search._columns(step.layout)) if n != effect]
+        if not kept:
             return [], None
-        cols = np.concatenate([np.arange(sum(len(ps) for _, ps in layout[:m]), sum(len(ps) for _, ps in layout[:m + 1]))
-                               for m in keep])
-        return [layout[m][0] for m in keep], step.fit.thetas[:, cols]
+        cols = np.concatenate([np.arange(sl.start, sl.stop) for _, sl in kept])
+        return [n for n, _ in kept], step.fit.thetas[:, cols]
 
     def _prune(self, steps, r_now):
         """``steps`` without the named effects the final model does not need: the backward half of stepwise
@@ -692,8 +697,7 @@ class Search:
         score = float(np.log(rmse_now**2 / max(rmse_after**2, 1e-30)) - 2.0 * p / n_eff)
         final, offsets = build(fit.row(None))
         row = fit.row(None)
-        j = sum(len(ps) for n, ps in layout[:-1])
-        params = {k: float(v) for k, v in zip(pnames, row[j:j + p])}
+        params = {k: float(v) for k, v in zip(pnames, row[self._columns(layout)[-1]])}
         if name == BASE_REFIT:
             params = {**{k[4:]: float(np.exp(v)) for k, v in params.items() if k.startswith("log_")},
                       **{k: v for k, v in params.items() if k.startswith("offset_")}}
@@ -721,11 +725,9 @@ class Search:
     @staticmethod
     def _refit_row(layout, row) -> np.ndarray:
         """The base refit's entries of the parameter row ``row`` (empty when the refit is not in ``layout``)."""
-        j = 0
-        for name, params in layout:
+        for (name, _), sl in zip(layout, Search._columns(layout)):
             if name == BASE_REFIT:
-                return np.asarray(row[j:j + len(params)])
-            j += len(params)
+                return np.asarray(row[sl])
         return np.zeros(0)
 
     def twin_branch(self, tau: float, refit: dict | None = None):
