@@ -67,6 +67,12 @@ class Layout:
     step_c: float = 1.0
     gaps: bool = False  # the step discharges (and part of the rest after them) are missing from the record
     straight_into_step: bool = False  # the last (charge) pulse runs straight into the step, no rest between
+    #: ORNL Leaf style: the record starts at this SOC (rested for 10 min) and charges to full at ``precharge_c``
+    #: before the test's first rest (None: it starts full)
+    precharge_from: float | None = None
+    precharge_c: float = 0.3
+    #: share of the pre-charge the cell does not store (coulombic loss): the tester counts it, the SOC does not
+    precharge_loss: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -130,7 +136,11 @@ def _schedule(cell: Cell, lay: Layout):
     net charge counts); the last set is at the lowest level ≥ ``step`` and the last step runs to empty (z = 0)."""
     q = cell.capacity_ah
     n_levels = int(np.floor(1.0 / lay.step + 1e-9))
-    segs = [(0.0, lay.rest_s, "rest")]
+    segs = []
+    if lay.precharge_from is not None:  # the stored charge: the current the SOC sees (the loss is added when measured)
+        segs += [(0.0, 600.0, "pre"), (-lay.precharge_c * q, 3600.0 * (1.0 - lay.precharge_from) / lay.precharge_c,
+                                       "charge")]
+    segs += [(0.0, lay.rest_s, "rest")]
     z = 1.0
     for j in range(n_levels):
         for m, c in enumerate(lay.pulses_c):
@@ -194,7 +204,12 @@ def hppc_record(cell: Cell, lay: Layout, ins: Instrument, seed: int = 0, with_so
                 a, b = seg_t0[j], seg_t0[j + 1] + share * segs[j + 1][1]
                 keep &= ~((t >= a) & (t < b))
         t = t[keep]
-    cur, soc, pol, v = _solve(cell, seg_i, seg_t0, t)
+    soc0 = 1.0 if lay.precharge_from is None else lay.precharge_from
+    cur, soc, pol, v = _solve(cell, seg_i, seg_t0, t, soc0)
+    if lay.precharge_loss:  # the tester counts charge the cell loses to side reactions
+        charging = np.isin(np.clip(np.searchsorted(seg_t0, t, side="right") - 1, 0, len(kinds) - 1),
+                           [j for j, k in enumerate(kinds) if k == "charge"])
+        cur = np.where(charging, cur / (1.0 - lay.precharge_loss), cur)
     i_meas, v_meas = _measure(t, cur, v, ins, cell.capacity_ah, rng)
     # expected OCV rows: the last sample before the first pulse of every set, and the last sample of the record
     first_pulse = [seg_t0[j] for j, k in enumerate(kinds) if k == "pulse" and kinds[j - 1] == "rest"]

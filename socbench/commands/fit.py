@@ -157,6 +157,8 @@ def run(args) -> int:
         for t, name, how, q, f in zip(res.temps, res.sources, res.temperature_notes, res.capacities, res.fits):
             print(f"  {t:6.1f} °C  {name}: RMS {1000 * f.rmse_v:.1f} mV over {f.n_samples} samples, "
                   f"capacity {q:.4g} Ah; temperature = {how}")
+            for note in _left_out(f):
+                print(f"            note: {note}")
         for note in res.notes[1:]:
             print(f"  note: {note}")
         warnings = res.warnings
@@ -173,6 +175,8 @@ def run(args) -> int:
         params, summary = res.params, res.fit_summary()
         print(f"{args.model} fitted on {profile.name} ({res.mode} mode): RMS {1000 * res.rmse_v:.1f} mV over "
               f"{res.n_samples} samples in {res.seconds:.1f} s")
+        for note in _left_out(res):
+            print(f"  note: {note}")
         if args.refine_ocv:
             res = _refine(res, profile, validation, mode=args.mode, soc0=args.soc0,
                           segments=False if args.no_segments else None)
@@ -233,6 +237,12 @@ def _refine(res, profile, validation, **fit_kwargs):
 
 def _mv(values) -> str:
     return "/".join(f"{1000 * v:.1f}" for v in values)
+
+
+def _left_out(fit) -> list[str]:
+    """The notes of a fit that say which part of its record it left out (``socbench.identify.fit``: the charge before
+    an HPPC reaches full, samples beyond the OCV's rest points): the RMS printed is over the rest."""
+    return [n for n in fit.params.notes if "left out of the fit" in n]
 
 
 def _validation_notes(args, stats) -> list[str]:

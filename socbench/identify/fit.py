@@ -55,6 +55,10 @@ REL_STDERR_WARN = 1.0
 CORR_WARN = 0.99
 #: a record whose SOC reaches below this on the fit's axis counts as covering [0, 1] (polynomial nodes on [0, 1])
 DOMAIN_FULL_BELOW = 0.02
+#: samples whose SOC lies further than this beyond the OCV curve's rest points are left out of the fit: there the OCV
+#: is an extension, not a measurement, and the dynamic parameters would be bent to absorb its error. Within it: the last
+#: pulse set's own dip below the lowest rest point, which every HPPC that ends at the cut-off has
+OCV_FIT_MARGIN = 0.02
 #: compression of the record before fitting (see :func:`~socbench.identify.compress.compress_profile`): kept samples
 #: 0, 1, 5, 21, 85, 341 s after every current change, then every 1200 s at most
 FIT_COMPRESSION = {"first_step_s": 1.0, "growth": 4.0, "max_step_s": 1200.0}
@@ -181,6 +185,9 @@ class FitProblem:
     effects: tuple = ()
     #: ``(index into effects, ParamSpec)`` of each effect parameter fitted: θ entries after the base parameters'
     effect_specs: tuple = ()
+    #: per sample of the record, 0 where it is left out of the fit (beyond the OCV's rest points, ``OCV_FIT_MARGIN``),
+    #: 1 elsewhere; None: every sample
+    weights: np.ndarray | None = None
 
     @property
     def n_base(self) -> int:
@@ -297,6 +304,7 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
             notes.append(f"{int(np.count_nonzero(extra))} record gaps: {float(np.sum(extra)):.4g} Ah not in the "
                          "current column added to SOC from the reference")
         level_knots = np.unique(np.clip(np.round(analysis.level_soc, 3), 0.0, 1.0))
+        weights = _fitted_samples(analysis, ocv, profile, notes)
         # the SOC range the record covers on this axis: a cold HPPC counted with a warmer capacity ends above 0
         z_lo = float(np.clip(np.min(analysis.soc), 0.0, 1.0))
         domain = (0.0 if z_lo < DOMAIN_FULL_BELOW else round(z_lo, 3), 1.0)
@@ -310,7 +318,7 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
         if not q:
             raise DataError("unknown capacity: pass capacity_ah or give the profile meta.capacity_ah", file=src)
         r_inst = abs(edge_resistance(profile))
-        r_pulse, tau, tau_slow, jumps, level_knots = 2.0 * r_inst, 30.0, 300.0, None, np.array([])
+        r_pulse, tau, tau_slow, jumps, level_knots, weights = 2.0 * r_inst, 30.0, 300.0, None, np.array([]), None
         domain = (0.0, 1.0)
     q = float(capacity_ah) if capacity_ah else float(q)
     zg = np.linspace(0.05, 0.95, 19)
@@ -356,7 +364,30 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
     notes.append(f"fitted by socbench.identify ({mode} mode) on {src}")
     return FitProblem(name, tuple(specs), tuple(forms), tuple(labels), tuple(slices), np.concatenate(th0),
                       np.asarray(lo), np.asarray(hi), q, ocv, options, soc0, jumps, guess, tuple(notes), offset,
-                      effects, effect_specs)
+                      effects, effect_specs, weights)
+
+
+def _fitted_samples(analysis, ocv, profile: Profile, notes: list) -> np.ndarray | None:
+    """Weights of the record's samples in the fit: 0 before the HPPC test starts (``analysis.start_index``: a charge
+    to full that precedes it, the ORNL Nissan Leaf HPPCs' charge from empty, whose SOC is counted back from full
+    through a charge of unknown coulombic efficiency: near empty a point of SOC is tens of mV of OCV) and where the
+    SOC lies further than ``OCV_FIT_MARGIN`` beyond the OCV curve's rest points (an extension there, not a
+    measurement), 1 elsewhere, with a note for each; None when every sample is fitted (or none would be)."""
+    before = np.arange(analysis.soc.size) < analysis.start_index
+    outside = ocv.excursion(analysis.soc, temp=profile.temperature_c) > OCV_FIT_MARGIN
+    left_out = before | outside
+    if not left_out.any() or left_out.all():
+        return None
+    dt = np.diff(profile.time_s, append=profile.time_s[-1])
+    if before.any():
+        notes.append(f"the {float(dt[before].sum()) / 3600:.2g} h before the test reaches full (a charge first) left "
+                     "out of the fit")
+    beyond = outside & ~before
+    if beyond.any():
+        notes.append(f"{float(dt[beyond].sum()) / 3600:.2g} h ({int(beyond.sum())} samples) more than "
+                     f"{OCV_FIT_MARGIN:g} in SOC beyond the OCV's rest points left out of the fit (the OCV there is an "
+                     "extension, not a measurement)")
+    return (~left_out).astype(float)
 
 
 def _warnings(prob: FitProblem, res: LsqResult, values: dict, stderr: dict) -> list:
@@ -405,15 +436,15 @@ def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
         const = setup_fit(name, profile, "constant", prob.ocv, prob.capacity_ah, prob.soc0, None, prob.options,
                           effects, fit_effects)
         cres = fit_parameters(const.build, profile, const.theta0, const.lower, const.upper, names=const.labels,
-                              soc0=prob.soc0, soc_jumps=prob.soc_jumps, compress=compress, max_nfev=max_nfev,
-                              time_weighted=time_weighted, loss=loss, segments=segments)
+                              soc0=prob.soc0, soc_jumps=prob.soc_jumps, weights=const.weights, compress=compress,
+                              max_nfev=max_nfev, time_weighted=time_weighted, loss=loss, segments=segments)
         for sl, ct in zip(prob.slices, cres.theta):  # one constant per parameter, in the same order
             theta0[sl] = ct
         theta0[prob.n_base:] = cres.theta[const.n_base:]  # the effects' parameters: constants in both
         theta0 = np.clip(theta0, prob.lower, prob.upper)
     res = fit_parameters(prob.build, profile, theta0, prob.lower, prob.upper, names=prob.labels, soc0=prob.soc0,
-                         soc_jumps=prob.soc_jumps, compress=compress, max_nfev=max_nfev, time_weighted=time_weighted,
-                         loss=loss, segments=segments)
+                         soc_jumps=prob.soc_jumps, weights=prob.weights, compress=compress, max_nfev=max_nfev,
+                         time_weighted=time_weighted, loss=loss, segments=segments)
     params = prob.params(res.theta, clamp=True)
     values, stderr = {}, {}
     for (lab, s), th, se in zip(prob.label_specs(), res.theta, res.stderr):

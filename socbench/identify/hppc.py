@@ -195,6 +195,9 @@ class HPPCAnalysis:
     #: r_inst·I of its current (offset removed), r_inst the median leading-edge resistance of the pulses [V]; NaN when
     #: the record reaches its top later (a charge first) or no pulse edge was resolved
     start_ocv_v: float = float("nan")
+    #: the sample where the test starts: the record's first approach to its top (0 when it starts there; later when
+    #: a charge to full comes first, whose SOC is counted back from full through a charge of unknown efficiency)
+    start_index: int = 0
 
     @property
     def current_offset_a(self) -> float:
@@ -623,7 +626,7 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     r_inst = _finite_median([p.r_inst for p in pulses])
     start_ocv = float(v[0] + r_inst * di[0]) if k_full == 0 and r_inst > 0 else float("nan")
     return HPPCAnalysis(tuple(rests), tuple(pulses), np.asarray(ocv_z), np.asarray(ocv_v), q, soc, ah, ah_source,
-                        level_soc, tuple(notes), lev, float(max_pulse_s), start_ocv)
+                        level_soc, tuple(notes), lev, float(max_pulse_s), start_ocv, k_full)
 
 
 def ocv_from_hppc(profile: Profile, capacity_ah: float | None = None, **options) -> OCVCurve:

@@ -204,7 +204,8 @@ def fit_parameters(
         from rest at its reference SOC (else the SOC read off its first voltage): None finds the segments (with
         the model's OCV and capacity at ``theta0``), False fits the record as one piece, or a ``Segments``.
     weights : array (T,) on the original samples, optional
-        Residual weights (e.g. to mask samples with 0).
+        Residual weights; a sample of weight 0 is left out of the fit (its residual, the RMSE, ``n_samples`` and the
+        covariance's degrees of freedom), though the simulation runs through it.
     time_weighted : bool
         Weight each (compressed) sample by the time it stands for, as a fit of the uniformly sampled record would.
     loss, f_scale :
@@ -275,10 +276,13 @@ def fit_parameters(
             return np.broadcast_to(base, ((n_batch,) if n_batch else ()) + base.shape[-1:]).copy()
         return model.x0(z0, (n_batch,) if n_batch else ())
 
+    kept = None if w is None or np.all(w > 0) else w > 0  # masked samples leave the residual vector
+
     def residual_of(y):
         r = y - v_meas
         r = np.where(np.isfinite(r), r, NONFINITE_RESIDUAL)
-        return r * w if w is not None else r
+        r = r * w if w is not None else r
+        return r if kept is None else r[kept]
 
     def simulate_one(theta):
         try:
