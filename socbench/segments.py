@@ -18,8 +18,10 @@ separated by gaps). Counting charge through them from the first SOC, a model lea
 **Restart.** Each segment after the first starts from rest: every state but SOC at rest (``Model.x0``), and SOC
 
 * for a model (``simulate``, ``fit``, ``diagnose``): the reference SOC at the segment's first sample where the record
-  has one, else the SOC the model reads off its first voltage (``Model.soc_from_voltage``: the OCV inverse, corrected
-  for the load's instantaneous drop when the segment starts under load), clipped to [0, 1];
+  has one — on the model's own SOC axis (:mod:`socbench.socaxis`: a reference counted from full with the record's
+  capacity is converted to the model's, or a model of another capacity would start a segment that does not start
+  full at the wrong charge) — else the SOC the model reads off its first voltage (``Model.soc_from_voltage``: the OCV
+  inverse, corrected for the load's instantaneous drop when the segment starts under load), clipped to [0, 1];
 * for an estimator: the same reading of its first voltage, with the initial covariance it started the record with —
   an estimator never reads the reference it is scored against, so a restart is a new start, like the record's first.
 
@@ -35,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .profile import Profile
+from .socaxis import SocAxis, reference_capacity
 
 #: a gap: a step longer than this many median steps ...
 GAP_FACTOR = 5.0
@@ -132,13 +135,14 @@ def resolve(segments, profile: Profile, ocv=None, capacity_ah: float | None = No
 
 def restart_soc(profile: Profile, start: int, model, rule: str = REFERENCE) -> np.ndarray:
     """The SOC a segment (or the record, ``start = 0``) starting at sample ``start`` starts from (module docstring),
-    shape like one sample of the current: the reference there (``rule="reference"`` and the record has one), else
-    the SOC at which ``model`` at rest reads the voltage there with the current there flowing
+    shape like one sample of the current: the reference there on the model's axis (``rule="reference"`` and the record
+    has one), else the SOC at which ``model`` at rest reads the voltage there with the current there flowing
     (:meth:`~socbench.models.base.Model.soc_from_voltage`: the OCV inverse, corrected for the load's instantaneous
     drop), clipped to [0, 1]; 1 when the record has neither."""
     ref = profile.get("soc_ref") if rule == REFERENCE else None  # a reference given but refused raises its error
     if ref is not None:
-        z = ref[..., start]
+        q_data = reference_capacity(profile)
+        z = ref[..., start] if q_data is None else SocAxis(model.capacity_ah, q_data).to_model(ref[..., start])
     elif profile.voltage_v is not None:
         z = model.soc_from_voltage(profile.voltage_v[..., start], profile.current_a[..., start],
                                    _temp(profile, start))

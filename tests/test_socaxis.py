@@ -73,6 +73,27 @@ def test_coulomb_counting_on_the_model_axis_reproduces_a_reference_counted_with_
     assert z0 == pytest.approx(0.8)
 
 
+def test_a_model_starts_a_record_and_each_later_segment_at_the_reference_on_its_own_axis():
+    """Two discharges from part charge with a recharge between them in a gap (a segment boundary), the reference
+    counted with Q_data, the model with Q_ref: the open-loop model starts each segment at the charge the reference
+    says has left the cell (1 − z_ref)·Q_data, so that its counted SOC, converted, is the reference all along."""
+    rng = np.random.default_rng(9)
+    p = paper_params("thevenin")  # 22 Ah
+    model = make_model("thevenin", p)
+    for q_data in rng.uniform(15.0, 30.0, 5):
+        t1, t2 = np.arange(0.0, 1800.0, 1.0), np.arange(4000.0, 5800.0, 1.0)  # the gap: a recharge off the record
+        i = rng.uniform(5, 25, t1.size + t2.size)
+        ref = np.empty(i.size)
+        for sl, z0 in ((slice(0, t1.size), 0.7), (slice(t1.size, None), 0.9)):
+            ah = np.r_[0.0, np.cumsum(i[sl][:-1])] / 3600.0
+            ref[sl] = z0 - ah / q_data
+        prof = Profile(np.r_[t1, t2], i, np.full(i.size, 3.7), soc_ref=ref,
+                       meta=ProfileMeta(capacity_ah=q_data, extra={REFERENCE_CAPACITY_KEY: q_data}))
+        sim = model.simulate(prof)
+        assert sim.segments.count == 2
+        np.testing.assert_allclose(soc_axis(p, prof).to_data(sim.soc), ref, atol=1e-9)
+
+
 @pytest.mark.parametrize("declared", [True, False])
 @pytest.mark.parametrize("record_over_fitted, warned", [(1.22, True), (1.01, False), (0.9, True)])
 def test_estimate_warns_when_a_plain_reference_is_on_another_axis(tmp_path, capsys, record_over_fitted, warned,

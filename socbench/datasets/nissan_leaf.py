@@ -22,6 +22,7 @@ import pandas as pd
 
 from ..errors import DataError
 from ..profile import Profile, ProfileMeta
+from ..socaxis import REFERENCE_CAPACITY_KEY
 from .counting import soc_between_full_charges
 from .units import check_cell_units
 
@@ -107,7 +108,9 @@ def load_nissan_leaf(path) -> Profile:
                                               i_threshold=0.05)
     test, ambient = _test(path)
     extra = {"test": test, "ambient_temperature_c": ambient,
-             "dataset": "ORNL 2013 Nissan Leaf cell (Wiggins, Allu, Wang), batterysim/nissan-leaf-data", **info}
+             "dataset": "ORNL 2013 Nissan Leaf cell (Wiggins, Allu, Wang), batterysim/nissan-leaf-data", **info,
+             # a count from full with this capacity: a model of another capacity reads it on its own axis (socaxis)
+             **({REFERENCE_CAPACITY_KEY: float(cap)} if soc is not None else {})}
     meta = ProfileMeta(name=path.stem, source=src, capacity_ah=cap, n_series=1, chemistry=CHEMISTRY, extra=extra)
     # Profile checks time order / duplicates and names the column time_s
     return Profile(t, current, v, None, soc, meta)
