@@ -16,10 +16,10 @@ MEASURED = group_names("measured")
 
 
 def test_the_measured_group_covers_every_dataset_the_issue_names():
-    assert len(MEASURED) == 18
+    assert len(MEASURED) == 20
     for name in ("pan-us06-25", "pan-us06-10", "pan-us06-0", "pan-us06-n10", "pan-us06-n20", "pan-cycle1-n20",
                  "pan-hwfet-25", "pan-la92-25", "pan-nn-25", "calce-dst", "calce-us06", "calce-fuds",
-                 "dji-flight-a", "dji-flight-b"):
+                 "dji-flight-a", "dji-flight-b", "pan-us06-n20-trise", "pan-cycle1-10-trise"):
         assert name in MEASURED
     for name in MEASURED:
         m = load_scenario(name).measured
@@ -79,6 +79,19 @@ def test_panasonic_scenario_replays_the_record_with_its_own_reference(data_dir):
     assert len(sc.noise_records()) == 5 and all("Cycle" in r.name for r in sc.noise_records())
     # the cell warms by more than 15 K during the cold US06: the models see it sample by sample
     assert rec.temperature_c.max() - rec.temperature_c[0] > 15
+
+
+def test_the_rising_temperature_records_replay_with_their_own_capacity(data_dir):
+    """The two Panasonic records whose chamber was let drift (PROVENANCE.md): counted with their own discharge, fitted
+    on the five fixed-temperature HPPCs, the recipe on fixed-temperature drive cycles, never on themselves."""
+    for name, capacity, rise in (("pan-us06-n20-trise", 2.32005, 30.0), ("pan-cycle1-10-trise", 2.32001, 15.0)):
+        sc = load_scenario(name)
+        assert sc.available()
+        rec = sc.record()
+        assert sc.realize([0]).meta.extra["soc_ref_capacity_ah"] == pytest.approx(capacity)
+        # a temperature path none of the characterisation or validation records has: tens of kelvin in one record
+        assert rec.temperature_c.max() - rec.temperature_c[0] > rise
+        assert len(sc.noise_records()) == 5 and all("trise" not in r.name.lower() for r in sc.noise_records())
 
 
 def test_a_measured_leaderboard_runs_with_the_data(data_dir, tmp_path, capsys):
