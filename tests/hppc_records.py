@@ -73,6 +73,9 @@ class Layout:
     precharge_c: float = 0.3
     #: share of the pre-charge the cell does not store (coulombic loss): the tester counts it, the SOC does not
     precharge_loss: float = 0.0
+    #: the test in the charge direction: from ``ASCENDING_FROM`` up, each level reached by a charge step at ``step_c``,
+    #: the last one charging to full before a final rest
+    ascending: bool = False
 
 
 @dataclass(frozen=True)
@@ -135,6 +138,8 @@ def _schedule(cell: Cell, lay: Layout):
     protocol, pulse set ``j`` is at ``z = 1 − j·step`` and the step after it discharges to the next level (the pulses'
     net charge counts); the last set is at the lowest level ≥ ``step`` and the last step runs to empty (z = 0)."""
     q = cell.capacity_ah
+    if lay.ascending:
+        return _ascending_schedule(cell, lay)
     n_levels = int(np.floor(1.0 / lay.step + 1e-9))
     segs = []
     if lay.precharge_from is not None:  # the stored charge: the current the SOC sees (the loss is added when measured)
@@ -150,6 +155,31 @@ def _schedule(cell: Cell, lay: Layout):
                 segs.append((0.0, lay.inner_rest_s, "inner"))
         z_next = 1.0 - (j + 1) * lay.step if j < n_levels - 1 else 0.0
         segs.append((lay.step_c * q, 3600.0 * (z - z_next) / lay.step_c, "step"))
+        segs.append((0.0, lay.rest_s, "rest"))
+        z = z_next
+    return segs, n_levels
+
+
+#: where a test in the charge direction starts (rested)
+ASCENDING_FROM = 0.05
+
+
+def _ascending_schedule(cell: Cell, lay: Layout):
+    """The charge-direction HPPC, the mirror of the USABC one: pulse set ``j`` at ``z = ASCENDING_FROM + j·step``,
+    a charge step to the next level (the pulses' net charge counts) and a rest after each; the last set is at the
+    highest level at most ``1 − step`` and the last step charges to full."""
+    q = cell.capacity_ah
+    n_levels = int(np.floor((1.0 - ASCENDING_FROM) / lay.step + 1e-9))
+    segs = [(0.0, lay.rest_s, "rest")]
+    z = ASCENDING_FROM
+    for j in range(n_levels):
+        for m, c in enumerate(lay.pulses_c):
+            segs.append((c * q, lay.pulse_s, "pulse"))
+            z -= c * lay.pulse_s / 3600.0
+            if not (m == len(lay.pulses_c) - 1 and lay.straight_into_step):
+                segs.append((0.0, lay.inner_rest_s, "inner"))
+        z_next = ASCENDING_FROM + (j + 1) * lay.step if j < n_levels - 1 else 1.0
+        segs.append((-lay.step_c * q, 3600.0 * (z_next - z) / lay.step_c, "step"))
         segs.append((0.0, lay.rest_s, "rest"))
         z = z_next
     return segs, n_levels
@@ -204,7 +234,7 @@ def hppc_record(cell: Cell, lay: Layout, ins: Instrument, seed: int = 0, with_so
                 a, b = seg_t0[j], seg_t0[j + 1] + share * segs[j + 1][1]
                 keep &= ~((t >= a) & (t < b))
         t = t[keep]
-    soc0 = 1.0 if lay.precharge_from is None else lay.precharge_from
+    soc0 = ASCENDING_FROM if lay.ascending else 1.0 if lay.precharge_from is None else lay.precharge_from
     cur, soc, pol, v = _solve(cell, seg_i, seg_t0, t, soc0)
     if lay.precharge_loss:  # the tester counts charge the cell loses to side reactions
         charging = np.isin(np.clip(np.searchsorted(seg_t0, t, side="right") - 1, 0, len(kinds) - 1),

@@ -40,6 +40,7 @@ import numpy as np
 from ..errors import DataError
 from ..identify import (
     FIT_CANDIDATES,
+    analyze_hppc,
     fit_model,
     ocv_from_slow_test,
     pseudo_ocv,
@@ -126,6 +127,16 @@ def is_slow_test(profile: Profile) -> bool:
 RELAX_OCV = False
 
 
+def hppc_steps(profile) -> str:
+    """How an HPPC record moves between its SOC levels: "discharge" or "charge"
+    (:attr:`~socbench.identify.hppc.HPPCAnalysis.steps`); "discharge" for a record that is not an HPPC (the fit then
+    says why)."""
+    try:
+        return analyze_hppc(profile).steps
+    except DataError:
+        return "discharge"
+
+
 def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean", validation=None,
              refine_ocv: bool = False, relax_ocv: bool = RELAX_OCV):
     """``(model, info)``: the base model fitted on the fit data (see the module docstring).
@@ -184,8 +195,11 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
         # the hysteresis branch the curve lies on: the mean of both (0) or the discharge branch (−1)
         info["ocv_branch"] = 0.0 if use_mean else -1.0
     else:
-        info["ocv"] = "HPPC rest points (after discharge steps)"
-        info["ocv_branch"] = -1.0
+        # the hysteresis branch the rest points lie on: after discharge steps (−1), or after charge steps (+1) in an
+        # HPPC run in the charge direction
+        steps = hppc_steps(dynamic[0])
+        info["ocv"] = f"HPPC rest points (after {steps} steps)"
+        info["ocv_branch"] = 1.0 if steps == "charge" else -1.0
     prof = dynamic[0]
     capacity = capacity or _capacity(prof)
     validation = list(validation or [])

@@ -31,7 +31,9 @@ or a fixed duration where the record can tell. The analysis
    first sample: ``I − b`` integrated under zero-order hold or, when the record has gaps whose charge only the
    reference SOC knows, that reference (:func:`discharged_ah`). ``Ah_full`` is its minimum, the most charged point:
    an HPPC starts full, and the ORNL Leaf files first discharge to empty and charge to full — phases before the
-   record first comes within :data:`FULL_TOL` of full are pre-conditioning, not part of the test. ``Q`` is the
+   record first comes within :data:`FULL_TOL` of full are pre-conditioning, not part of the test. An HPPC in the
+   *charge direction* (its levels reached by charge steps, up to full: the SOC of its held phases rises over the
+   record) is the whole record up to full (``steps = "charge"``: its rest points lie on the charge branch). ``Q`` is the
    capacity (default: the charge discharged from full to the most discharged point — ECM_SPEC §2 recommends the
    HPPC's own Ah);
 4. **tells pulses from steps**: a *pulse* is a phase that
@@ -73,7 +75,7 @@ or a fixed duration where the record can tell. The analysis
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -196,8 +198,12 @@ class HPPCAnalysis:
     #: the record reaches its top later (a charge first) or no pulse edge was resolved
     start_ocv_v: float = float("nan")
     #: the sample where the test starts: the record's first approach to its top (0 when it starts there; later when
-    #: a charge to full comes first, whose SOC is counted back from full through a charge of unknown efficiency)
+    #: a charge to full comes first, whose SOC is counted back from full through a charge of unknown efficiency); 0
+    #: for a test in the charge direction
     start_index: int = 0
+    #: how the test moves between its SOC levels: "discharge" (down from full, the usual HPPC) or "charge" (up to
+    #: full): the hysteresis branch its rest points lie on
+    steps: str = "discharge"
 
     @property
     def current_offset_a(self) -> float:
@@ -540,7 +546,7 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     candidates = []
     for a, b in _intervals(active):
         for pa, pb in _phases(a, b, sign, t_after, t):
-            if pa != a or pa == 0 or pb <= k_full or pb >= n:
+            if pa != a or pa == 0 or pb >= n:
                 continue
             seg = di[pa:pb]
             level = float(np.median(seg))
@@ -553,6 +559,22 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
             if before is None or before.duration_s < PULSE_REST_RATIO * dur:
                 continue  # an HPPC rests before every pulse; a drive cycle crosses zero for a moment
             candidates.append((pa, pb, dur))
+    # which way the test steps: down from full (the usual HPPC: what comes before full is pre-conditioning) or up to
+    # it (an HPPC in the charge direction, whose levels are reached by charging: the whole record before full is the
+    # test). Decided by the SOC of the held phases over time, the steps among them
+    ascending = len(candidates) >= 2 and float(np.polyfit(t[[c[0] for c in candidates]],
+                                                          soc[[c[0] for c in candidates]], 1)[0]) > 0.0
+    start = 0 if ascending else k_full
+    candidates = [c for c in candidates if c[1] > start]
+    if ascending:
+        notes.append("an HPPC in the charge direction (its SOC levels are reached by charging): the rest points lie "
+                     "on the charge branch of any hysteresis")
+        if not capacity_ah:  # the charge from the most discharged point up to full, not what follows full
+            q = float(np.max(ah) - ah_full)
+            soc = 1.0 - (ah - ah_full) / q
+            rests = [replace(r, soc_end=float(soc[r.stop - 1])) for r in rests]
+            rest_by_start = {r.start: r for r in rests}
+            rest_by_stop = {r.stop: r for r in rests}
     if max_pulse_s is None:
         max_pulse_s = _pulse_bound(np.array([c[2] for c in candidates])) if candidates else MAX_PULSE_S
         notes.append(f"pulses: held phases from a rest of at most {max_pulse_s:.3g} s (read from the record)")
@@ -626,7 +648,8 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     r_inst = _finite_median([p.r_inst for p in pulses])
     start_ocv = float(v[0] + r_inst * di[0]) if k_full == 0 and r_inst > 0 else float("nan")
     return HPPCAnalysis(tuple(rests), tuple(pulses), np.asarray(ocv_z), np.asarray(ocv_v), q, soc, ah, ah_source,
-                        level_soc, tuple(notes), lev, float(max_pulse_s), start_ocv, k_full)
+                        level_soc, tuple(notes), lev, float(max_pulse_s), start_ocv, start,
+                        "charge" if ascending else "discharge")
 
 
 def ocv_from_hppc(profile: Profile, capacity_ah: float | None = None, **options) -> OCVCurve:
