@@ -71,6 +71,10 @@ or a fixed duration where the record can tell. The analysis
    exponential). An edge resistance needs a pulse of at least :data:`MIN_EDGE_SAMPLES` samples and an edge that
    carries at least half the pulse current: with a sample period near the pulse length, or a ramping edge, ``ΔV/ΔI``
    would measure polarisation, not ``R0``; such edges give NaN and a note says so.
+
+A record whose pulses *raise* the voltage under the current it calls discharge (median pulse resistance below 0) was
+read with the current's sign flipped — read that way, a test down from full looks like one up to full with the OCV
+falling as the SOC rises — and gets one :class:`DataError` line naming the current column.
 """
 
 from __future__ import annotations
@@ -609,6 +613,9 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     if not pulses:
         raise DataError(f"not an HPPC test: no pulse found (a held current of at most {max_pulse_s:.3g} s that "
                         "starts from a rest)", file=src)
+    if np.nanmedian([p.r_pulse for p in pulses]) < 0:  # the voltage rises under discharge: a test read upside down
+        raise DataError("current sign looks flipped: the voltage rises under the pulses the current calls discharge "
+                        "(positive = discharge)", file=src, column="current_a")
     if unresolved:
         period = float(np.median(np.diff(t))) if n > 1 else float("nan")
         notes.append(f"{unresolved} of {len(pulses)} pulses span fewer than {MIN_EDGE_SAMPLES} samples (sample "
