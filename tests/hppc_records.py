@@ -73,6 +73,8 @@ class Layout:
     precharge_c: float = 0.3
     #: share of the pre-charge the cell does not store (coulombic loss): the tester counts it, the SOC does not
     precharge_loss: float = 0.0
+    #: a cycler script that charges the cell back to full at ``precharge_c`` after the test's final rest, and rests
+    recharge_after: bool = False
     #: the test in the charge direction: from ``ASCENDING_FROM`` up, each level reached by a charge step at ``step_c``,
     #: the last one charging to full before a final rest
     ascending: bool = False
@@ -157,6 +159,8 @@ def _schedule(cell: Cell, lay: Layout):
         segs.append((lay.step_c * q, 3600.0 * (z - z_next) / lay.step_c, "step"))
         segs.append((0.0, lay.rest_s, "rest"))
         z = z_next
+    if lay.recharge_after:
+        segs += [(-lay.precharge_c * q, 3600.0 / lay.precharge_c, "charge"), (0.0, lay.rest_s, "post")]
     return segs, n_levels
 
 
@@ -243,7 +247,10 @@ def hppc_record(cell: Cell, lay: Layout, ins: Instrument, seed: int = 0, with_so
     i_meas, v_meas = _measure(t, cur, v, ins, cell.capacity_ah, rng)
     # expected OCV rows: the last sample before the first pulse of every set, and the last sample of the record
     first_pulse = [seg_t0[j] for j, k in enumerate(kinds) if k == "pulse" and kinds[j - 1] == "rest"]
-    rows = np.array([int(np.searchsorted(t, tp, side="left")) - 1 for tp in first_pulse] + [t.size - 1])
+    # (with a charge back to full after the test: the last sample before it)
+    last = (int(np.searchsorted(t, seg_t0[kinds.index("post") - 1], side="left")) - 1 if "post" in kinds
+            else t.size - 1)
+    rows = np.array([int(np.searchsorted(t, tp, side="left")) - 1 for tp in first_pulse] + [last])
     meta = ProfileMeta(name=name, source=name, capacity_ah=cell.capacity_ah)
     prof = Profile(t - t[0], i_meas, voltage_v=v_meas, soc_ref=np.clip(soc, 0.0, 1.0) if with_soc_ref else None,
                    meta=meta)

@@ -67,9 +67,12 @@ def add_arguments(parser) -> None:
                              "--validation records best (SOC form, sample weighting; over several records also a "
                              "setting per temperature and the charge-transfer term)")
     parser.add_argument("--capacity", type=float, default=None,
-                        help="capacity [Ah] of the SOC axis (default: the charge the HPPC discharges from full to "
-                             "empty; with several records the largest of them)")
-    parser.add_argument("--soc0", type=float, default=None, help="initial SOC of the record (default: 1 for an HPPC)")
+                        help="capacity [Ah] of the SOC axis (default: the charge the HPPC moves between full and its "
+                             "most discharged point, down from full or, run in the charge direction, up to it; with "
+                             "several records the largest of them)")
+    parser.add_argument("--soc0", type=float, default=None,
+                        help="initial SOC of the record (default: counted back from the HPPC's full point: 1 for "
+                             "one that starts full)")
     parser.add_argument("--ocv", default=None,
                         help="OCV curve JSON ({soc, voltage}) or a PARAMS.json whose curve to use "
                              "(default: the record's HPPC rest points)")

@@ -370,19 +370,25 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
 def _fitted_samples(analysis, ocv, profile: Profile, notes: list) -> np.ndarray | None:
     """Weights of the record's samples in the fit: 0 before the HPPC test starts (``analysis.start_index``: a charge
     to full that precedes it, the ORNL Nissan Leaf HPPCs' charge from empty, whose SOC is counted back from full
-    through a charge of unknown coulombic efficiency: near empty a point of SOC is tens of mV of OCV) and where the
+    through a charge of unknown coulombic efficiency: near empty a point of SOC is tens of mV of OCV), after it ends
+    (``analysis.end_index``: a charge back to full that follows, counted the same way) and where the
     SOC lies further than ``OCV_FIT_MARGIN`` beyond the OCV curve's rest points (an extension there, not a
     measurement), 1 elsewhere, with a note for each; None when every sample is fitted (or none would be)."""
-    before = np.arange(analysis.soc.size) < analysis.start_index
+    k = np.arange(analysis.soc.size)
+    before = k < analysis.start_index
+    after = k >= (analysis.end_index if analysis.end_index is not None else analysis.soc.size)
     outside = ocv.excursion(analysis.soc, temp=profile.temperature_c) > OCV_FIT_MARGIN
-    left_out = before | outside
+    left_out = before | after | outside
     if not left_out.any() or left_out.all():
         return None
     dt = np.diff(profile.time_s, append=profile.time_s[-1])
     if before.any():
         notes.append(f"the {float(dt[before].sum()) / 3600:.2g} h before the test reaches full (a charge first) left "
                      "out of the fit")
-    beyond = outside & ~before
+    if after.any():
+        notes.append(f"the {float(dt[after].sum()) / 3600:.2g} h after the test (a charge back to full) left out of "
+                     "the fit")
+    beyond = outside & ~before & ~after
     if beyond.any():
         notes.append(f"{float(dt[beyond].sum()) / 3600:.2g} h ({int(beyond.sum())} samples) more than "
                      f"{OCV_FIT_MARGIN:g} in SOC beyond the OCV's rest points left out of the fit (the OCV there is an "

@@ -56,9 +56,11 @@ or a fixed duration where the record can tell. The analysis
    themselves (more than :data:`SET_SPLIT` of Q);
 6. takes an **OCV point** at the end of the rest before each set, when that rest lasts ``min_rest_s`` (default
    :data:`MIN_OCV_REST_S`, 4 min) or is the record's initial rest (the cell rested before the test began), and at the
-   end of a final rest after a last discharge step. The point is the end of the least-squares line through the
-   voltage over the rest's last ``min(60 s, 10 % of the rest)`` — noise averaged, without the lag of a mean behind a
-   voltage still relaxing — never reaching back across a gap in the record longer than that window. A record is an
+   end of a final rest after a last discharge step. The test ends with that rest: when the record then charges the
+   cell back to full (a cycler's script), the charge back is post-conditioning, not part of the test
+   (``end_index``). The point is the end of the least-squares line through the voltage over the rest's last
+   ``min(60 s, 10 % of the rest)`` — noise averaged, without the lag of a mean behind a voltage still relaxing —
+   never reaching back across a gap in the record longer than that window. A record is an
    HPPC test when it has at least two OCV points and rests before at least half of its pulse sets
    (:data:`REST_SHARE`); otherwise (a drive cycle, a constant discharge, a flight) :func:`analyze_hppc` raises one
    :class:`DataError` line;
@@ -208,6 +210,9 @@ class HPPCAnalysis:
     #: how the test moves between its SOC levels: "discharge" (down from full, the usual HPPC) or "charge" (up to
     #: full): the hysteresis branch its rest points lie on
     steps: str = "discharge"
+    #: one past the test's last sample: the record's length, or the end of the rest after a test's most discharged
+    #: point when the record charges back to full after it (None: the record's length)
+    end_index: int | None = None
 
     @property
     def current_offset_a(self) -> float:
@@ -642,11 +647,15 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
         notes.append(f"{len(unrested)} of {n_sets} pulse sets (at z = {', '.join(f'{z:.3f}' for z in unrested[:5])}"
                      f"{', ...' if len(unrested) > 5 else ''}) follow a rest shorter than {min_rest_s:g} s: no OCV "
                      "point")
-    last = rests[-1] if rests else None
-    if last is not None and last.stop == n and last.duration_s >= min_rest_s:
-        if abs(ah[-1] - ah[pulses[-1].stop]) > SET_SPLIT * q:
+    end = _test_end(pulses, rests, ah, q, ascending)
+    last = next((r for r in rests if r.stop == end), None)
+    if last is not None and last.duration_s >= min_rest_s:
+        if abs(ah[end - 1] - ah[pulses[-1].stop]) > SET_SPLIT * q:
             ocv_z.append(last.soc_end)
             ocv_v.append(last.v_end)
+    if end < n:
+        notes.append(f"the test ends at the rest after its most discharged point (z = {soc[end - 1]:.3f}): the "
+                     f"{(t[-1] - t[end - 1]) / 3600:.2g} h of charge back that follow are not part of it")
     if len(ocv_z) < 2 or n_rested < REST_SHARE * n_sets:
         raise DataError(f"not an HPPC test: {n_rested} of {n_sets} pulse set(s) follow a rest of {min_rest_s:g} s or "
                         f"more, {len(ocv_z)} OCV rest point(s) in all (an HPPC rests before most of its pulse sets; "
@@ -656,7 +665,23 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     start_ocv = float(v[0] + r_inst * di[0]) if k_full == 0 and r_inst > 0 else float("nan")
     return HPPCAnalysis(tuple(rests), tuple(pulses), np.asarray(ocv_z), np.asarray(ocv_v), q, soc, ah, ah_source,
                         level_soc, tuple(notes), lev, float(max_pulse_s), start_ocv, start,
-                        "charge" if ascending else "discharge")
+                        "charge" if ascending else "discharge", end)
+
+
+def _test_end(pulses, rests, ah, q: float, ascending: bool) -> int:
+    """One past the last sample of a test down from full: the end of the rest after its most discharged point when
+    the record then charges back (a cycler's script returning the cell to full: post-conditioning, as the charge
+    before full is pre-conditioning); the record's length otherwise, and for a test in the charge direction."""
+    n = ah.size
+    if ascending or not pulses:
+        return n
+    tail = ah[pulses[-1].stop:]
+    # the first approach to the most discharged point (noise and a rest's offset move the count by tenths of a percent)
+    k_bottom = pulses[-1].stop + int(np.argmax(tail >= float(np.max(tail)) - FULL_TOL * max(float(np.ptp(ah)), 1e-12)))
+    after = next((r for r in rests if r.start >= k_bottom - 1), None)
+    if after is None or after.stop >= n or ah[after.stop - 1] - float(np.min(ah[after.stop:])) <= SET_SPLIT * q:
+        return n
+    return after.stop
 
 
 def ocv_from_hppc(profile: Profile, capacity_ah: float | None = None, **options) -> OCVCurve:
