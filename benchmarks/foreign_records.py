@@ -11,7 +11,9 @@ The generator here is numpy only, no socbench code, and deliberately unlike the 
   0.1–0.8 × R0 with ``τ2`` 200–2000 s, capacity 1–60 Ah (log-uniform), one of three analytic OCV shapes (NMC-like,
   LFP-like with a plateau and two knees, and a third with a ripple), no hysteresis, no temperature;
 * **HPPC** — a rest of 5 min–2 h, then per SOC step (5, 10 or 20 %) a discharge pulse of 5–60 s at 0.5–3C, an optional
-  charge pulse at 0.75 × that, 10–120 s between them, the step at 0.5C or 1C and a rest of 5 min–2 h;
+  charge pulse at 0.75 × that, 10–120 s between them, the step at 0.5C or 1C and a rest of 5 min–2 h; laid out (one
+  of :data:`PROTOCOLS`, a quarter each) from full down, after a charge from 3 % to full, followed by a charge back to
+  full, or in the charge direction (from 4 % up, each level reached by a charge step, the last to full);
 * **field record** — from 95 % SOC, segments of 5–120 s at −0.5C (charge), 0.2, 0.5, 1 or 2C (×0.5–1.5), with a rest
   of 5–30 min after 5 % of them, down to 15 % SOC, with its reference SOC;
 * **instrument** (the same on both records) — samples every 0.1–10 s (HPPC) and 1–5 s (field) at a random phase,
@@ -54,23 +56,42 @@ def ocv_shape(kind: str):
     return lambda z: 3.3 + 0.9 * z - 0.4 * np.exp(-15 * z) + 0.04 * np.sin(6 * z)
 
 
-def hppc_segments(r, q: float) -> list:
-    """``[(duration s, current A), ...]``, discharge positive."""
+#: how the HPPC record is laid out around the test (drawn from a stream of its own, so that the cell, instrument and
+#: pulse draws of a case do not depend on it): starting full; a charge from near empty to full before the test (the
+#: ORNL Leaf files); a charge back to full after the test's final rest (a cycler's script); the test in the charge
+#: direction, its levels reached by charge steps from near empty up to full
+PROTOCOLS = ("from full", "charge first", "charge back after", "charge direction")
+
+
+def hppc_segments(r, q: float, protocol: str = "from full") -> tuple[list, float]:
+    """``([(duration s, current A), ...], SOC at the record's start)``, discharge positive."""
     segs = [(r.uniform(300, 7200), 0.0)]
     pulse_s, pulse_c = float(r.choice([5, 10, 18, 30, 60])), float(r.choice([0.5, 1.0, 2.0, 3.0]))
     charge, step = r.random() < 0.6, float(r.choice([0.05, 0.1, 0.2]))
     rest, between = r.uniform(300, 7200), r.uniform(10, 120)
-    z = 1.0
-    while z > step + 0.02:
+    up = protocol == "charge direction"
+    z = level = 0.04 if up else 1.0
+    while (level < 0.98 - step) if up else (z > step + 0.02):
         segs += [(pulse_s, pulse_c * q), (between, 0.0)]
         z -= pulse_s * pulse_c / 3600
         if charge:
             segs += [(pulse_s, -0.75 * pulse_c * q), (between, 0.0)]
             z += pulse_s * 0.75 * pulse_c / 3600
         c = float(r.choice([0.5, 1.0]))
-        segs += [(step * 3600 / c, c * q), (rest, 0.0)]
-        z -= step
-    return segs
+        if up:  # a charge step to the next level; the last one to full
+            level = level + step if level + 2 * step < 0.98 else 1.0
+            segs += [((level - z) * 3600 / c, -c * q), (rest, 0.0)]
+            z = level
+        else:
+            segs += [(step * 3600 / c, c * q), (rest, 0.0)]
+            z -= step
+    z0 = 0.04 if up else 1.0
+    if protocol == "charge first":
+        z0 = 0.03
+        segs = [(600.0, 0.0), ((1.0 - z0) * 3600 / 0.3, -0.3 * q)] + segs
+    elif protocol == "charge back after":
+        segs += [((1.0 - z) * 3600 / 0.5, -0.5 * q), (3600.0, 0.0)]
+    return segs, z0
 
 
 def field_segments(r, q: float) -> list:
@@ -131,11 +152,15 @@ def draw(seed: int, folder: Path) -> dict:
             "v_sd": r.uniform(0.0005, 0.005), "i_sd": r.uniform(0.0, 0.01) * q,
             "i_offset": r.uniform(-0.005, 0.005) * q, "t0": float(r.choice([0.0, 1.7e9]))}
     dt_hppc, dt_field = float(r.choice([0.1, 0.5, 1.0, 2.0, 5.0, 10.0])), float(r.choice([1.0, 2.0, 5.0]))
-    hppc = measure(hppc_segments(r, q), cell, dt_hppc, 1.0, r, inst)
-    field = measure(field_segments(r, q), cell, dt_field, 0.95, r, inst)
+    protocol = PROTOCOLS[int(np.random.default_rng([seed, 1]).integers(len(PROTOCOLS)))]
+    segs, z0 = hppc_segments(r, q, protocol)
+    hppc = measure(segs, cell, dt_hppc, z0, r, inst)
+    rf = np.random.default_rng([seed, 2])  # the field record's own stream: it does not depend on the HPPC's layout
+    field = measure(field_segments(rf, q), cell, dt_field, 0.95, rf, inst)
     write(folder / f"case{seed}_hppc.csv", *hppc[:3], capacity_ah=q)
     write(folder / f"case{seed}_field.csv", *field, capacity_ah=q)
-    return {"seed": seed, "capacity_ah": q, "ocv": cell["ocv"], "dt_hppc_s": dt_hppc, "dt_field_s": dt_field,
+    return {"seed": seed, "capacity_ah": q, "ocv": cell["ocv"], "protocol": protocol, "dt_hppc_s": dt_hppc,
+            "dt_field_s": dt_field,
             "offset_c": inst["i_offset"] / q, "i_step_c": inst["i_step"] / q, "i_sd_c": inst["i_sd"] / q,
             "v_sd_mv": 1000 * inst["v_sd"], "v_step_mv": 1000 * inst["v_step"], "epoch": inst["t0"] > 0,
             "tau_s": [b[1] for b in cell["branches"]]}
@@ -174,7 +199,7 @@ def summary(cases: list) -> dict:
     ran = [c for c in cases if c["added"] is not None]
     offset = [c for c in ran if abs(c["offset_c"]) >= OFFSET_NAMED_FRAC]
     thev = [c for c in ran if c["model"] == "thevenin"]
-    spurious = [(c["seed"], e) for c in ran for e in c["added"]
+    spurious = [(c["seed"], e, c.get("protocol", "")) for c in ran for e in c["added"]
                 if e not in ("current_bias",) + (("extra_rc",) if c["model"] == "thevenin" else ())]
     return {"cases": len(cases), "fit_ok": sum(c["fit_exit"] == 0 for c in cases),
             "diagnose_ok": sum(c["diagnose_exit"] == 0 for c in cases),
@@ -184,7 +209,11 @@ def summary(cases: list) -> dict:
             "quantised_offset_cases": sum(c["i_step_c"] >= 0.01 for c in offset),
             "quantised_offset_named": sum(c["i_step_c"] >= 0.01 and "current_bias" in c["added"] for c in offset),
             "thevenin_cases": len(thev), "extra_rc_named": sum("extra_rc" in c["added"] for c in thev),
-            "spurious": spurious}
+            "spurious": spurious,
+            "by_protocol": {p: {"cases": sum(c.get("protocol") == p for c in cases),
+                                "fit_ok": sum(c.get("protocol") == p and c["fit_exit"] == 0 for c in cases),
+                                "diagnose_ok": sum(c.get("protocol") == p and c["diagnose_exit"] == 0 for c in cases)}
+                            for p in PROTOCOLS}}
 
 
 def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
@@ -193,7 +222,11 @@ def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
          "number below comes from that run.*", "",
          "The records come from a generator of this benchmark's own (numpy only, no socbench code; its module "
          "docstring says what it draws): a two-RC cell, HPPCs of random layouts and field records with charge, "
-         "sampled at 0.1–10 s, quantised, with noise and a current-sensor offset. `socbench fit` and `socbench "
+         "sampled at 0.1–10 s, quantised, with noise and a current-sensor offset. The HPPC is laid out one of four "
+         "ways around the test: from full down; after a charge from near empty to full (as the ORNL Leaf files); "
+         "followed by a charge back to full (a cycler's script); or in the charge direction, each level reached by a "
+         "charge step (its rest points then lie after charging). The field record is drawn from a stream of its own, "
+         "the same whatever the HPPC's layout. `socbench fit` and `socbench "
          "diagnose` run on them as a user would (subprocesses). What the field record holds that the model lacks is "
          "known: the current sensor's offset, and on a Thevenin base the second branch.", "",
          "| measured | value |", "|---|---|",
@@ -205,13 +238,17 @@ def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
          f"| … of those read with a 1 %-of-1C ADC step | {s['quantised_offset_named']}/{s['quantised_offset_cases']} |",
          f"| missing second branch named (Thevenin base) | {s['extra_rc_named']}/{s['thevenin_cases']} |",
          f"| effects named that are not in the data | {len(s['spurious'])} "
-         f"({', '.join(f'case {k}: {e}' for k, e in s['spurious']) or 'none'}) |", "",
+         f"({', '.join(f'case {k} ({p}, {e})' for k, e, p in s['spurious']) or 'none'}) |",
+         "| fit / diagnose exit 0 per HPPC protocol | " + "; ".join(
+             f"{p}: {v['fit_ok']}/{v['cases']} / {v['diagnose_ok']}/{v['cases']}" for p, v in s["by_protocol"].items())
+         + " |", "",
          "Per case:", "",
-         "| case | base | OCV | capacity Ah | HPPC / field dt s | offset % of 1C | current step % of 1C | current "
-         "noise % of 1C | voltage noise mV | fit s | diagnose s | named |",
-         "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+         "| case | base | OCV | HPPC protocol | capacity Ah | HPPC / field dt s | offset % of 1C | current step % of "
+         "1C | current noise % of 1C | voltage noise mV | fit s | diagnose s | named |",
+         "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in cases:
-        w.append(f"| {c['seed']} | {c['model']} | {c['ocv']} | {c['capacity_ah']:.1f} | {c['dt_hppc_s']:g} / "
+        w.append(f"| {c['seed']} | {c['model']} | {c['ocv']} | {c['protocol']} | {c['capacity_ah']:.1f} | "
+                 f"{c['dt_hppc_s']:g} / "
                  f"{c['dt_field_s']:g} | {100 * c['offset_c']:+.2f} | {100 * c['i_step_c']:.1f} | "
                  f"{100 * c['i_sd_c']:.2f} | {c['v_sd_mv']:.1f} | {c['fit_s']:.1f} | {c['diagnose_s']:.1f} | "
                  f"{', '.join(c['added']) if c['added'] is not None else 'failed'} |")
