@@ -248,13 +248,12 @@ def residual(model, profile: Profile, with_soc: bool = False):
     (on the model's axis; else full), charge that only the reference knows (HPPC gaps) added back; with
     ``with_soc`` also the model's SOC path ``(e, z)``."""
     from ..identify.hppc import unrecorded_charge
-    from ..socaxis import soc_axis
+    from ..segments import restart_soc
 
     profile.require("voltage_v")
     if profile.batched:
         raise DataError("residual needs a plain profile (one run)", file=profile.meta.source or profile.name)
-    axis = soc_axis(model.params, profile)
-    z0 = float(axis.to_model(profile.soc_ref[0])) if profile.soc_ref is not None else 1.0
+    z0 = float(restart_soc(profile, 0, model)) if profile.soc_ref is not None else 1.0  # on the model's axis
     jumps = None
     if profile.soc_ref is not None:
         extra = unrecorded_charge(profile)

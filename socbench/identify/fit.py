@@ -185,8 +185,8 @@ class FitProblem:
     effects: tuple = ()
     #: ``(index into effects, ParamSpec)`` of each effect parameter fitted: θ entries after the base parameters'
     effect_specs: tuple = ()
-    #: per sample of the record, 0 where it is left out of the fit (beyond the OCV's rest points, ``OCV_FIT_MARGIN``),
-    #: 1 elsewhere; None: every sample
+    #: per sample of the record, 0 where it is left out of the fit (before or after the HPPC test, beyond the OCV's rest
+    #: points by ``OCV_FIT_MARGIN``: :func:`_fitted_samples`), 1 elsewhere; None: every sample
     weights: np.ndarray | None = None
 
     @property
