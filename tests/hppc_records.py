@@ -289,10 +289,15 @@ def random_instrument(rng) -> Instrument:
                       v_lsb=float(rng.choice([0.0, 1e-4, 1e-3])))
 
 
+def random_setup(seed: int):
+    """``(rng, cell, layout, instrument)`` of one randomised draw (the generator left where a caller may draw more)."""
+    rng = np.random.default_rng(seed)
+    return rng, random_cell(rng), random_layout(rng), random_instrument(rng)
+
+
 def random_hppc(seed: int) -> Record:
     """One randomised draw: cell, layout, instrument (gap layouts always carry the reference SOC)."""
-    rng = np.random.default_rng(seed)
-    cell, lay, ins = random_cell(rng), random_layout(rng), random_instrument(rng)
+    rng, cell, lay, ins = random_setup(seed)
     return hppc_record(cell, lay, ins, seed=seed + 1, with_soc_ref=lay.gaps or rng.random() < 0.5)
 
 

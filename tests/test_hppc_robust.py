@@ -213,8 +213,7 @@ def test_a_charge_from_empty_before_the_test_is_left_out_of_the_fit():
     the pre-charge out (a note says so) and matches the yardstick: RMSE within 25 % and R0 within 10 %."""
     worst = []
     for k in range(PRECHARGE_DRAWS):
-        rng = np.random.default_rng(20_000 + k)
-        cell, lay, ins = H.random_cell(rng), H.random_layout(rng), H.random_instrument(rng)
+        rng, cell, lay, ins = H.random_setup(20_000 + k)
         lay = dataclasses.replace(lay, gaps=False, precharge_from=float(rng.uniform(0.0, 0.05)),
                                   precharge_c=float(rng.uniform(0.2, 0.5)),
                                   precharge_loss=float(rng.uniform(0.01, 0.03)))
@@ -242,8 +241,7 @@ def test_an_hppc_in_the_charge_direction_is_analysed_and_fitted():
     had not yet relaxed, 1.5 σ of the voltage noise, its ADC step and 2 mV; a fit's R0 within 20 % of the truth (5 %
     where the logger samples the edges at 1 s or faster)."""
     for k in range(ASCENDING_DRAWS):
-        rng = np.random.default_rng(30_000 + k)
-        cell, lay, ins = H.random_cell(rng), H.random_layout(rng), H.random_instrument(rng)
+        rng, cell, lay, ins = H.random_setup(30_000 + k)
         rec = H.hppc_record(cell, dataclasses.replace(lay, gaps=False, ascending=True), ins, seed=30_000 + k,
                             with_soc_ref=False)
         a, caught = _analyse_quietly(rec.profile, capacity_ah=cell.capacity_ah)
@@ -272,8 +270,7 @@ def test_a_charge_back_to_full_after_the_test_is_not_part_of_it():
     25 % and its R0 within 3 %."""
     worst = []
     for k in range(RECHARGE_DRAWS):
-        rng = np.random.default_rng(32_000 + k)
-        cell, lay, ins = H.random_cell(rng), H.random_layout(rng), H.random_instrument(rng)
+        rng, cell, lay, ins = H.random_setup(32_000 + k)
         lay = dataclasses.replace(lay, gaps=False, precharge_c=float(rng.uniform(0.2, 1.0)))
         plain = H.hppc_record(cell, lay, ins, seed=32_000 + k, with_soc_ref=False)
         rec = H.hppc_record(cell, dataclasses.replace(lay, recharge_after=True), ins, seed=32_000 + k,
@@ -300,8 +297,7 @@ def test_an_hppc_read_with_the_current_sign_flipped_is_refused():
     the voltage falling as the SOC rises: refused with one line, whichever way the test ran (random draws, seeds
     31 000 +; the canonical loader refuses such a file before, this is the analysis on a profile built in code)."""
     for k in range(10):
-        rng = np.random.default_rng(31_000 + k)
-        cell, lay, ins = H.random_cell(rng), H.random_layout(rng), H.random_instrument(rng)
+        rng, cell, lay, ins = H.random_setup(31_000 + k)
         lay = dataclasses.replace(lay, gaps=False, ascending=bool(k % 2))
         p = H.hppc_record(cell, lay, ins, seed=31_000 + k, with_soc_ref=False).profile
         with pytest.raises(DataError, match="sign looks flipped") as err:
