@@ -1247,8 +1247,9 @@ def write_doc(path: Path, v: dict):
     own, own_fit = v.get("own") or {}, v.get("own_fit") or {}
     if own:
         w("\n**4h. Beside a fit at the record's own temperature** (what a user with one temperature's tests runs: "
-          "that temperature's HPPC alone, its setting chosen on that temperature's Cycle_1 (`socbench fit --data "
-          "HPPC_T --model " + best + " --mode auto --validation CYCLE_T`), the recipe measured there; the same "
+          "that temperature's HPPC alone, its setting chosen on that temperature's Cycle_1 "
+          "(`socbench.identify.select_temperature_fit` on the one record, as section 1's 25 °C fit), the recipe "
+          "measured there; the same "
           "filters, 20-point start and scoring as section 4, five-temperature fit beside it). SOC RMSE %, within 3σ "
           "in brackets:\n")
         w("| US06 | own temperature's fit (setting) | EKF | UKF | five-temperature fit: EKF | UKF |")
