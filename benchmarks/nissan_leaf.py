@@ -155,7 +155,9 @@ def write_doc(path: Path, res: dict, before: dict | None, before_label: str) -> 
          + ". Every fit runs through `socbench fit` in a subprocess.*", "",
          f"**Data.** {CITE}. A 33.1 Ah pouch cell; each HPPC file starts empty and charges to full at 10 A before the "
          "test, then 30 A discharge and 22.5 A charge pulses, 10 % steps at 10 A and 1 h rests; no temperature column "
-         "(the file's ambient is used). No socbench default was set on this data.", "",
+         "(the file's ambient is used). The change below was found on this data (the fits before it spent themselves "
+         "on the charge from empty); the Panasonic HPPCs, on which the HPPC analysis grew up, are unchanged by it.",
+         "",
          "**What changed.** A fit now leaves out the samples before the test reaches full (the charge from empty, "
          "whose SOC is counted back from full through a charge of unknown coulombic efficiency: near empty a point of "
          "SOC is tens of mV of OCV) and those further than 0.02 in SOC beyond the OCV's rest points "
