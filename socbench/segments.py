@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .profile import Profile
-from .socaxis import SocAxis, reference_capacity
+from .socaxis import soc_axis
 
 #: a gap: a step longer than this many median steps ...
 GAP_FACTOR = 5.0
@@ -141,8 +141,8 @@ def restart_soc(profile: Profile, start: int, model, rule: str = REFERENCE) -> n
     drop), clipped to [0, 1]; 1 when the record has neither."""
     ref = profile.get("soc_ref") if rule == REFERENCE else None  # a reference given but refused raises its error
     if ref is not None:
-        q_data = reference_capacity(profile)
-        z = ref[..., start] if q_data is None else SocAxis(model.capacity_ah, q_data).to_model(ref[..., start])
+        axis = soc_axis(model.params, profile)
+        z = ref[..., start] if axis.identity else axis.to_model(ref[..., start])
     elif profile.voltage_v is not None:
         z = model.soc_from_voltage(profile.voltage_v[..., start], profile.current_a[..., start],
                                    _temp(profile, start))

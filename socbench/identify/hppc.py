@@ -537,7 +537,7 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     # full: the most charged point; the test starts where the record first comes within FULL_TOL of it (charge
     # pulses at full may return to it or beyond, and noise and coarse sampling blur the count by tenths of a percent)
     ah_full = float(np.min(ah))
-    k_full = int(np.argmax(ah <= ah_full + FULL_TOL * max(float(np.ptp(ah)), 1e-12)))
+    k_full = _first_approach(ah, ah_full, ah)
     q = float(capacity_ah) if capacity_ah else float(np.max(ah[k_full:]) - ah_full)
     if not q > 0:
         raise DataError("the record discharges no charge: cannot place it on the SOC axis", file=src)
@@ -668,6 +668,13 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
                         "charge" if ascending else "discharge", end)
 
 
+def _first_approach(x: np.ndarray, extreme: float, ah: np.ndarray) -> int:
+    """The first sample of ``x`` within :data:`FULL_TOL` of the record's charge (``ptp(ah)``) of its ``extreme``:
+    where a count first reaches full or its most discharged point (noise and a rest's offset move it by tenths of a
+    percent)."""
+    return int(np.argmax(np.abs(x - extreme) <= FULL_TOL * max(float(np.ptp(ah)), 1e-12)))
+
+
 def _test_end(pulses, rests, ah, q: float, ascending: bool) -> int:
     """One past the last sample of a test down from full: the end of the rest after its most discharged point when
     the record then charges back (a cycler's script returning the cell to full: post-conditioning, as the charge
@@ -676,8 +683,7 @@ def _test_end(pulses, rests, ah, q: float, ascending: bool) -> int:
     if ascending or not pulses:
         return n
     tail = ah[pulses[-1].stop:]
-    # the first approach to the most discharged point (noise and a rest's offset move the count by tenths of a percent)
-    k_bottom = pulses[-1].stop + int(np.argmax(tail >= float(np.max(tail)) - FULL_TOL * max(float(np.ptp(ah)), 1e-12)))
+    k_bottom = pulses[-1].stop + _first_approach(tail, float(np.max(tail)), ah)
     after = next((r for r in rests if r.start >= k_bottom - 1), None)
     if after is None or after.stop >= n or ah[after.stop - 1] - float(np.min(ah[after.stop:])) <= SET_SPLIT * q:
         return n
