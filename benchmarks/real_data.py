@@ -702,6 +702,14 @@ def main(argv=None) -> int:
     return 0
 
 
+def own_beside_5t(v: dict, tag: str) -> tuple[list, list]:
+    """The EKF and UKF runs on the US06 of ``tag`` with the fit at its own temperature (section 4h), and with the
+    five-temperature fit (section 4); an entry is None where a run is missing."""
+    best, own, own_fit = v["best"], v.get("own") or {}, v.get("own_fit") or {}
+    return ([own.get(f"{best}_{own_fit.get(tag)}_{est}_{tag}") for est in ("ekf", "ukf")],
+            [v["runs"].get(f"{best}_5T_{est}_{tag}") for est in ("ekf", "ukf")])
+
+
 def drifting_rows(lb) -> list[str]:
     """One line per rising-temperature scenario of the measured leaderboard (the chamber let drift; no choice of
     socbench was made on these records): each model's EKF and UKF SOC RMSE and within 3σ."""
@@ -855,11 +863,9 @@ def verdict(v: dict) -> str:
                      "(within 3σ) without → with it): " + "; ".join(pairs) + ". It removes information the fitted "
                      "tables do not hold (on synthetic data and where the tables are worst), and with it some the "
                      "tables do hold.")
-    own, own_fit = v.get("own") or {}, v.get("own_fit") or {}
     pairs = []
     for tag in TAGS:
-        o = [own.get(f"{best}_{own_fit.get(tag)}_{est}_{tag}") for est in ("ekf", "ukf")]
-        f5 = [runs.get(f"{best}_5T_{est}_{tag}") for est in ("ekf", "ukf")]
+        o, f5 = own_beside_5t(v, tag)
         if all(r and "error" not in r for r in o + f5):
             pairs.append((LABEL[tag], max(r["soc_rmse"] for r in o), max(r["soc_rmse"] for r in f5),
                           min(r["frac_within_3sigma"] for r in o), min(r["frac_within_3sigma"] for r in f5)))
@@ -1244,8 +1250,7 @@ def write_doc(path: Path, v: dict):
               "error is, so `socbench fit` says so when it measures the recipe on the identification records, and "
               "`socbench estimate` repeats it for such a parameter file; given drive cycles of the same cell "
               "(`--validation`), `--mode auto` makes section 4's choice.\n")
-    own, own_fit = v.get("own") or {}, v.get("own_fit") or {}
-    if own:
+    if v.get("own"):
         w("\n**4h. Beside a fit at the record's own temperature** (what a user with one temperature's tests runs: "
           "that temperature's HPPC alone, its setting chosen on that temperature's Cycle_1 "
           "(`socbench.identify.select_temperature_fit` on the one record, as section 1's 25 °C fit), the recipe "
@@ -1256,8 +1261,7 @@ def write_doc(path: Path, v: dict):
         w("|---|---|---|---|---|---|")
         for tag in TAGS:
             cells = []
-            for r in [own.get(f"{best}_{own_fit[tag]}_{est}_{tag}") for est in ("ekf", "ukf")] + \
-                     [runs.get(f"{best}_5T_{est}_{tag}") for est in ("ekf", "ukf")]:
+            for r in sum(own_beside_5t(v, tag), []):
                 cells.append("failed" if r is None or "error" in r else
                              f"{pc(r['soc_rmse'])} ({r['frac_within_3sigma']:.2f})")
             w(f"| {LABEL[tag]} | {v['own_setting'][tag]} | " + " | ".join(cells) + " |")
