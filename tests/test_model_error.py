@@ -116,6 +116,44 @@ def test_estimate_recovers_a_planted_gauss_markov_error():
         assert st.white_sd[0] == pytest.approx(0.004, rel=0.35)
 
 
+def _sustained_draw(rng, model, n: int) -> tuple:
+    """A flight-like record of ``model`` (a mean 1.5–3 C held with gusts of SD 0.2–0.5 C, τ 3–10 s) whose measured
+    voltage carries a resistance error of one size in the gusts and another at the mean: ``e = −r_dyn (I − Ī) +
+    r_dc Ī`` (``Ī`` the current low-passed at 30–120 s; a model fitted on 1 C pulses and flown at 3 C), plus white
+    noise. Returns ``(profile, e)``."""
+    t = np.arange(n) * DT
+    cap = model.capacity_ah
+    phi = np.exp(-DT / rng.uniform(3.0, 10.0))
+    gust = np.zeros(n)
+    for k in range(1, n):
+        gust[k] = phi * gust[k - 1] + np.sqrt(1 - phi * phi) * rng.standard_normal()
+    cur = cap * (rng.uniform(1.5, 3.0) + rng.uniform(0.2, 0.5) * gust)
+    a = np.exp(-DT / rng.uniform(30.0, 120.0))
+    lp = np.empty(n)
+    lp[0] = cur[0]
+    for k in range(1, n):
+        lp[k] = a * lp[k - 1] + (1 - a) * cur[k]
+    err = -rng.uniform(0.5, 2.0) * 1e-3 * (cur - lp) + rng.uniform(0.5, 2.0) * 1e-3 * lp
+    x0 = model.x0(np.full(1, 0.95), (1,))
+    states, v = model.open_loop(x0, t, cur[None])
+    v = v[0] + err + rng.uniform(0.001, 0.004) * rng.standard_normal(n)
+    prof = Profile(t, cur, v, None, np.clip(states[0, :, 0], 0, 1), ProfileMeta(name="sustained", capacity_ah=22.0))
+    return prof, err
+
+
+def test_resistive_split_never_makes_the_rest_larger_than_the_error():
+    """On a sustained load the local resistance (seen in the gusts) applied to the whole current must not leave a
+    "rest" larger than the error itself: the filter adds the two parts' variances as independent (module docstring,
+    "Why c"). Over 12 random flight-like records, the slow scale stays within the error's RMS."""
+    rng = np.random.default_rng(41)
+    model = make_model("thevenin", paper_params("thevenin"))
+    for _ in range(12):
+        prof, err = _sustained_draw(rng, model, 1500)
+        st = recipe.estimate(model, [prof])
+        rms_slow = float(np.sqrt(np.mean(np.square(st.slow_sd))))
+        assert rms_slow <= 1.1 * float(np.sqrt(np.mean(err * err))), (rms_slow, float(np.sqrt(np.mean(err * err))))
+
+
 def test_stats_survive_json_and_reject_bad_shapes():
     st = recipe.ModelErrorStats((0.0, 25.0), (0.0, 0.5, 1.0), [[1, 2, 3], [4, 5, 6]], [[0, 0, 0]] * 2,
                                 [[0.001] * 3] * 2, (0.01, 0.02), 300.0, 2.0, 500.0)

@@ -12,6 +12,7 @@ A file names its load, truth, schedule and sensors; anything not given keeps the
     [truth]         ...                    # socbench.scenarios.truth.TruthParams
     [schedule]      ambient_c = 25.0       # socbench.scenarios.schedule.Schedule
     [hppc]          rest_s = 540.0         # socbench.scenarios.scenario.HppcSpec
+    [validation]    payloads_kg = [5.0]    # socbench.scenarios.scenario.ValidationSpec (the noise recipe's flights)
     [measured]      dataset = "panasonic_18650pf", record = "...", characterisation = [...]
                                            # socbench.scenarios.scenario.MeasuredSpec (socbench.scenarios.measured)
     [sensors]       dt = 1.0, soc0_error = 0.05, capacity_mismatch = 0.03
@@ -29,7 +30,7 @@ from pathlib import Path
 from ..errors import ConfigError
 from .config import build
 from .mission import Mission, Vehicle
-from .scenario import HppcSpec, MeasuredSpec, ReplaySpec, Scenario, ScenarioSpec
+from .scenario import HppcSpec, MeasuredSpec, ReplaySpec, Scenario, ScenarioSpec, ValidationSpec
 from .schedule import Schedule
 from .sensors import SensorSpec
 from .truth import TruthParams
@@ -40,11 +41,12 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 TOP_KEYS = ("name", "description", "kind", "group", "extends", "truth", "schedule", "mission", "vehicle", "replay",
-            "hppc", "measured", "sensors")
+            "hppc", "validation", "measured", "sensors")
 SECTIONS = {"truth": TruthParams, "schedule": Schedule, "mission": Mission, "vehicle": Vehicle,
-            "replay": ReplaySpec, "hppc": HppcSpec, "measured": MeasuredSpec}
+            "replay": ReplaySpec, "hppc": HppcSpec, "validation": ValidationSpec,
+            "measured": MeasuredSpec}
 #: list-valued fields stored as tuples (hashable, frozen specs)
-TUPLE_FIELDS = {"replay": ("segments",), "measured": ("characterisation", "validation")}
+TUPLE_FIELDS = {"replay": ("segments",), "validation": ("payloads_kg",), "measured": ("characterisation", "validation")}
 
 
 def _catalog_dir():

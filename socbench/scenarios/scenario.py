@@ -75,6 +75,21 @@ class HppcSpec:
 
 
 @dataclass(frozen=True)
+class ValidationSpec:
+    """Validation flights: the scenario's mission flown again by the same truth cell, in the same schedule and
+    measured by the same lab sensors, with other payloads (and another gust realisation). They are the cell's
+    "other loads" the noise recipe measures a fitted model's error on (:meth:`Scenario.noise_records`), as a measured
+    scenario's validation drive cycles are; never the scored load."""
+
+    payloads_kg: tuple = ()
+
+    def __post_init__(self):
+        require(isinstance(self.payloads_kg, tuple) and all(isinstance(m, (int, float)) and not isinstance(m, bool)
+                                                            and m >= 0 for m in self.payloads_kg), "payloads_kg",
+                f"must be a list of payloads >= 0 [kg], got {self.payloads_kg!r}")
+
+
+@dataclass(frozen=True)
 class MeasuredSpec:
     """Which measured record a ``measured`` scenario replays and what its models are fitted on
     (:mod:`socbench.scenarios.measured`)."""
@@ -117,6 +132,7 @@ class ScenarioSpec:
     vehicle: Vehicle = field(default_factory=Vehicle)
     replay: ReplaySpec = field(default_factory=ReplaySpec)
     hppc: HppcSpec = field(default_factory=HppcSpec)
+    validation: ValidationSpec = field(default_factory=ValidationSpec)
     sensors: SensorSpec = field(default_factory=SensorSpec)
     measured: MeasuredSpec | None = None
     group: str = ""
@@ -126,6 +142,8 @@ class ScenarioSpec:
         require(self.kind in KINDS, "kind", f"must be one of {', '.join(KINDS)}, got {self.kind!r}")
         require((self.kind == "measured") == (self.measured is not None), "measured",
                 "a [measured] table is what a kind = \"measured\" scenario needs, and only it")
+        require(self.kind != "measured" or not self.validation.payloads_kg, "validation",
+                "a measured scenario names its validation records in [measured] validation")
         ratio = self.sensors.dt / TRUTH_DT
         require(self.kind == "measured" or (abs(ratio - round(ratio)) < 1e-9 and ratio >= 1), "sensors.dt",
                 f"must be a multiple of the truth step {TRUTH_DT:g} s, got {self.sensors.dt}")
@@ -248,10 +266,27 @@ class Scenario:
         return self.missing() is None
 
     def noise_records(self) -> list:
-        """Records with a known SOC on which the noise recipe measures a fitted model's error: the lab tests of the
-        truth cell, never the scenario's load — the characterisation HPPC and the capacity test (:meth:`capacity_test`,
-        a sustained discharge into the knee that the HPPC's short pulses do not show)."""
-        return [self.characterisation(), self.capacity_test()]
+        """Records with a known SOC on which the noise recipe measures a fitted model's error, never the scenario's
+        load: the lab tests of the truth cell — the characterisation HPPC and the capacity test (:meth:`capacity_test`,
+        a sustained discharge into the knee that the HPPC's short pulses do not show) — and the validation flights
+        the scenario declares (:meth:`validation_flights`). The 1 C lab tests alone do not show the error of a model
+        fitted on them under a flight's sustained 2–7 C (``docs/flight_consistency.md``); the flights alone show
+        only that."""
+        return [self.characterisation(), self.capacity_test()] + self.validation_flights()
+
+    def validation_flights(self, seed: int = 0) -> list:
+        """The scenario's mission flown again with each payload of ``[validation] payloads_kg``
+        (:class:`ValidationSpec`) by the same truth cell, from the same lab schedule, measured by the same sensors
+        without their timed faults; each with a gust realisation of its own (not the scored flight's)."""
+        s = self.spec
+        sensors = s.sensors.without_faults()
+        out = []
+        for j, payload in enumerate(s.validation.payloads_kg):
+            mission = replace(s.mission, payload_kg=float(payload), gust_seed=s.mission.gust_seed + 1 + j)
+            rec = _load_record("mission", s.truth, s.schedule, mission, s.vehicle, ReplaySpec())
+            key = _key("validation/" + repr((s.truth, s.schedule, mission, s.vehicle, sensors)))
+            out.append(self._measure(rec, sensors, _seeds(seed), key, f"{self.name}/validation-{payload:g}kg").run(0))
+        return out
 
     def capacity_test(self, seed: int = 0) -> Profile:
         """The 1 C capacity test of the same truth cell (to the under-voltage limit, then 30 min rest), measured like
