@@ -13,8 +13,9 @@ flights; ``socbench scenarios`` lists them). A scenario whose data is missing (n
 with one line; with none left the command says so and exits 0.
 
 ``--noise model`` (default) gives every voltage-reading filter the covariances of the noise recipe
-(:mod:`socbench.estimators.model_error`: the fitted model's error measured on the scenario's characterisation, or a
-measured scenario's validation records); ``--noise sensor`` the sensor noise alone.
+(:mod:`socbench.estimators.model_error`: the fitted model's error measured on the scenario's lab tests and validation
+flights, or a measured scenario's validation records; never the scored record); ``--noise sensor`` the sensor noise
+alone.
 """
 
 from __future__ import annotations
