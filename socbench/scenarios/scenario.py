@@ -279,22 +279,28 @@ class Scenario:
         (:class:`ValidationSpec`) by the same truth cell, from the same lab schedule, measured by the same sensors
         without their timed faults; each with a gust realisation of its own (not the scored flight's)."""
         s = self.spec
-        sensors = s.sensors.without_faults()
         out = []
         for j, payload in enumerate(s.validation.payloads_kg):
             mission = replace(s.mission, payload_kg=float(payload), gust_seed=s.mission.gust_seed + 1 + j)
             rec = _load_record("mission", s.truth, s.schedule, mission, s.vehicle, ReplaySpec())
-            key = _key("validation/" + repr((s.truth, s.schedule, mission, s.vehicle, sensors)))
-            out.append(self._measure(rec, sensors, _seeds(seed), key, f"{self.name}/validation-{payload:g}kg").run(0))
+            out.append(self._lab_test(rec, f"validation-{payload:g}kg", (s.truth, s.schedule, mission, s.vehicle),
+                                      seed))
         return out
 
     def capacity_test(self, seed: int = 0) -> Profile:
         """The 1 C capacity test of the same truth cell (to the under-voltage limit, then 30 min rest), measured like
         :meth:`characterisation`."""
-        rec = _capacity_record(self.spec.truth, self.spec.hppc)
+        return self._lab_test(_capacity_record(self.spec.truth, self.spec.hppc), "capacity",
+                              (self.spec.truth, self.spec.hppc), seed)
+
+    def _lab_test(self, rec: Record, what: str, identity: tuple, seed: int) -> Profile:
+        """``rec`` measured by the scenario's sensors without their timed faults, as one run named ``<scenario>/what``.
+        The noise stream is keyed by what the test is (``identity``: cell, schedule, load) and the sensors, not by the
+        scenario's name: scenarios that share a truth cell and lab sensors share one test (hence one set of fitted
+        models, one measured model error)."""
         sensors = self.spec.sensors.without_faults()
-        key = _key("capacity/" + repr((self.spec.truth, self.spec.hppc, sensors)))
-        return self._measure(rec, sensors, _seeds(seed), key, f"{self.name}/capacity").run(0)
+        key = _key(what.split("-")[0] + "/" + repr(identity + (sensors,)))
+        return self._measure(rec, sensors, _seeds(seed), key, f"{self.name}/{what}").run(0)
 
     @property
     def added_voltage_sd(self) -> float:
@@ -369,13 +375,8 @@ class Scenario:
     def characterisation(self, seed: int = 0) -> Profile:
         """The HPPC test of the same truth cell (1 s, at the HPPC ambient), measured by the same sensors without
         their timed faults; a plain (one-run) profile."""
-        rec = _hppc_record(self.spec.truth, self.spec.hppc)
-        sensors = self.spec.sensors.without_faults()
-        # keyed by what the test is (cell, HPPC schedule, sensors), not by the scenario's name: scenarios that share
-        # a truth cell and lab sensors share one characterisation test, hence one set of fitted models
-        key = _key("hppc/" + repr((self.spec.truth, self.spec.hppc, sensors)))
-        prof = self._measure(rec, sensors, _seeds(seed), key, f"{self.name}/hppc")
-        return prof.run(0)
+        return self._lab_test(_hppc_record(self.spec.truth, self.spec.hppc), "hppc", (self.spec.truth, self.spec.hppc),
+                              seed)
 
     def initial_soc(self, seeds) -> np.ndarray:
         """SOC handed to the estimators ``(R,)``: the true SOC at the first sample plus the initial-SOC error."""
