@@ -94,7 +94,8 @@ def single_temperature(cache: rd.Cache) -> dict:
 def stats_for(cache: rd.Cache, variant: str) -> dict:
     def compute():
         _, params = load_params(cache.path("fits", f"{MODEL}_{variant}.json"))
-        return recipe.estimate(make_model(MODEL, params), [rd._record(t, "Cycle") for t in rd.TAGS]).to_dict()
+        return recipe.estimate(make_model(MODEL, params), [rd._record(t, "Cycle") for t in rd.TAGS],
+                               measured_on="validation").to_dict()
 
     return cache.json(f"stats/{MODEL}_{variant}.json", compute)
 

@@ -531,7 +531,8 @@ def main(argv=None) -> int:
         def compute():
             _, params = load_params(cache.path("fits", f"{model}_{fit}.json"))
             tags = TAGS if fit == "5T" else (fit[len("own_"):],) if fit.startswith("own_") else ("25degC",)
-            return recipe.estimate(make_model(model, params), [_record(t, "Cycle") for t in tags]).to_dict()
+            return recipe.estimate(make_model(model, params), [_record(t, "Cycle") for t in tags],
+                                   measured_on="validation").to_dict()
         return cache.json(f"stats/{model}_{fit}.json", compute)
 
     # the filters themselves on the validation records (EKF and UKF, the recipe measured on those records, the
@@ -761,9 +762,9 @@ def verdict(v: dict) -> str:
             if abs(e["soc_rmse"] - u["soc_rmse"]) > TARGET["ekf_ukf"]:
                 why.append(f"EKF−UKF {100 * abs(e['soc_rmse'] - u['soc_rmse']):.1f} points")
             (missed if why else met).append(LABEL[tag] + (f" ({', '.join(why)})" if why else ""))
+        missed_txt = f"missed at {', '.join(missed)} (EKF/UKF)" if missed else "missed at none"
         lines.append(f"- **{best}, {label}, US06 from a 20-point error**: all three targets met at "
-                     f"{', '.join(met) if met else 'no temperature'}; missed at {', '.join(missed) if missed else '—'}"
-                     " (EKF/UKF).")
+                     f"{', '.join(met) if met else 'no temperature'}; {missed_txt}.")
     val = fits[best]["validation_rmse_v"]
     resid = v["resid"]
     lines.append(f"- **Why, first: the model.** The best model's open-loop error on the validation drive cycles is "

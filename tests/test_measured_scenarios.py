@@ -172,3 +172,6 @@ def test_validation_flights_are_checked_and_optional(tmp_path):
     none = tmp_path / "none.toml"
     none.write_text('extends = "flight-0kg"\n[validation]\npayloads_kg = []\n')
     assert [p.name.rsplit("/", 1)[1] for p in load_scenario(str(none)).noise_records()] == ["hppc", "capacity"]
+    # with a validation flight the records are out of sample (pooled with the lab tests); without, in sample
+    assert load_scenario("flight-0kg").noise_measured_on() == "validation"
+    assert load_scenario(str(none)).noise_measured_on() == "identification"

@@ -70,23 +70,27 @@ CONFIGS = [
 ]
 
 
-def calibration_case(rng, cfg: int, n_test: int):
+def calibration_case(rng, cfg: int, n_test: int, measured_on: str = ""):
     """``(model, err, stats, test, sensor, guess)``: configuration ``cfg`` randomised around its values (a family of
-    cells and errors, not one hand-picked case), the recipe measured on 6 validation draws at the true SOC, ``n_test``
-    fresh draws, the sensor, and a guess 5 points (SD) off the true initial SOC."""
+    cells and errors, not one hand-picked case), the recipe measured on 6 validation draws at the true SOC (said to be
+    ``measured_on``), ``n_test`` fresh draws, the sensor, and a guess 5 points (SD) off the true initial SOC."""
     err = {k: v * rng.uniform(0.7, 1.4) for k, v in CONFIGS[cfg].items()}
     model = make_model("thevenin", paper_params("thevenin"))
     validation = _draws(model, rng, 6, err)
-    stats = recipe.estimate(model, [validation.run(r) for r in range(validation.n_runs)])
+    stats = recipe.estimate(model, [validation.run(r) for r in range(validation.n_runs)], measured_on=measured_on)
     test = _draws(model, rng, n_test, err)
     sensor = SensorNoise(voltage_sd=err["white_sd"], current_sd=0.01)
     guess = np.clip(test.soc_ref[:, 0] + rng.normal(0.0, 0.05, test.n_runs), 0, 1)
     return model, err, stats, test, sensor, guess
 
 
+@pytest.mark.parametrize("measured_on", ["", "validation"])
 @pytest.mark.parametrize("cfg", range(len(CONFIGS)))
-def test_recipe_band_holds_the_truth_with_a_known_model_error(cfg):
-    model, err, stats, test, sensor, guess = calibration_case(np.random.default_rng(100 + cfg), cfg, 40)
+def test_recipe_band_holds_the_truth_with_a_known_model_error(cfg, measured_on):
+    """The band holds the truth with the slow scale counted twice (records not said to be out of sample) and shared
+    between the two slow states (validation records: draws of the same error as the test's, κ = √½)."""
+    model, err, stats, test, sensor, guess = calibration_case(np.random.default_rng(100 + cfg), cfg, 40, measured_on)
+    assert recipe.slow_share(stats, test) == (np.sqrt(0.5) if measured_on else 1.0)
     covered = {}
     for noise in ("model", "sensor"):
         m, n = recipe.apply(model, sensor, stats, test, noise=noise)
@@ -163,6 +167,43 @@ def test_stats_survive_json_and_reject_bad_shapes():
         recipe.ModelErrorStats((25.0,), (0.0, 1.0), [[1, 2, 3]], [[0, 0]], [[0, 0]], (0.01,), 300.0, 2.0, 500.0)
     with pytest.raises(ConfigError, match="correlation times"):
         recipe.ModelErrorStats((25.0,), (0.0, 1.0), [[1, 2]], [[0, 0]], [[0, 0]], (0.01,), 0.0, 2.0, 500.0)
+
+
+def test_slow_share_counts_the_slow_variance_once_only_where_it_was_measured():
+    """κ = √½ for validation records at the record's temperatures; the slow scale counted twice (κ = 1) in sample, when
+    nothing is said, or at a temperature the records did not cover; the covered range survives JSON."""
+    grid = dict(temps=(25.0,), soc=(0.0, 1.0), slow_sd=[[0.02, 0.04]], fast_sd=[[0.0, 0.0]],
+                resistance_sd=[[0.0, 0.0]], white_sd=(0.002,), tau_slow_s=900.0, tau_fast_s=2.0, tau_r_s=600.0)
+    val = recipe.ModelErrorStats(**grid, measured_on="validation", covered_c=(24.0, 36.0))
+    t = np.arange(100.0)
+
+    def rec(temp):
+        return Profile(t, np.ones(100), np.full(100, 3.7), np.asarray(temp, dtype=float) + 0 * t, None,
+                       ProfileMeta(name="r"))
+
+    assert recipe.slow_share(val, rec(30.0)) == pytest.approx(np.sqrt(0.5))
+    assert recipe.slow_share(val, rec(40.0)) == pytest.approx(np.sqrt(0.5))  # within the 5 K margin
+    assert recipe.slow_share(val, rec(0.0)) == 1.0  # a temperature the records did not cover
+    assert recipe.slow_share(val, rec(np.where(t < 80, 30.0, 0.0))) == 1.0  # a fifth of it outside: 1
+    assert recipe.slow_share(val, rec(np.where(t < 95, 30.0, 0.0))) == pytest.approx(np.sqrt(0.5))
+    assert recipe.slow_share(val, None) == pytest.approx(np.sqrt(0.5))  # no record: at 25 °C
+    for said in ("identification", ""):
+        assert recipe.slow_share(recipe.ModelErrorStats(**grid, measured_on=said, covered_c=(24.0, 36.0)),
+                                 rec(30.0)) == 1.0
+    # without a covered range (an older PARAMS.json) the temperature nodes stand for it
+    assert recipe.slow_share(recipe.ModelErrorStats(**grid, measured_on="validation"), rec(45.0)) == 1.0
+    assert recipe.ModelErrorStats.from_dict(val.to_dict()).covered_c == (24.0, 36.0)
+    with pytest.raises(ConfigError, match="covered"):
+        recipe.ModelErrorStats(**grid, covered_c=(30.0, 20.0))
+    # the share scales both slow-scale states of the filter's model, and only them
+    model = make_model("thevenin", paper_params("thevenin"))
+    sensor = SensorNoise(voltage_sd=0.002, current_sd=0.01)
+    run_in, _ = recipe.apply(model, sensor, val, rec(30.0))
+    run_out, _ = recipe.apply(model, sensor, val, rec(0.0))
+    s_in = run_in.effects[-1].scale(0.5, 30.0, ())[0]
+    s_out = run_out.effects[-1].scale(0.5, 30.0, ())[0]
+    assert s_in[0] == pytest.approx(np.sqrt(0.5) * 0.03) and s_out[0] == pytest.approx(0.03)
+    assert s_in[1:] == pytest.approx(s_out[1:])
 
 
 def test_apply_adds_four_states_inside_the_kernel_noise_form():

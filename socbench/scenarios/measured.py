@@ -310,6 +310,11 @@ class MeasuredScenario(Scenario):
             return [self._load(n) for n in m.validation]
         return [r for r in self.characterisation().records if r.soc_ref is not None]
 
+    def noise_measured_on(self) -> str:
+        """What :meth:`noise_records` are (:attr:`~socbench.estimators.model_error.ModelErrorStats.measured_on`):
+        "validation" with validation records, else "identification"."""
+        return "validation" if self.measured.validation else "identification"
+
     def initial_soc(self, seeds) -> np.ndarray:
         """Initial SOC guesses ``(R,)`` on the record's own SOC axis: its reference at the start plus the error."""
         rec = self.record()

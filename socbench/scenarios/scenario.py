@@ -274,6 +274,12 @@ class Scenario:
         only that."""
         return [self.characterisation(), self.capacity_test()] + self.validation_flights()
 
+    def noise_measured_on(self) -> str:
+        """What :meth:`noise_records` are to a model fitted on the characterisation
+        (:attr:`~socbench.estimators.model_error.ModelErrorStats.measured_on`): "validation" when the scenario declares
+        validation flights (loads the model was not fitted on, pooled with its lab tests), else "identification"."""
+        return "validation" if self.spec.validation.payloads_kg else "identification"
+
     def validation_flights(self, seed: int = 0) -> list:
         """The scenario's mission flown again with each payload of ``[validation] payloads_kg``
         (:class:`ValidationSpec`) by the same truth cell, from the same lab schedule, measured by the same sensors

@@ -116,7 +116,8 @@ class Toolkit:
         key = (cache_key, getattr(scenario, "name", None))
         stats = _MODEL_ERROR.get(key) if cache_key is not None else None
         if stats is None:
-            stats = model_error.estimate(model, records())
+            measured_on = getattr(scenario, "noise_measured_on", lambda: "")()
+            stats = model_error.estimate(model, records(), measured_on=measured_on)
             if cache_key is not None:
                 if len(_MODEL_ERROR) >= 64:
                     _MODEL_ERROR.pop(next(iter(_MODEL_ERROR)))
