@@ -145,3 +145,6 @@ def test_the_fit_command_says_when_nothing_validated_its_model_error(tmp_path, c
                      "--out", str(tmp_path / f"est-{label}")]) == 0
         err = capsys.readouterr().err
         assert ("measured on the identification records only" in err) == (label == "hppc"), err
+        # measured out of sample at the drive's temperatures, the slow variance is shared by the two slow states
+        share = json.loads((tmp_path / f"est-{label}" / "metrics.json").read_text())["noise"]["slow_share"]
+        assert share == (1.0 if label == "hppc" else pytest.approx(np.sqrt(0.5))), (label, share)

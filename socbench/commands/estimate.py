@@ -107,6 +107,9 @@ def run(args) -> int:
                       "--validation DRIVE... for an honest band", SocbenchWarning, stacklevel=2)
     run_model, noise = recipe.apply(model, sensor, stats, profile, noise=noise_mode,
                                     form=estimator_class(args.estimator).model_error_form)
+    # each slow-scale state's share of the measured slow SD on this record (κ; the states form only)
+    slow_share = (recipe.slow_share(stats, profile) if noise_mode == "model"
+                  and estimator_class(args.estimator).model_error_form == "states" else None)
     options = {"soc0_sd": args.soc0_sd, "store_states": True}  # states: the domain report counts guards along them
     if args.estimator == "pf":
         options["n_particles"] = args.particles
@@ -120,7 +123,8 @@ def run(args) -> int:
     metrics.update({"estimator": args.estimator, "model": name, "data": str(args.data),
                     "noise": {"mode": noise_mode, "voltage_sd": args.voltage_sd, "current_sd": args.current_sd,
                               "filter_voltage_sd": noise.voltage_sd,
-                              "model_error": stats.to_dict() if stats is not None else None},
+                              "model_error": stats.to_dict() if stats is not None else None,
+                              "slow_share": slow_share},
                     "soc_axis": axis.to_dict(),
                     "failed_reason": est.failure_reasons(), "segments": est.segments.to_dict(),
                     "domain": {k: v for k, v in est.domain.items() if k != "seconds"},
