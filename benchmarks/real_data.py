@@ -1028,9 +1028,10 @@ def write_doc(path: Path, v: dict):
       "into a resistive part (local regression on the current), a slow part (10 s mean), a fast part and a white part; "
       "each gets a scale per temperature × SOC and an integral correlation time. The filter's model is augmented with "
       "four unit-variance Gauss–Markov states (`ModelError` effect: "
-      "y += σ_s(z,T)·(ε_s + ε_m) + σ_f(z,T)·ε_f − σ_r(z,T)·ε_r·I, ε⁺ = e^{−dt/τ}ε + w; ε_m carries the slow scale "
-      "again at τ_m = √(10 s·τ_slow), so that an error of that size may also come and go within minutes, section 4b′) "
-      "whose walk variances "
+      "y += κ·σ_s(z,T)·(ε_s + ε_m) + σ_f(z,T)·ε_f − σ_r(z,T)·ε_r·I, ε⁺ = e^{−dt/τ}ε + w; ε_m carries the slow "
+      "scale again at τ_m = √(10 s·τ_slow), so that an error of that size may also come and go within minutes, "
+      "section 4b′; κ = √½ where the recipe was measured on validation records at the record's temperatures, so "
+      "that ε_s + ε_m has the measured slow variance, else κ = 1: `model_error.slow_share`) whose walk variances "
       "1 − e^{−2dt₀/τ} enter Q, and R = σ_V² + the white variance averaged "
       "over the record's temperatures: inside the form the compiled filters take (R_k = σ_V² + σ_I²D_k², "
       "Q_k = σ_I²B_kB_kᵀ + diag(walk)·dt_k/dt₀). The sensor-only covariance stays available (`--noise sensor`).\n")
