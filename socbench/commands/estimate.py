@@ -105,11 +105,10 @@ def run(args) -> int:
         warnings.warn(f"{args.params}: its model error was measured on the identification records only (`socbench fit` "
                       "without --validation): on a drive cycle the ±3σ band is likely too narrow; refit with "
                       "--validation DRIVE... for an honest band", SocbenchWarning, stacklevel=2)
-    run_model, noise = recipe.apply(model, sensor, stats, profile, noise=noise_mode,
-                                    form=estimator_class(args.estimator).model_error_form)
+    form = estimator_class(args.estimator).model_error_form
+    run_model, noise = recipe.apply(model, sensor, stats, profile, noise=noise_mode, form=form)
     # each slow-scale state's share of the measured slow SD on this record (κ; the states form only)
-    slow_share = (recipe.slow_share(stats, profile) if noise_mode == "model"
-                  and estimator_class(args.estimator).model_error_form == "states" else None)
+    slow_share = recipe.slow_share(stats, profile) if noise_mode == "model" and form == "states" else None
     options = {"soc0_sd": args.soc0_sd, "store_states": True}  # states: the domain report counts guards along them
     if args.estimator == "pf":
         options["n_particles"] = args.particles

@@ -289,8 +289,8 @@ class Scenario:
         for j, payload in enumerate(s.validation.payloads_kg):
             mission = replace(s.mission, payload_kg=float(payload), gust_seed=s.mission.gust_seed + 1 + j)
             rec = _load_record("mission", s.truth, s.schedule, mission, s.vehicle, ReplaySpec())
-            out.append(self._lab_test(rec, f"validation-{payload:g}kg", (s.truth, s.schedule, mission, s.vehicle),
-                                      seed))
+            out.append(self._lab_test(rec, "validation", (s.truth, s.schedule, mission, s.vehicle), seed,
+                                      f"validation-{payload:g}kg"))
         return out
 
     def capacity_test(self, seed: int = 0) -> Profile:
@@ -299,14 +299,14 @@ class Scenario:
         return self._lab_test(_capacity_record(self.spec.truth, self.spec.hppc), "capacity",
                               (self.spec.truth, self.spec.hppc), seed)
 
-    def _lab_test(self, rec: Record, what: str, identity: tuple, seed: int) -> Profile:
-        """``rec`` measured by the scenario's sensors without their timed faults, as one run named ``<scenario>/what``.
-        The noise stream is keyed by what the test is (``identity``: cell, schedule, load) and the sensors, not by the
-        scenario's name: scenarios that share a truth cell and lab sensors share one test (hence one set of fitted
-        models, one measured model error)."""
+    def _lab_test(self, rec: Record, kind: str, identity: tuple, seed: int, label: str | None = None) -> Profile:
+        """``rec`` measured by the scenario's sensors without their timed faults, as one run named
+        ``<scenario>/<label>`` (default ``kind``). The noise stream is keyed by the kind of test and what it is
+        (``identity``: cell, schedule, load) and the sensors, not by the scenario's name: scenarios that share a truth
+        cell and lab sensors share one test (hence one set of fitted models, one measured model error)."""
         sensors = self.spec.sensors.without_faults()
-        key = _key(what.split("-")[0] + "/" + repr(identity + (sensors,)))
-        return self._measure(rec, sensors, _seeds(seed), key, f"{self.name}/{what}").run(0)
+        key = _key(kind + "/" + repr(identity + (sensors,)))
+        return self._measure(rec, sensors, _seeds(seed), key, f"{self.name}/{label or kind}").run(0)
 
     @property
     def added_voltage_sd(self) -> float:
