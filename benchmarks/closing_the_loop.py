@@ -431,8 +431,9 @@ def main(argv=None) -> int:
 
     def with_benchmark(res):
         for key, path in (("benchmark", bench_path), ("oracle", Path(args.oracle))):
-            if path.exists():
-                res[key] = summary_of(path)
+            summary = summary_of(path)
+            if summary is not None:
+                res[key] = summary
         res["development"] = [d for d in map(summary_of, map(Path, args.development)) if d is not None]
         return res
 

@@ -10,7 +10,10 @@ the outcome (seed 7 of socbench.diagnose.randomized; the CI rates run its first 
   (a fade with grown resistances: a leak at its bound won the round alone; with the base refit beside it the fade
   explains more);
 * an extra RC branch within ×TWIN_TAU of a branch of the base *as the base refit made it* is not named (a constant
-  twin beside a looked-up branch buys that branch a new SOC shape: base-fit error, not a branch the structure lacks).
+  twin beside a looked-up branch buys that branch a new SOC shape: base-fit error, not a branch the structure lacks);
+* nor is an extra branch anywhere when two of the base's own branches lie within ×TWIN_TAU of each other (one of them
+  is spare; the extra one is where it belongs): the rule on the paper's DP, and on a null case of the development
+  seed 47 whose lookup fit put both DP branches at one time constant.
 """
 
 from __future__ import annotations

@@ -38,7 +38,10 @@ own branches lie within ×``TWIN_TAU`` of each other (:meth:`Search.spare_branch
 lookup fit whose two branches swap roles over SOC, a refit that moved the slow branch next to the fast one), and an
 extra one is where that branch belongs. On the randomised benchmark's development seeds this took the extra branch out
 of three of the five null cases of seed 47 that named one, and out of one pair (extra branch and temperature, on a
-base fit whose two branches sat together); seed 31 did not move. Once the base refit is in the model the branches
+base fit whose two branches sat together); seed 31 did not move. On the reported seed (2026) it cost two single-effect
+cases and one pair whose hidden branch the DP fit had left that way (named first 73 → 71 of 120, nulls unchanged): with
+both base branches in one place the search cannot tell a missing branch from the misplaced one, and it no longer
+guesses. Once the base refit is in the model the branches
 are those the refit made (``τ_j·s_Rj·s_Cj``, the refit's scales of the candidate's own fit): beside a refitted branch, a
 twin buys the branch the freedom the refit's scaling lacks — a new SOC shape of its resistance (a constant twin beside
 a looked-up branch), a time constant beyond the refit's bounds — which is base-fit error, not a branch the structure
