@@ -25,7 +25,8 @@ alternating between Thevenin (the truth has a branch more: an extra RC is missin
 in subprocesses, as a user would. What the field record holds that the model lacks is therefore known: the current
 sensor's offset (always), and on a Thevenin base the second branch. The report counts exit codes, tracebacks and
 stderr lines that are not socbench's one-line warnings, wall times, how often the offset (where it is at least 0.1 %
-of 1C) and the missing branch are named, and every other effect named (none is in the data).
+of 1C) and the missing branch are named, where the missing branch stood when it was not (``branch_verdict``: read from
+the diagnosis report with the search's own rules), and every other effect named (none is in the data).
 """
 
 from __future__ import annotations
@@ -186,13 +187,61 @@ def run_case(seed: int, folder: str) -> dict:
                                    "--out", str(folder / f"case{seed}.json")], folder)
     rc_diag, err_diag, s_diag = _cli(["diagnose", "--fit", str(hppc), "--eval", str(field), "--model", model,
                                       "--out", str(folder / f"case{seed}_diag"), "--no-figures"], folder)
-    added = None
+    added, branch = None, None
     if rc_diag == 0:
-        added = json.loads((folder / f"case{seed}_diag" / "diagnosis.json").read_text())["effects_added"]
+        diagnosis = json.loads((folder / f"case{seed}_diag" / "diagnosis.json").read_text())
+        added = diagnosis["effects_added"]
+        if model == "thevenin":
+            branch = branch_verdict(diagnosis)
     out.update({"model": model, "fit_exit": rc_fit, "diagnose_exit": rc_diag, "fit_s": s_fit, "diagnose_s": s_diag,
                 "traceback": "Traceback" in err_fit + err_diag, "leaks": _leaks(err_fit) + _leaks(err_diag),
-                "added": added})
+                "added": added, "branch": branch})
     return out
+
+
+#: why the missing branch of a Thevenin case was not named, read from the diagnosis (``branch_verdict``)
+VERDICTS = ("named", "held at the noise floor", "cut below the search's min_gain", "no held-out gain",
+            "refused beside a base branch", "signature too weak to fit", "another candidate won")
+
+
+def branch_verdict(diagnosis: dict) -> dict:
+    """Where the extra RC branch stood in the diagnosis of a Thevenin case (the truth has a second branch): the last
+    round in which it was fitted (else the last it was listed in) and why it was not named there, the first of
+    :data:`VERDICTS` that applies, read from the report alone (scores, held-out RMSEs, evidence, the final measured
+    noise) with the search's published rules: a round ends at the noise floor (held-out RMSE ≤ ``NOISE_FLOOR`` × the
+    noise, ``NOISE_FLOOR_REFIT`` × once the base refit was added), an addition must cut the held-out RMSE by
+    ``min_gain``, the round's chosen candidate is added."""
+    import inspect
+
+    from socbench.diagnose import diagnose
+    from socbench.diagnose.search import NOISE_FLOOR, NOISE_FLOOR_REFIT
+
+    if "extra_rc" in diagnosis["effects_added"]:
+        return {"verdict": "named"}
+    min_gain = inspect.signature(diagnose).parameters["min_gain"].default  # what `socbench diagnose` runs with
+    noise = float(diagnosis["fit"].get("voltage_noise_sd_binned_final") or 0.0)
+    steps = [s["effect"] for s in diagnosis["steps"]]
+    listed = [(k, c) for k, round_ in enumerate(diagnosis["rounds"]) for c in round_ if c["effect"] == "extra_rc"]
+    fitted = [(k, c) for k, c in listed if c["score"] is not None]
+    if not listed:
+        return {"verdict": "signature too weak to fit"}
+    k, c = (fitted or listed)[-1]
+    now, after = c["rmse_v_before"], c["rmse_v_after"]
+    floor = (NOISE_FLOOR_REFIT if "base_refit" in steps[:k] else NOISE_FLOOR) * noise
+    if c["score"] is None:
+        verdict = "signature too weak to fit"
+    elif "lies within" in c["evidence"]:
+        verdict = "refused beside a base branch"
+    elif c["score"] <= 0:
+        verdict = "no held-out gain"
+    elif after > (1.0 - min_gain) * now:
+        verdict = "cut below the search's min_gain"
+    elif now <= floor:
+        verdict = "held at the noise floor"
+    else:
+        verdict = "another candidate won"
+    return {"verdict": verdict, "round": k, "score": c["score"], "rmse_before_mv": 1e3 * now,
+            "rmse_after_mv": 1e3 * after, "noise_mv": 1e3 * noise}
 
 
 def summary(cases: list) -> dict:
@@ -209,6 +258,8 @@ def summary(cases: list) -> dict:
             "quantised_offset_cases": sum(c["i_step_c"] >= 0.01 for c in offset),
             "quantised_offset_named": sum(c["i_step_c"] >= 0.01 and "current_bias" in c["added"] for c in offset),
             "thevenin_cases": len(thev), "extra_rc_named": sum("extra_rc" in c["added"] for c in thev),
+            "branch_verdicts": {v: n for v in VERDICTS
+                                if (n := sum((c.get("branch") or {}).get("verdict") == v for c in thev))},
             "spurious": spurious,
             "by_protocol": {p: {"cases": sum(c.get("protocol") == p for c in cases),
                                 "fit_ok": sum(c.get("protocol") == p and c["fit_exit"] == 0 for c in cases),
@@ -237,22 +288,44 @@ def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
          f"| current offset ≥ {100 * OFFSET_NAMED_FRAC:.1f} % of 1C named | {s['offset_named']}/{s['offset_cases']} |",
          f"| … of those read with a 1 %-of-1C ADC step | {s['quantised_offset_named']}/{s['quantised_offset_cases']} |",
          f"| missing second branch named (Thevenin base) | {s['extra_rc_named']}/{s['thevenin_cases']} |",
+         "| … where it stood when not named (the last round it was fitted in; `branch` column below) | " + "; ".join(
+             f"{v}: {n}" for v, n in s["branch_verdicts"].items() if v != "named") + " |",
          f"| effects named that are not in the data | {len(s['spurious'])} "
          f"({', '.join(f'case {k} ({p}, {e})' for k, e, p in s['spurious']) or 'none'}) |",
          "| fit / diagnose exit 0 per HPPC protocol | " + "; ".join(
              f"{p}: {v['fit_ok']}/{v['cases']} / {v['diagnose_ok']}/{v['cases']}" for p, v in s["by_protocol"].items())
          + " |", "",
+         "Where the missing branch was not named, the `branch` column says where it stood in the last round the "
+         "search fitted it, read from `diagnosis.json` with the search's own rules (`socbench.diagnose.search`): "
+         "*held at the noise floor* — it cut the held-out RMSE by at least `min_gain`, but the model was already "
+         "within the noise floor's multiple of the measured voltage noise, where the search stops; *cut below the "
+         "search's min_gain* — it helped by less than `min_gain`; *no held-out gain* — fitted, it did not lower the "
+         "held-out error (the residual is something else: an OCV read from few rest points between which the curve "
+         "bends, a branch the base fit already took); *signature too weak to fit* — its residual signature was too "
+         "small for the search to fit it; *refused beside a base branch* — its time constant lay next to one of the "
+         "base model's.", "",
          "Per case:", "",
          "| case | base | OCV | HPPC protocol | capacity Ah | HPPC / field dt s | offset % of 1C | current step % of "
-         "1C | current noise % of 1C | voltage noise mV | fit s | diagnose s | named |",
-         "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+         "1C | current noise % of 1C | voltage noise mV | fit s | diagnose s | named | branch (Thevenin) |",
+         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in cases:
         w.append(f"| {c['seed']} | {c['model']} | {c['ocv']} | {c['protocol']} | {c['capacity_ah']:.1f} | "
                  f"{c['dt_hppc_s']:g} / "
                  f"{c['dt_field_s']:g} | {100 * c['offset_c']:+.2f} | {100 * c['i_step_c']:.1f} | "
                  f"{100 * c['i_sd_c']:.2f} | {c['v_sd_mv']:.1f} | {c['fit_s']:.1f} | {c['diagnose_s']:.1f} | "
-                 f"{', '.join(c['added']) if c['added'] is not None else 'failed'} |")
+                 f"{', '.join(c['added']) if c['added'] is not None else 'failed'} | {_branch_cell(c.get('branch'))} |")
     path.write_text("\n".join(w) + "\n")
+
+
+def _branch_cell(b) -> str:
+    """The per-case table's branch column: the verdict, with the best round's held-out RMSE before → after and the
+    measured noise where the branch was fitted."""
+    if not b:
+        return ""
+    if "rmse_before_mv" not in b:
+        return b["verdict"]
+    return (f"{b['verdict']} (round {b['round'] + 1}: {b['rmse_before_mv']:.1f} → {b['rmse_after_mv']:.1f} mV, "
+            f"noise {b['noise_mv']:.1f} mV)")
 
 
 def main(argv=None) -> int:

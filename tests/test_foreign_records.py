@@ -1,0 +1,62 @@
+"""The foreign-records benchmark's reading of a diagnosis (benchmarks/foreign_records.py, ``branch_verdict``): where the
+missing branch of a Thevenin case stood when the search did not name it, by the search's own published rules."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+from socbench.diagnose.search import NOISE_FLOOR, NOISE_FLOOR_REFIT
+
+REPO = Path(__file__).resolve().parents[1]
+NOISE_V = 0.002
+
+
+def _benchmark():
+    spec = importlib.util.spec_from_file_location("foreign_records", REPO / "benchmarks" / "foreign_records.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _diagnosis(before_v, after_v, score, evidence="residual signature LP_τ(I)", steps=(), added=()):
+    """A diagnosis report whose last round fitted the extra branch with these numbers, after ``steps``."""
+    rounds = [[{"effect": s, "score": 1.0, "evidence": "", "rmse_v_before": 0.02, "rmse_v_after": 0.01}]
+              for s in steps]
+    rounds.append([{"effect": "extra_rc", "score": score, "evidence": evidence, "rmse_v_before": before_v,
+                    "rmse_v_after": after_v},
+                   {"effect": "hysteresis", "score": -0.1, "evidence": "", "rmse_v_before": before_v,
+                    "rmse_v_after": before_v}])
+    return {"effects_added": list(added), "fit": {"voltage_noise_sd_binned_final": NOISE_V},
+            "steps": [{"effect": s} for s in steps], "rounds": rounds}
+
+
+@pytest.mark.parametrize("case, verdict", [
+    # a cut of a third from just under the floor: held there
+    (dict(before_v=0.99 * NOISE_FLOOR * NOISE_V, after_v=0.66 * NOISE_FLOOR * NOISE_V, score=0.5),
+     "held at the noise floor"),
+    # the same numbers after the base refit, whose floor is lower: the floor did not hold it
+    (dict(before_v=0.99 * NOISE_FLOOR * NOISE_V, after_v=0.66 * NOISE_FLOOR * NOISE_V, score=0.5,
+          steps=("current_bias", "base_refit")), "another candidate won"),
+    (dict(before_v=0.99 * NOISE_FLOOR_REFIT * NOISE_V, after_v=0.66 * NOISE_FLOOR_REFIT * NOISE_V, score=0.5,
+          steps=("base_refit",)), "held at the noise floor"),
+    # far above the floor, a 5 % cut
+    (dict(before_v=10 * NOISE_V, after_v=9.5 * NOISE_V, score=0.02), "cut below the search's min_gain"),
+    (dict(before_v=10 * NOISE_V, after_v=10.2 * NOISE_V, score=-0.05), "no held-out gain"),
+    (dict(before_v=10 * NOISE_V, after_v=10 * NOISE_V, score=None), "signature too weak to fit"),
+    (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=-float("inf"),
+          evidence="…; its τ = 40 s lies within ×3 of the base model's branch 1"), "refused beside a base branch"),
+    (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=0.5, added=("current_bias", "extra_rc")), "named"),
+])
+def test_branch_verdict_reads_the_search_rules(case, verdict):
+    assert _benchmark().branch_verdict(_diagnosis(**case))["verdict"] == verdict
+
+
+def test_branch_verdict_reports_the_round_it_read():
+    """The last round that fitted the branch is the one read, with its held-out RMSEs and the noise."""
+    out = _benchmark().branch_verdict(_diagnosis(0.008, 0.005, 0.4, steps=("current_bias",)))
+    assert out["round"] == 1
+    assert out["rmse_before_mv"] == pytest.approx(8.0) and out["rmse_after_mv"] == pytest.approx(5.0)
+    assert out["noise_mv"] == pytest.approx(1e3 * NOISE_V)
