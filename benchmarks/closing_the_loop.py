@@ -35,6 +35,7 @@ from socbench.datasets import load
 from socbench.diagnose import diagnose, fit_base, randomized
 from socbench.diagnose.core import IGNORE_VOLTAGE, soc_attribution
 from socbench.diagnose.cv import cv_residual
+from socbench.diagnose.leftover import sentence
 from socbench.diagnose.report import figures, markdown_table, write_report
 from socbench.diagnose.search import (
     BASE_SCALE,
@@ -218,6 +219,8 @@ def render_real(r) -> list:
           f"{_pct(b['rmse_v'], a['rmse_v'])}. Runtime {r['wall_s']:.0f} s wall ({r['cpu_s']:.0f} s CPU) for the "
           f"whole case: base fit {r['seconds']['fit']:.0f} s, search {r['seconds']['search']:.0f} s, "
           f"SOC filters {r['seconds']['soc']:.0f} s (wall).", ""]
+    if d.get("left"):
+        L += [f"What is left (`socbench.diagnose.leftover`): {sentence(d['left'])}.", ""]
     for name in ("ekf", "ukf"):
         if name in b.get("soc", {}) and a["soc"][name]["soc_rmse"] > b["soc"][name]["soc_rmse"] + 0.002:
             L += [f"**The {name.upper()}'s held-out SOC error grew by more than 0.2 points** "

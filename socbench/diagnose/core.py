@@ -54,6 +54,7 @@ from ..models.effects import EFFECTS
 from ..profile import Profile
 from .cv import cv_residual
 from .data import Folds, bin_average, make_folds
+from .leftover import leftover
 from .search import BASE_REFIT, Search, initial_soc, residual_noise, rest_current
 
 #: a fit record whose |I| never exceeds this C-rate is a slow OCV test
@@ -81,6 +82,8 @@ class Diagnosis:
     #: measured − model on every sample of the (averaged) evaluation records, each block by its fold's model
     held_out_residual: dict = field(default_factory=dict, repr=False)
     search: object = field(default=None, repr=False)
+    #: what the held-out residual after the search still holds (socbench.diagnose.leftover)
+    left: dict = field(default_factory=dict)
 
     @property
     def effects_added(self) -> list:
@@ -102,6 +105,7 @@ class Diagnosis:
             "fit": self.fit,
             "soc": self.soc,
             "domain": self.domain,
+            "left": self.left,
             "seconds": self.seconds,
         }
 
@@ -495,8 +499,15 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
     if search.offsets is not None:
         fit_info["voltage_offsets_v"] = {p.name: float(o) for p, o in zip(cv.records, search.offsets)}
     domain = {"before": evaluation_domain(base, eval_profiles), "after": evaluation_domain(final, eval_profiles)}
+    try:  # the SOC along each record, for what is left (the report's last line)
+        soc_path = np.concatenate([final.simulate(p, soc0=z0).soc for p, z0 in zip(cv.records, search.soc0s)])
+    except (DataError, ValueError, FloatingPointError):
+        soc_path = None
+    left = {} if soc_path is None else leftover(
+        residuals["after"], soc_path, np.concatenate([p.current_a for p in cv.records]), [p.n for p in cv.records],
+        search.noise_sd, getattr(base.ocv, "soc", None) if "rest points" in fit_info.get("ocv", "") else None)
     return Diagnosis(model_name, base, final, steps, rounds, before_d, after_d, cv, fit_info, seconds, soc_info,
-                     domain, residuals, search)
+                     domain, residuals, search, left)
 
 
 def evaluation_domain(model, profiles) -> dict:

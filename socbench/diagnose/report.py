@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import atomic_write_text
+from .leftover import sentence
 
 
 def _json_default(o):
@@ -50,6 +51,8 @@ def markdown(diag, figures=()) -> str:
                              for label, d in (("before (base model)", b), (f"after ({added})", a))])
     if diag.soc.get("note"):
         lines += ["", f"SOC: {diag.soc['note']}."]
+    if diag.left:
+        lines += ["", f"What is left: {sentence(diag.left)}."]
     if diag.steps:
         lines += ["", "## Steps", ""]
         for k, s in enumerate(diag.steps, 1):
