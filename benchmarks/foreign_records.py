@@ -178,7 +178,7 @@ def _leaks(stderr: str) -> list:
     return [ln for ln in stderr.splitlines() if ln.strip() and not ln.startswith("socbench ")]
 
 
-def run_case(seed: int, folder: str) -> dict:
+def run_case(seed: int, folder: str, refine_ocv: str = "coarse") -> dict:
     folder = Path(folder)
     out = draw(seed, folder)
     model = "thevenin" if seed % 2 == 0 else "dp"
@@ -186,16 +186,18 @@ def run_case(seed: int, folder: str) -> dict:
     rc_fit, err_fit, s_fit = _cli(["fit", "--data", str(hppc), "--model", model,
                                    "--out", str(folder / f"case{seed}.json")], folder)
     rc_diag, err_diag, s_diag = _cli(["diagnose", "--fit", str(hppc), "--eval", str(field), "--model", model,
-                                      "--out", str(folder / f"case{seed}_diag"), "--no-figures"], folder)
-    added, branch, left = None, None, None
+                                      "--out", str(folder / f"case{seed}_diag"), "--no-figures",
+                                      "--refine-ocv", refine_ocv], folder)
+    added, branch, left, soc_after = None, None, None, None
     if rc_diag == 0:
         diagnosis = json.loads((folder / f"case{seed}_diag" / "diagnosis.json").read_text())
         added, left = diagnosis["effects_added"], diagnosis.get("left")
+        soc_after = diagnosis["after"].get("soc", {}).get("ekf", {}).get("soc_rmse")
         if model == "thevenin":
             branch = branch_verdict(diagnosis)
     out.update({"model": model, "fit_exit": rc_fit, "diagnose_exit": rc_diag, "fit_s": s_fit, "diagnose_s": s_diag,
                 "traceback": "Traceback" in err_fit + err_diag, "leaks": _leaks(err_fit) + _leaks(err_diag),
-                "added": added, "branch": branch, "left": left})
+                "added": added, "branch": branch, "left": left, "soc_rmse_after_ekf": soc_after})
     return out
 
 
@@ -323,15 +325,17 @@ def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
          "gap between them.", "",
          "Per case:", "",
          "| case | base | OCV | HPPC protocol | capacity Ah | HPPC / field dt s | offset % of 1C | current step % of "
-         "1C | current noise % of 1C | voltage noise mV | fit s | diagnose s | named | branch (Thevenin) | "
-         "left: structure mV (follows SOC / current %; OCV points, widest gap %) |",
-         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+         "1C | current noise % of 1C | voltage noise mV | fit s | diagnose s | named | held-out SOC RMSE after, EKF % "
+         "| branch (Thevenin) | left: structure mV (follows SOC / current %; OCV points, widest gap %) |",
+         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in cases:
         w.append(f"| {c['seed']} | {c['model']} | {c['ocv']} | {c['protocol']} | {c['capacity_ah']:.1f} | "
                  f"{c['dt_hppc_s']:g} / "
                  f"{c['dt_field_s']:g} | {100 * c['offset_c']:+.2f} | {100 * c['i_step_c']:.1f} | "
                  f"{100 * c['i_sd_c']:.2f} | {c['v_sd_mv']:.1f} | {c['fit_s']:.1f} | {c['diagnose_s']:.1f} | "
-                 f"{', '.join(c['added']) if c['added'] is not None else 'failed'} | {_branch_cell(c.get('branch'))} | "
+                 f"{', '.join(c['added']) if c['added'] is not None else 'failed'} | "
+                 f"{_pct_cell(c.get('soc_rmse_after_ekf'))} | "
+                 f"{_branch_cell(c.get('branch'))} | "
                  f"{_left_cell(c.get('left'))} |")
     path.write_text("\n".join(w) + "\n")
 
@@ -345,6 +349,10 @@ def _branch_cell(b) -> str:
         return b["verdict"]
     return (f"{b['verdict']} (round {b['round'] + 1}: {b['rmse_before_mv']:.1f} → {b['rmse_after_mv']:.1f} mV, "
             f"noise {b['noise_mv']:.1f} mV)")
+
+
+def _pct_cell(x) -> str:
+    return "" if x is None else f"{100 * x:.2f}"
 
 
 def _left_cell(left) -> str:
@@ -363,15 +371,18 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--out", default=None, help="folder for the records and outputs (default: a temporary one)")
     ap.add_argument("--doc", default=str(REPO / "docs" / "foreign_records.md"))
+    ap.add_argument("--refine-ocv", default="coarse", choices=("coarse", "always", "never"),
+                    help="passed to socbench diagnose (default: its own default, coarse)")
     args = ap.parse_args(argv)
     folder = Path(args.out or tempfile.mkdtemp(prefix="socbench-foreign-"))
     folder.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     seeds = list(range(args.seed, args.seed + args.cases))
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        cases = list(pool.map(run_case, seeds, [str(folder)] * len(seeds)))
+        cases = list(pool.map(run_case, seeds, [str(folder)] * len(seeds), [args.refine_ocv] * len(seeds)))
     s = summary(cases)
-    command = (f"python benchmarks/foreign_records.py --cases {args.cases} --seed {args.seed} --jobs {args.jobs}")
+    command = (f"python benchmarks/foreign_records.py --cases {args.cases} --seed {args.seed} --jobs {args.jobs}"
+               + (f" --refine-ocv {args.refine_ocv}" if args.refine_ocv != "coarse" else ""))
     write_doc(Path(args.doc), s, cases, command, time.perf_counter() - t0)
     Path(args.doc).with_suffix(".json").write_text(json.dumps({"summary": s, "cases": cases}, indent=1))
     print(json.dumps({k: v for k, v in s.items() if k != "spurious"}), flush=True)

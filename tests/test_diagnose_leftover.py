@@ -85,3 +85,4 @@ def test_a_diagnosis_that_cannot_name_the_effect_says_where_it_lies(hidden, allo
     assert left["structure_v"] > 2 * left["noise_v"]
     other = "current_share" if follows == "soc_share" else "soc_share"
     assert left[follows] > 0.5 and left[follows] > left[other]
+

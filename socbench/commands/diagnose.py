@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from ..datasets import load
 from ..diagnose import diagnose
+from ..diagnose.core import COARSE_OCV_GAP
 from ..diagnose.report import write_report
 from ..domain import warn_outside
 from ..errors import ConfigError
@@ -36,6 +37,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--effects", help="comma-separated candidate effects (default: all)")
     parser.add_argument("--slow-ocv", default="mean", choices=("mean", "discharge"),
                         help="OCV from a slow test in the fit data: mean of both branches, or the discharge branch")
+    parser.add_argument("--refine-ocv", default="coarse", choices=("coarse", "always", "never"),
+                        help="refine an HPPC's rest-point OCV between its points from its discharge segments (kept "
+                             "when the evaluation data validate it): where two points lie more than "
+                             f"{100 * COARSE_OCV_GAP:g} %% of SOC apart (coarse, default), always, or never")
     parser.add_argument("--no-soc", action="store_true", help="skip the EKF SOC comparison")
     parser.add_argument("--no-figures", action="store_true", help="skip the figures")
 
@@ -57,7 +62,8 @@ def run(args) -> int:
     fit = [load(p, args.format) for p in args.fit]
     evals = [load(p, args.format) for p in args.eval]
     diag = diagnose(args.model, fit, evals, mode=args.mode, dt=args.dt, folds=args.folds, candidates=candidates,
-                    slow_ocv=args.slow_ocv, soc=not args.no_soc, base_refit=not args.no_base_refit)
+                    slow_ocv=args.slow_ocv, soc=not args.no_soc, base_refit=not args.no_base_refit,
+                    refine_ocv={"coarse": "coarse", "always": True, "never": False}[args.refine_ocv])
     write_report(diag, args.out, with_figures=not args.no_figures)
     b, a = diag.before, diag.after
     print(f"{args.model}: effects added: {', '.join(diag.effects_added) or 'none'}")
