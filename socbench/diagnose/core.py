@@ -55,7 +55,7 @@ from ..models.effects import EFFECTS
 from ..profile import Profile
 from .cv import cv_residual
 from .data import Folds, bin_average, make_folds
-from .leftover import leftover
+from .leftover import leftover, ocv_gap
 from .search import BASE_REFIT, Search, initial_soc, residual_noise, rest_current
 
 #: a fit record whose |I| never exceeds this C-rate is a slow OCV test
@@ -132,12 +132,6 @@ REFINE_OCV = "coarse"
 #: the base fit's ``refine_ocv="coarse"`` refines an HPPC's rest-point OCV when two neighbouring points lie more than
 #: this far apart in SOC
 COARSE_OCV_GAP = 0.15
-
-
-def widest_gap(points) -> float:
-    """The widest SOC gap between neighbouring points."""
-    pts = np.sort(np.asarray(points, dtype=float))
-    return float(np.max(np.diff(pts))) if pts.size > 1 else 1.0
 
 
 #: whether the base fit also tries its HPPC rest points relaxed by its own over-potential at each rest's end
@@ -226,6 +220,7 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
         # HPPC run in the charge direction
         steps = hppc_steps(dynamic[0])
         info["ocv"] = f"HPPC rest points (after {steps} steps)"
+        info["ocv_from_rest_points"] = True
         info["ocv_branch"] = 1.0 if steps == "charge" else -1.0
     prof = dynamic[0]
     capacity = capacity or _capacity(prof)
@@ -251,9 +246,9 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
                 fits[name_r], scores[name_r], chosen = refit, report["validation_rmse_v"][1], name_r
                 info["ocv"] += ", relaxed by the fitted model's over-potential at each rest's end"
         # the HPPC's rest-point OCV: its shape between them refined from the load (on a curve not relaxed already)
-        if refine_ocv == "coarse":
-            refine_ocv = widest_gap(fits[chosen].params.ocv.soc) > COARSE_OCV_GAP
-        if refine_ocv and ocv is None and (chosen == lookup or chosen in FIT_CANDIDATES):
+        coarse = (ocv_gap(fits[chosen].params.ocv.soc) or 0.0) > COARSE_OCV_GAP
+        refine = coarse if refine_ocv == "coarse" else refine_ocv
+        if refine and ocv is None and (chosen == lookup or chosen in FIT_CANDIDATES):
             refit, report = pseudo_ocv.refit_on_refined_ocv(fits[chosen], prof, validation, **setting(chosen))
             info["ocv_refinement"] = report
             if report["refined"]:
@@ -530,7 +525,7 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
         soc_path = None
     left = {} if soc_path is None else leftover(
         residuals["after"], soc_path, np.concatenate([p.current_a for p in cv.records]), [p.n for p in cv.records],
-        search.noise_sd, getattr(base.ocv, "soc", None) if "rest points" in fit_info.get("ocv", "") else None)
+        search.noise_sd, getattr(base.ocv, "soc", None) if fit_info.get("ocv_from_rest_points") else None)
     return Diagnosis(model_name, base, final, steps, rounds, before_d, after_d, cv, fit_info, seconds, soc_info,
                      domain, residuals, search, left)
 

@@ -64,13 +64,13 @@ def current_share(e: np.ndarray, i: np.ndarray) -> float:
     return float(np.sum(e * i)) ** 2 / den if den > 0 else 0.0
 
 
-def ocv_gap(ocv_soc, z: np.ndarray) -> float | None:
-    """The widest SOC gap between the OCV curve's points that lies within ``[min z, max z]`` (the part the records
-    visited; a gap counts by its overlap with it); None without points."""
-    if ocv_soc is None or len(ocv_soc) < 2 or z.size == 0:
+def ocv_gap(ocv_soc, z: np.ndarray | None = None) -> float | None:
+    """The widest SOC gap between the OCV curve's points, within ``[min z, max z]`` (the part the records visited; a
+    gap counts by its overlap with it) or, without ``z``, over all of them; None without two points."""
+    if ocv_soc is None or len(ocv_soc) < 2 or (z is not None and z.size == 0):
         return None
     pts = np.sort(np.asarray(ocv_soc, dtype=float))
-    lo, hi = float(np.min(z)), float(np.max(z))
+    lo, hi = (float(pts[0]), float(pts[-1])) if z is None else (float(np.min(z)), float(np.max(z)))
     overlap = np.minimum(pts[1:], hi) - np.maximum(pts[:-1], lo)
     return float(max(np.max(overlap), 0.0))
 
