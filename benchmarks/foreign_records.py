@@ -246,15 +246,9 @@ def branch_verdict(diagnosis: dict) -> dict:
             "rmse_after_mv": 1e3 * after, "noise_mv": 1e3 * noise}
 
 
-def _points_at_ocv(left) -> bool:
-    """Whether the diagnosis' "What is left" suggests measuring the OCV (most of what is left follows the SOC, and
-    the OCV's widest gap is wider than a standard HPPC's steps: socbench.diagnose.leftover)."""
-    from socbench.diagnose.leftover import OCV_HINT_GAP, OCV_HINT_SHARE
-
-    return bool(left) and left["soc_share"] >= OCV_HINT_SHARE and left.get("ocv_widest_gap", 0.0) > OCV_HINT_GAP
-
-
 def summary(cases: list) -> dict:
+    from socbench.diagnose.leftover import suggests_ocv  # what `diagnosis.md` suggests (the generator stays numpy-only)
+
     ran = [c for c in cases if c["added"] is not None]
     offset = [c for c in ran if abs(c["offset_c"]) >= OFFSET_NAMED_FRAC]
     thev = [c for c in ran if c["model"] == "thevenin"]
@@ -268,7 +262,7 @@ def summary(cases: list) -> dict:
             "quantised_offset_cases": sum(c["i_step_c"] >= 0.01 for c in offset),
             "quantised_offset_named": sum(c["i_step_c"] >= 0.01 and "current_bias" in c["added"] for c in offset),
             "thevenin_cases": len(thev), "extra_rc_named": sum("extra_rc" in c["added"] for c in thev),
-            "left_points_at_ocv": [c["seed"] for c in ran if _points_at_ocv(c.get("left"))],
+            "left_points_at_ocv": [c["seed"] for c in ran if suggests_ocv(c.get("left"))],
             "branch_verdicts": {v: n for v in VERDICTS
                                 if (n := sum((c.get("branch") or {}).get("verdict") == v for c in thev))},
             "spurious": spurious,
@@ -319,7 +313,8 @@ def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
          "held-out error (the residual is something else: an OCV read from few rest points between which the curve "
          "bends, a branch the base fit already took); *signature too weak to fit* — its residual signature was too "
          "small for the search to fit it; *refused beside a base branch* — its time constant lay next to one of the "
-         "base model's. The last column is what the diagnosis left (`diagnosis.md`'s \"What is left\", "
+         "base model's; *another candidate won* — it passed every rule, and the round added another effect. The last "
+         "column is what the diagnosis left (`diagnosis.md`'s \"What is left\", "
          "`socbench.diagnose.leftover`): the held-out structure above the voltage noise, the share of its variance "
          "that follows the SOC and the current, and, with an OCV read from rest points, how many and the widest SOC "
          "gap between them.", "",
@@ -341,8 +336,8 @@ def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
 
 
 def _branch_cell(b) -> str:
-    """The per-case table's branch column: the verdict, with the best round's held-out RMSE before → after and the
-    measured noise where the branch was fitted."""
+    """The per-case table's branch column: the verdict, with the held-out RMSE before → after of the last round that
+    fitted the branch and the measured noise."""
     if not b:
         return ""
     if "rmse_before_mv" not in b:

@@ -94,6 +94,12 @@ def leftover(residual: np.ndarray, soc, current, sizes, noise_sd: float, ocv_soc
     return out
 
 
+def suggests_ocv(left: dict) -> bool:
+    """Whether what is left points at the OCV: most of it follows the SOC (:data:`OCV_HINT_SHARE`) and the OCV's
+    widest gap is wider than :data:`OCV_HINT_GAP`."""
+    return bool(left) and left["soc_share"] >= OCV_HINT_SHARE and left.get("ocv_widest_gap", 0.0) > OCV_HINT_GAP
+
+
 def sentence(left: dict) -> str:
     """One line for ``diagnosis.md``."""
     s = (f"held-out RMSE {1000 * left['rmse_v']:.1f} mV against {1000 * left['noise_v']:.1f} mV of voltage noise: "
@@ -103,7 +109,7 @@ def sentence(left: dict) -> str:
     if "ocv_widest_gap" in left:
         s += (f"; the OCV was read at {left['ocv_points']} points, the widest gap within the SOC range of the "
               f"records {100 * left['ocv_widest_gap']:.0f} % of SOC")
-        if left["soc_share"] >= OCV_HINT_SHARE and left["ocv_widest_gap"] > OCV_HINT_GAP:
+        if suggests_ocv(left):
             s += (" — between its points the curve is interpolated, and most of what is left follows the SOC: a slow "
                   "OCV test (given to `--fit` beside the HPPC) or finer HPPC steps would measure it")
     return s
