@@ -12,6 +12,9 @@ model's name and the records. Rates (one row per effect, so a weak effect shows)
 * null cases: nothing added;
 * every case: the held-out SOC error of the EKF and of the UKF not worse by more than 0.2 points.
 
+``--refine-ocv always|never`` runs the diagnosis with that refinement of the HPPC's rest-point OCV instead of the
+default ``coarse`` (``socbench diagnose --refine-ocv``), for comparisons.
+
 ``--oracle`` diagnoses every single-effect case once more with the hidden effect as the only candidate: how often
 it is added then bounds what any ranking of the candidates can name first (docs/undeclared_effects_oracle.md).
 
@@ -37,8 +40,11 @@ import numpy as np  # noqa: E402
 
 from socbench.diagnose.randomized import TARGETS, case_kind, draw_case, markdown, oracle_accepted, rates, run_case  # noqa: E402
 
+#: ``--refine-ocv`` → the diagnosis' ``refine_ocv`` (socbench.diagnose.core.fit_base)
+REFINE_OCV = {"coarse": "coarse", "always": True, "never": False}
 
-def one(index: int, seed: int, oracle: bool = False) -> dict:
+
+def one(index: int, seed: int, oracle: bool = False, refine_ocv: str = "coarse") -> dict:
     import warnings
 
     warnings.filterwarnings("ignore")
@@ -51,10 +57,11 @@ def one(index: int, seed: int, oracle: bool = False) -> dict:
                 "error": f"generator: {type(exc).__name__}: {exc}", "wall_s": 0.0, "cpu_s": 0.0,
                 "case_wall_s": time.perf_counter() - w0, "case_cpu_s": time.process_time() - c0}
     gen = time.process_time() - c0
-    r = run_case(case)
+    options = {"refine_ocv": REFINE_OCV[refine_ocv]}
+    r = run_case(case, **options)
     if oracle:
         o0 = time.perf_counter()
-        r["oracle_added"] = oracle_accepted(case)
+        r["oracle_added"] = oracle_accepted(case, **options)
         r["oracle_wall_s"] = time.perf_counter() - o0
     r["generate_cpu_s"] = gen
     r["case_wall_s"] = time.perf_counter() - w0
@@ -73,6 +80,8 @@ def main(argv=None) -> int:
     ap.add_argument("--oracle", action="store_true",
                     help="diagnose each single-effect case again with the hidden effect as the only candidate "
                          "(an upper bound on naming it first; its time is not in the diagnosis times)")
+    ap.add_argument("--refine-ocv", default="coarse", choices=tuple(REFINE_OCV),
+                    help="the diagnosis' refinement of an HPPC's rest-point OCV (socbench diagnose --refine-ocv)")
     ap.add_argument("--render-only", action="store_true", help="rewrite the Markdown (--md) from the JSON (--json)")
     args = ap.parse_args(argv)
     if args.render_only:
@@ -98,7 +107,7 @@ def main(argv=None) -> int:
     with log.open("a") as f:
         if args.jobs > 1:
             with ProcessPoolExecutor(args.jobs) as pool:
-                futures = {pool.submit(one, k, args.seed, args.oracle): k for k in todo}
+                futures = {pool.submit(one, k, args.seed, args.oracle, args.refine_ocv): k for k in todo}
                 for fut in as_completed(futures):
                     r = fut.result()
                     results[r["index"]] = r
@@ -108,7 +117,7 @@ def main(argv=None) -> int:
                           f"{r['added']} ({r['case_cpu_s']:.1f} s CPU)", flush=True)
         else:
             for k in todo:
-                r = one(k, args.seed, args.oracle)
+                r = one(k, args.seed, args.oracle, args.refine_ocv)
                 results[k] = r
                 f.write(json.dumps(r, default=float) + "\n")
                 f.flush()

@@ -32,3 +32,17 @@ def test_a_coarse_hppc_ocv_is_refined_between_its_points_and_fits_better():
     d = diagnose("thevenin", [hppc_record(cell, fine, ins, seed=0).profile], [drive_record(cell, ins, seed=0).profile],
                  soc=False)
     assert "refined" not in d.fit["ocv"] and "ocv_refinement" not in d.fit
+
+
+def test_refine_ocv_takes_only_true_false_or_coarse():
+    """``refine_ocv="never"`` (the CLI's word) is a truthy string: taken as given it would refine. The API refuses
+    any value other than True, False and "coarse" with one clear error, before any work."""
+    import pytest
+
+    from socbench.errors import ConfigError
+
+    rng, cell, lay, ins = random_setup(100)
+    fit, ev = hppc_record(cell, lay, ins, seed=0).profile, drive_record(cell, ins, seed=0).profile
+    for bad in ("never", "always", 2):
+        with pytest.raises(ConfigError, match="refine_ocv"):
+            diagnose("thevenin", [fit], [ev], soc=False, refine_ocv=bad)

@@ -107,3 +107,37 @@ def test_a_measured_temperature_away_from_the_fit_is_evidence(effect, measured):
     search = Search(base, make_folds([_coarse(ev, 1.0, 4000)], 4), info["t_ref_c"], base_refit=False)
     assert search.temperature_measured is measured
 
+
+
+def test_two_starts_each_fold_keeps_the_fit_of_its_own_training_samples():
+    """A candidate fitted from two starts (the signature's guesses, the effect's defaults) keeps, group by group, the
+    rows of the start that fits that group's training samples better: every group's training error is the lower of the
+    two, and fold j's row never depends on the voltage of block j (corrupt it: the row does not move, to rounding)."""
+    from socbench.diagnose.cv import cv_residual
+    from socbench.diagnose.search import effective_samples
+    from socbench.diagnose.signatures import signatures
+
+    fit, ev = hidden_case("extra_rc", "thevenin", "pulses", "large", v_sd=1e-3, seed=0)
+    base, info = fit_base("thevenin", [fit], "constant")
+    rec = _coarse(ev, 1.0, 4000)
+
+    def both_starts(record):
+        search = Search(base, make_folds([record], 4), info["t_ref_c"], base_refit=False)
+        trajs = search.trajectories(None, None)
+        fold_sigs = {g: signatures(base, trajs[g], search.bounds, search.t_ref, search.rows[g])
+                     for g in search.groups if g is not None}
+        fold_sigs[None] = signatures(base, trajs[None], search.bounds, search.t_ref)
+        r0, _, _ = cv_residual(base, search.folds, search.soc0s)
+        rmse0, n_eff, sig = float(np.sqrt(np.mean(r0 ** 2))), effective_samples(r0), fold_sigs[None]["extra_rc"]
+        a = search._try("extra_rc", [], None, fold_sigs, sig, rmse0, n_eff)
+        b = search._try("extra_rc", [], None, {}, sig, rmse0, n_eff)
+        return search, a, b, search._better(a, b, sig, n_eff)
+
+    search, a, b, best = both_starts(rec)
+    sa, sb, s_best = search._group_sse(a), search._group_sse(b), search._group_sse(best)
+    assert np.any(sb < sa * (1 - 1e-6)) and np.any(sa < sb * (1 - 1e-6)), (sa, sb)  # each start wins a group
+    np.testing.assert_allclose(s_best, np.minimum(sa, sb), rtol=1e-9)
+    folds = make_folds([rec], 4)
+    bad_v = rec.voltage_v + np.where(folds.blocks[0] == 1, 0.05 + 0.01 * np.sin(np.arange(rec.n)), 0.0)
+    _, _, _, dirty = both_starts(rec.with_(voltage_v=bad_v))
+    np.testing.assert_allclose(dirty.fit.row(1), best.fit.row(1), rtol=1e-10, atol=1e-12)

@@ -89,3 +89,18 @@ def test_oracle_is_an_upper_bound_on_naming_first():
                "cpu_s": 1.0, "case_cpu_median_s": 1.0, "case_cpu_max_s": 1.0, "diagnosis_wall_max_s": 1.0,
                "rates": R}
     assert "Only the hidden effect offered" in markdown(summary)
+
+
+def test_benchmark_script_passes_its_refine_ocv_option_to_the_diagnosis():
+    """``benchmarks/undeclared_effects.py --refine-ocv`` reaches the diagnosis: on a case whose base fit keeps the
+    refined OCV when asked to (seed 31, case 0: the refit validates 10 % better there), ``always`` reports the refined
+    setting and ``never`` does not."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "undeclared_effects.py"
+    spec = importlib.util.spec_from_file_location("undeclared_effects_script", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    chosen = {opt: script.one(0, 31, refine_ocv=opt)["base_fit"] for opt in ("always", "never")}
+    assert chosen["always"].endswith("OCV refined") and "refined" not in chosen["never"], chosen
