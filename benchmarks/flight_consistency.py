@@ -62,8 +62,11 @@ def main(argv=None) -> int:
          "A consistent filter has a NIS mean of 1 and holds the truth inside its ±3σ band on about 99 % of the "
          "samples. "
          "The recipe (`socbench.estimators.model_error`) measures each fitted model's voltage error on the scenario's "
-         "characterisation tests and puts it in the filter's covariances; the particle filter takes it as one inflated "
-         "white R (`Estimator.model_error_form`), the others as coloured-noise states.", ""]
+         "characterisation tests and its 5 kg validation flight and puts it in the filter's covariances; the particle "
+         "filter takes it as one inflated white R (`Estimator.model_error_form`), the others as coloured-noise states. "
+         "Its size is then calibrated on the validation flight (`socbench.estimators.nis_calibration`: the EKF, resp. "
+         "the particle filter, run there with the recipe should average a NIS of 1; every model-error variance of the "
+         "form is scaled by the factor that does it).", ""]
     for noise, label in (("model", "With the noise recipe (the default)"), ("sensor", "Sensor noise only")):
         w += [f"## {label}", ""] + table(summary(frames[noise])) + [""]
     sm, ss = summary(frames["model"]), summary(frames["sensor"])

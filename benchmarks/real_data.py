@@ -45,7 +45,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from socbench.datasets.panasonic import find_panasonic, load_panasonic  # noqa: E402
-from socbench.estimators import SensorNoise, estimator_class, make_estimator  # noqa: E402
+from socbench.estimators import SensorNoise, estimator_class, make_estimator, nis_calibration  # noqa: E402
 from socbench.estimators import model_error as recipe  # noqa: E402
 from socbench.estimators.scoring import score  # noqa: E402
 from socbench.identify.select import FIT_SETTINGS, PER_TEMPERATURE, select_temperature_fit  # noqa: E402
@@ -531,8 +531,10 @@ def main(argv=None) -> int:
         def compute():
             _, params = load_params(cache.path("fits", f"{model}_{fit}.json"))
             tags = TAGS if fit == "5T" else (fit[len("own_"):],) if fit.startswith("own_") else ("25degC",)
-            return recipe.estimate(make_model(model, params), [_record(t, "Cycle") for t in tags],
-                                   measured_on="validation").to_dict()
+            m, cycles = make_model(model, params), [_record(t, "Cycle") for t in tags]
+            # calibrated on the same records with the filters' sensor noise, as `socbench fit --validation` does
+            return nis_calibration.calibrate_forms(m, SENSOR, recipe.estimate(m, cycles, measured_on="validation"),
+                                                   cycles).to_dict()
         return cache.json(f"stats/{model}_{fit}.json", compute)
 
     # the filters themselves on the validation records (EKF and UKF, the recipe measured on those records, the
@@ -1035,7 +1037,7 @@ def write_doc(path: Path, v: dict):
       "1 − e^{−2dt₀/τ} enter Q, and R = σ_V² + the white variance averaged "
       "over the record's temperatures: inside the form the compiled filters take (R_k = σ_V² + σ_I²D_k², "
       "Q_k = σ_I²B_kB_kᵀ + diag(walk)·dt_k/dt₀). The sensor-only covariance stays available (`--noise sensor`).\n")
-    w("Three rules keep the band honest where the first version of the recipe was not (sections 4 and 8 measure "
+    w("Four rules keep the band honest where the first version of the recipe was not (sections 4 and 8 measure "
       "it):\n")
     w("- **Parameter scheduling** (`Model.schedule_soc`, set by the recipe; `socbench.estimators.base."
       "scheduled_jacobian`, `scheduled_step`, `scheduled_output`, `scheduled_points_output`): every parameter "
@@ -1053,6 +1055,12 @@ def write_doc(path: Path, v: dict):
     w("- **Robust scales**: each SOC cell's mean square is shrunk toward its temperature row's median cell by the "
       "independent looks it holds (cell seconds / 2τ): a persistent error seen a few times per cell is a handful of "
       "numbers, and the smallest would narrow the band there.\n")
+    w("- **NIS calibration** (`socbench.estimators.nis_calibration`, as `socbench fit --validation` does): the EKF "
+      "and the particle filter run on the validation records themselves (bin-averaged to the recipe's 1 s, from their "
+      "reference SOC) with the recipe, and every model-error variance of each form (the coloured states; the "
+      "inflated white R) is scaled by the factor that brings the filter's NIS mean to 1 there (two rounds, the "
+      "factor within [¼, 4]). The recipe measures the error's shape; the records it was measured on check its "
+      "size.\n")
     w("On synthetic records with a planted error (`tests/test_model_error.py`, now including an error more persistent "
       "than the record) the band holds the truth 90–100 % of the time in every configuration; the first version "
       "held a persistent error 47 % of the time there.\n")
@@ -1061,8 +1069,9 @@ def write_doc(path: Path, v: dict):
         sm = s.summary()
         which = ("five-temperature fit, on the five Cycle_1 runs" if cfg[1] == "5T"
                  else "25 °C fit, on the 25 °C Cycle_1 only")
+        cal = ", ".join(f"{a:.2f} ({nis_calibration.CALIBRATED_WITH[f]}, {f} form)" for f, a in s.nis_scale)
         w(f"**{cfg[0]}, {which}** (RMS over SOC; τ_slow {s.tau_slow_s:.0f} s, τ_fast {s.tau_fast_s:.1f} s, τ_r "
-          f"{s.tau_r_s:.0f} s):\n")
+          f"{s.tau_r_s:.0f} s; NIS calibration on the same runs: variances × {cal or '1 (not calibrated)'}):\n")
         w("| temperature node | slow [mV] | fast [mV] | resistive [mΩ] | white [mV] |")
         w("|---|---|---|---|---|")
         for j, t in enumerate(s.temps):

@@ -29,7 +29,10 @@ The noise recipe (:mod:`socbench.estimators.model_error`) measures the fitted mo
 ``--validation`` records (other drive cycles of the same cell, never one you will score), else on the identification
 records, and stores it as ``"model_error"`` (with ``measured_on``: which of the two); ``socbench estimate`` builds the
 filter covariances from it by default. Measured on the identification records it is too small for a drive cycle (an
-HPPC shows no sustained load; docs/real_data.md section 4g): both commands say so.
+HPPC shows no sustained load; docs/real_data.md section 4g): both commands say so. Measured on ``--validation``
+records, its size is then calibrated there (:mod:`socbench.estimators.nis_calibration`): the EKF and the particle
+filter, run on those records with the recipe and ``socbench estimate``'s default sensor noise, should average a NIS of
+1; the factor each needed is stored as ``model_error.nis_scale`` and the command prints it.
 """
 
 from __future__ import annotations
@@ -42,7 +45,7 @@ import numpy as np
 from ..datasets import load
 from ..domain import warn_outside
 from ..errors import ConfigError, DataError
-from ..estimators import model_error
+from ..estimators import DEFAULT_NOISE, model_error, nis_calibration
 from ..identify import FIT_SETTINGS, MODES, fit_model, select_fit, select_temperature_fit
 from ..identify.hppc import analyze_hppc
 from ..identify.pseudo_ocv import refit_on_refined_ocv
@@ -200,6 +203,9 @@ def run(args) -> int:
               f"(τ {stats.tau_fast_s:.1f} s), resistive {_mv(sm['r'])} mΩ (τ {stats.tau_r_s:.0f} s), "
               f"white {_mv(sm['white'])} mV at "
               f"{', '.join(f'{t:.1f}' for t in stats.temps)} °C")
+        if stats.nis_scale:
+            print("NIS calibration on the validation records: model-error variances × " + ", ".join(
+                f"{a:.2f} ({nis_calibration.CALIBRATED_WITH[f]}, {f})" for f, a in stats.nis_scale))
     for note in _validation_notes(args, stats):
         print(f"note: {note}")
     print(f"{len(warnings)} fit warning(s); wrote {args.out}")
@@ -269,7 +275,8 @@ def _model_error(model, records, validation):
     axis (counted from full with the model's capacity, :func:`~socbench.identify.hppc.analyze_hppc`) as the known
     SOC, the axis the fit itself placed it on."""
     if validation:
-        return (model_error.estimate(model, validation, measured_on="validation"),
+        stats = model_error.estimate(model, validation, measured_on="validation")
+        return (nis_calibration.calibrate_forms(model, DEFAULT_NOISE, stats, validation),
                 f"{len(validation)} validation record(s)")
     usable = [r if r.soc_ref is not None else _counted_reference(r, model.capacity_ah) for r in records]
     usable = [r for r in usable if r is not None]

@@ -310,6 +310,11 @@ class MeasuredScenario(Scenario):
             return [self._load(n) for n in m.validation]
         return [r for r in self.characterisation().records if r.soc_ref is not None]
 
+    def calibration_records(self) -> list:
+        """The records the filters' NIS calibrates the recipe on (:mod:`socbench.estimators.nis_calibration`): the
+        validation records, none without them (the identification records taught the model what it knows)."""
+        return self.noise_records() if self.measured.validation else []
+
     def noise_measured_on(self) -> str:
         """What :meth:`noise_records` are (:attr:`~socbench.estimators.model_error.ModelErrorStats.measured_on`):
         "validation" with validation records, else "identification"."""

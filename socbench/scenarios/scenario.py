@@ -280,6 +280,11 @@ class Scenario:
         validation flights (loads the model was not fitted on, pooled with its lab tests), else "identification"."""
         return "validation" if self.spec.validation.payloads_kg else "identification"
 
+    def calibration_records(self) -> list:
+        """The noise records that are loads the fitted model was not fitted on, with a known SOC: the filters' NIS
+        on them calibrates the recipe (:mod:`socbench.estimators.nis_calibration`). The validation flights."""
+        return self.validation_flights()
+
     def validation_flights(self, seed: int = 0) -> list:
         """The scenario's mission flown again with each payload of ``[validation] payloads_kg``
         (:class:`ValidationSpec`) by the same truth cell, from the same lab schedule, measured by the same sensors

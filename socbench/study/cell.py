@@ -104,29 +104,26 @@ class Toolkit:
 
     def filter_noise(self, estimator: str, model, scenario, profile, noise: str, cache_key=None):
         """``(model, noise, model-error dict or None)`` the estimator runs with: the noise recipe
-        (:mod:`socbench.estimators.model_error`) measured on the scenario's noise records with this fitted model,
+        (:mod:`socbench.estimators.model_error`) measured on the scenario's noise records with this fitted model and
+        calibrated on its validation loads (:mod:`socbench.estimators.nis_calibration`, for the estimator's form),
         unless ``noise == "sensor"``, the estimator is the coulomb counter (it never reads the voltage) or the
         scenario has no records to measure it on (then its sensor noise alone)."""
         sensor = scenario.sensor_noise()
         records = getattr(scenario, "noise_records", None)
         if noise == "sensor" or estimator == "coulomb" or records is None:
             return model, sensor, None
-        from ..estimators import model_error
+        from ..estimators import estimator_class, model_error, nis_calibration
 
         key = (cache_key, getattr(scenario, "name", None))
-        stats = _MODEL_ERROR.get(key) if cache_key is not None else None
-        if stats is None:
-            measured_on = getattr(scenario, "noise_measured_on", lambda: "")()
-            stats = model_error.estimate(model, records(), measured_on=measured_on)
-            if cache_key is not None:
-                if len(_MODEL_ERROR) >= 64:
-                    _MODEL_ERROR.pop(next(iter(_MODEL_ERROR)))
-                _MODEL_ERROR[key] = stats
-        from ..estimators import estimator_class
-
+        measured_on = getattr(scenario, "noise_measured_on", lambda: "")()
+        stats = _cached(key, lambda: model_error.estimate(model, records(), measured_on=measured_on))
+        form = estimator_class(estimator).model_error_form
+        calibration = getattr(scenario, "calibration_records", None)
+        if calibration is not None:  # the recipe's size checked on the validation loads: NIS mean 1 there
+            stats = _cached(key + (form,), lambda: nis_calibration.calibrate(model, sensor, stats, calibration(),
+                                                                              form))
         run_model, tuned = model_error.apply(model, sensor, stats, profile,
-                                             extra_voltage_sd=getattr(scenario, "added_voltage_sd", 0.0),
-                                             form=estimator_class(estimator).model_error_form)
+                                             extra_voltage_sd=getattr(scenario, "added_voltage_sd", 0.0), form=form)
         return run_model, tuned, stats.to_dict()
 
     def run_estimator(self, estimator, profile, soc0, params, seed):
@@ -163,6 +160,17 @@ _REALIZED: dict = {}
 _MAX_REALIZED = 4
 # the model error a fitted model makes on a scenario's noise records: once per (fit, scenario) per process
 _MODEL_ERROR: dict = {}
+
+
+def _cached(key: tuple, compute):
+    """``compute()`` once per ``key`` in this process (:data:`_MODEL_ERROR`; a key led by None: never kept)."""
+    if key[0] is None:
+        return compute()
+    if key not in _MODEL_ERROR:
+        if len(_MODEL_ERROR) >= 64:
+            _MODEL_ERROR.pop(next(iter(_MODEL_ERROR)))
+        _MODEL_ERROR[key] = compute()
+    return _MODEL_ERROR[key]
 
 
 def _scenario(toolkit: Toolkit, name: str):
