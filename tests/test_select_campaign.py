@@ -136,9 +136,13 @@ def test_the_fit_command_says_when_nothing_validated_its_model_error(tmp_path, c
     for label, extra in runs.items():
         out = tmp_path / f"{label}.json"
         assert main(["fit", "--data", *data, "--model", "thevenin", *extra, "--out", str(out)]) == 0
-        notes = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note: ")]
-        measured_on = json.loads(out.read_text())["model_error"]["measured_on"]
-        assert measured_on == ("identification" if label == "hppc" else "validation")
+        printed = capsys.readouterr().out
+        notes = [line for line in printed.splitlines() if line.startswith("note: ")]
+        block = json.loads(out.read_text())["model_error"]
+        assert block["measured_on"] == ("identification" if label == "hppc" else "validation")
+        # the recipe's size is calibrated on the validation records (both forms), never on the identification HPPCs
+        assert set(block["nis_scale"]) == (set() if label == "hppc" else {"states", "inflated"}), block["nis_scale"]
+        assert ("NIS calibration on the validation records" in printed) == (label != "hppc")
         assert any("identification records only" in n for n in notes) == (label == "hppc")
         assert any("--mode auto would choose" in n for n in notes) == (label == "paper+val")
         assert main(["estimate", "--data", drive, "--params", str(out), "--estimator", "ekf",

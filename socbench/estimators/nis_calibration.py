@@ -10,7 +10,7 @@ there::
     α_{j+1} = α_j · mean_k NIS_k(α_j),   α_0 = 1,   two rounds,   α ∈ [ALPHA_MIN, ALPHA_MAX]
 
 ``α`` scales every model-error variance the recipe gives the filter (the slow, mid-period, fast and resistive states'
-scales, and the white part above the sensor's; :attr:`ModelErrorStats.nis_scale`), never the sensor's own noise. One
+scales, and the white part, which never falls below the sensor's own noise; :attr:`ModelErrorStats.nis_scale`). One
 factor per form the recipe takes (:data:`~socbench.estimators.model_error.FORMS`): the coloured states (calibrated with
 the EKF, and used by every filter that carries them) and the inflated white R (calibrated with the bootstrap particle
 filter, the estimator that takes it). NIS is not linear in α (the filter's own SOC spread is part of S), hence the
@@ -27,6 +27,10 @@ Resolution: the records are run bin-averaged to :data:`~socbench.estimators.mode
 resolution the recipe measures the error at: at a faster step the recipe's white part is inflated on purpose (a 10 Hz
 sample holds a tenth of a second's information), and a per-sample NIS is not 1 there by design (the Panasonic Cycle
 runs at 10 Hz: 0.12–0.21; at 1 s: 0.34–1.47).
+
+Where it applies: :func:`socbench.estimators.model_error.nis_factor` — a factor above 1 everywhere, one below 1 only on
+a record at the calibration records' temperatures (elsewhere the error met is larger than the one measured, and a
+shrinking factor would narrow the band where nothing checked it).
 
 Where the factor stays 1: no validation records (the recipe measured on the identification records only: the filter
 met nothing the model was not fitted on, so its NIS there says nothing of a new load), or a filter that failed on
