@@ -79,7 +79,8 @@ Filter noise, inside the form every filter (and the compiled kernels) take, ``R_
   filtered lies within :data:`SHARE_MARGIN_K` of the temperatures they cover for :data:`SHARE_SAMPLES` of its samples),
   the measured ``σ_s²`` is the error the filter will meet, and the two states share it: ``κ = √½``, the sum's variance
   is the measured one. Counted twice (``κ = 1``), every slow-scale walk ``2κ²σ_s²·dt/τ`` is twice what the records hold,
-  and the filters were too cautious per sample: on the default flight scenarios the EKF's NIS mean lay in [1/3, 3] in 27
+  and the filters were too cautious per sample (measured before the NIS calibration below existed): on the default
+  flight scenarios the EKF's NIS mean lay in [1/3, 3] in 27
   of 48 model × scenario cells, the UKF's in 27 (38 and 34 with ``κ = √½``, the share of samples within 3σ still 1.00 in
   the median cell; ``docs/flight_consistency.md``), and on the Panasonic five-temperature US06 runs (measured on the
   five Cycle runs) the UKF's SOC RMSE was 2.07 % at −20 °C, 0.8 points from the EKF's (0.89 % and 0.2 points with ``κ =
