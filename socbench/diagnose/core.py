@@ -184,6 +184,8 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
     report seed (2026; 200 cases) it was kept in 10 and let two null cases through (a hysteresis and an efficiency
     fitted on a residual then just above the noise floor), 39 → 37 of 40: by the rule every search change is held
     to, not better."""
+    if refine_ocv not in (True, False, "coarse"):  # a string such as "never" is truthy: it would refine
+        raise ConfigError(f"refine_ocv must be True, False or 'coarse', not {refine_ocv!r}")
     fit_profiles = list(fit_profiles)
     slow = [p for p in fit_profiles if is_slow_test(p)]
     dynamic = [p for p in fit_profiles if not is_slow_test(p)]
@@ -247,8 +249,6 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
                 info["ocv"] += ", relaxed by the fitted model's over-potential at each rest's end"
         # the HPPC's rest-point OCV: its shape between them refined from the load (on a curve not relaxed already)
         coarse = (ocv_gap(fits[chosen].params.ocv.soc) or 0.0) > COARSE_OCV_GAP
-        if refine_ocv not in (True, False, "coarse"):
-            raise ConfigError(f"refine_ocv must be True, False or 'coarse', not {refine_ocv!r}")
         refine = coarse if refine_ocv == "coarse" else refine_ocv
         if refine and ocv is None and (chosen == lookup or chosen in FIT_CANDIDATES):
             refit, report = pseudo_ocv.refit_on_refined_ocv(fits[chosen], prof, validation, **setting(chosen))
@@ -442,8 +442,6 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
     (:data:`socbench.diagnose.search.RESISTANCE_GROWTH`). ``refine_ocv``: the base fit also tries the HPPC's OCV
     refined between its rest points (:func:`fit_base`)."""
     t0 = _time.perf_counter()
-    if refine_ocv not in (True, False, "coarse"):  # a string such as "never" is truthy: it would refine
-        raise ConfigError(f"refine_ocv must be True, False or 'coarse', not {refine_ocv!r}")
     evals = [_coarse(p, dt, max_samples) for p in eval_profiles]
     for p in evals:
         p.require("voltage_v")

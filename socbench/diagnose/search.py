@@ -730,9 +730,14 @@ class Search:
         try:
             fit, build, layout = self.fit(names + [name], theta0)
         except Exception as exc:  # a failed fit scores nothing but is reported
-            return Candidate(name, -np.inf, rmse_now, rmse_now, {}, 0.0 if sig is None else sig.r2,
-                             f"fit failed: {type(exc).__name__}: {exc}", seconds=_time.perf_counter() - t0)
+            return self._failed(name, sig, rmse_now, exc, _time.perf_counter() - t0)
         return self._scored(name, fit, build, layout, sig, rmse_now, n_eff, _time.perf_counter() - t0)
+
+    @staticmethod
+    def _failed(name, sig, rmse_now, exc, seconds) -> Candidate:
+        """The candidate ``name`` whose fit or scoring raised ``exc``: no score, the error as its evidence."""
+        return Candidate(name, -np.inf, rmse_now, rmse_now, {}, 0.0 if sig is None else sig.r2,
+                         f"fit failed: {type(exc).__name__}: {exc}", seconds=seconds)
 
     def _scored(self, name, fit, build, layout, sig, rmse_now, n_eff, seconds) -> Candidate:
         """The candidate ``name`` with the fitted rows ``fit``: held-out residual, score and evidence."""
@@ -742,8 +747,7 @@ class Search:
         try:
             r_after, sse, _ = cv_residual(build, self.folds, self.soc0s, fit.folds())
         except Exception as exc:  # a failed fit scores nothing but is reported
-            return Candidate(name, -np.inf, rmse_now, rmse_now, {}, r2, f"fit failed: {type(exc).__name__}: {exc}",
-                             seconds=seconds + _time.perf_counter() - t0)
+            return self._failed(name, sig, rmse_now, exc, seconds + _time.perf_counter() - t0)
         rmse_after = float(np.sqrt(np.mean(r_after * r_after)))
         p = len(pnames)
         score = float(np.log(rmse_now**2 / max(rmse_after**2, 1e-30)) - 2.0 * p / n_eff)
