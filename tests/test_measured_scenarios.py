@@ -144,24 +144,28 @@ def test_every_measured_scenario_is_available_with_the_data(data_dir):
     assert set(MEASURED) <= set(scenario_names())
 
 
-def test_simulated_scenarios_measure_the_model_error_on_lab_tests_and_a_validation_flight():
+def test_simulated_scenarios_measure_the_model_error_on_lab_tests_and_validation_flights():
     sc = load_scenario("flight-0kg")
-    hppc, cap, val = sc.noise_records()
-    assert hppc.name.endswith("/hppc") and cap.name.endswith("/capacity") and val.name.endswith("/validation-5kg")
+    hppc, cap, light, heavy = sc.noise_records()
+    assert hppc.name.endswith("/hppc") and cap.name.endswith("/capacity")
+    assert light.name.endswith("/validation-2kg") and heavy.name.endswith("/validation-8kg")
+    assert [p.name for p in sc.calibration_records()] == [light.name, heavy.name]
     # the capacity test runs the truth cell from full into the knee at 1 C: the region the HPPC's pulses skip
     assert cap.soc_ref[0] == pytest.approx(1.0, abs=1e-6) and cap.soc_ref.min() < 0.05
     assert np.median(cap.current_a[cap.current_a > 1.0]) == pytest.approx(sc.true_capacity_ah, rel=0.05)
     flights = {n: load_scenario(n).realize([0]) for n in ("flight-0kg", "flight-10kg")}
     assert all(f.n != cap.n and not np.array_equal(f.current_a[0, :100], cap.current_a[:100])
                for f in flights.values())
-    # the validation flight is another flight of the same cell (same schedule, lab sensors), between the scored
-    # payloads, with gusts of its own: neither scored flight
+    # the validation flights are other flights of the same cell (same schedule, lab sensors), between the scored
+    # payloads, with gusts of their own: neither scored flight
     mean_i = {n: float(np.mean(np.abs(f.current_a[0]))) for n, f in flights.items()}
-    assert mean_i["flight-0kg"] < float(np.mean(np.abs(val.current_a))) < mean_i["flight-10kg"]
-    assert all(val.n != f.n or not np.allclose(val.current_a, f.current_a[0]) for f in flights.values())
-    assert val.soc_ref[0] > 0.95 and val.soc_ref.min() < 0.2
-    # every scenario extending flight-0kg inherits it, a replay of the DJI template too
-    assert load_scenario("dji-m100-replay").noise_records()[2].name.endswith("/validation-5kg")
+    for val in (light, heavy):
+        assert mean_i["flight-0kg"] < float(np.mean(np.abs(val.current_a))) < mean_i["flight-10kg"]
+        assert all(val.n != f.n or not np.allclose(val.current_a, f.current_a[0]) for f in flights.values())
+        assert val.soc_ref[0] > 0.95 and val.soc_ref.min() < 0.2
+    # every scenario extending flight-0kg inherits them, a replay of the DJI template too
+    assert [p.name.rsplit("/", 1)[1] for p in load_scenario("dji-m100-replay").noise_records()[2:]] == [
+        "validation-2kg", "validation-8kg"]
 
 
 def test_validation_flights_are_checked_and_optional(tmp_path):

@@ -48,15 +48,18 @@ def _gauss_markov(rng, R: int, tau: float) -> np.ndarray:
     return g
 
 
-def _draws(model, rng, R: int, err: dict) -> Profile:
-    """``R`` records of ``model`` from SOC 0.9 with the planted error ``err`` (slow σ, τ; resistance σ; white σ)."""
+def _draws(model, rng, R: int, err: dict, load: float = 1.0) -> Profile:
+    """``R`` records of ``model`` from SOC 0.9 with the planted error ``err`` (slow σ, τ; resistance σ; white σ), the
+    current × ``load`` and the slow and white errors × ``load^err["load_power"]`` (default 0: an error that ignores
+    the load)."""
     t = np.arange(T_STEPS) * DT
-    cur = _current(rng, R, model.capacity_ah)
+    cur = load * _current(rng, R, model.capacity_ah)
     x0 = model.x0(np.full(R, 0.9), (R,))
     states, v = model.open_loop(x0, t, cur)
     dr = err["r_sd"] * rng.standard_normal((R, 1))  # one wrong resistance per record
-    v = v + err["slow_sd"] * _gauss_markov(rng, R, err["tau"]) - dr * cur + err["white_sd"] * rng.standard_normal(
-        (R, T_STEPS))
+    grow = load ** err.get("load_power", 0.0)
+    v = v + grow * (err["slow_sd"] * _gauss_markov(rng, R, err["tau"]) + err["white_sd"] * rng.standard_normal(
+        (R, T_STEPS))) - dr * cur
     return Profile(t, cur, v, None, np.clip(states[..., 0], 0, 1), ProfileMeta(name="draw", capacity_ah=22.0))
 
 

@@ -204,8 +204,12 @@ def run(args) -> int:
               f"white {_mv(sm['white'])} mV at "
               f"{', '.join(f'{t:.1f}' for t in stats.temps)} °C")
         if stats.nis_scale:
+            loads = dict(stats.nis_load)
             print("NIS calibration on the validation records: model-error variances × " + ", ".join(
-                f"{a:.2f} ({nis_calibration.CALIBRATED_WITH[f]}, {f})" for f, a in stats.nis_scale))
+                f"{a:.2f} ({nis_calibration.CALIBRATED_WITH[f]}, {f}"
+                + (f"; × (I_rms/{np.sqrt(loads[f][1]):.3g} A)^{2 * loads[f][0]:.2f} between "
+                   f"{np.sqrt(loads[f][2]):.3g} and {np.sqrt(loads[f][3]):.3g} A" if f in loads else "") + ")"
+                for f, a in stats.nis_scale))
     for note in _validation_notes(args, stats):
         print(f"note: {note}")
     print(f"{len(warnings)} fit warning(s); wrote {args.out}")

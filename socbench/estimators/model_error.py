@@ -119,8 +119,10 @@ Filter noise, inside the form every filter (and the compiled kernels) take, ``R_
 **Calibrated size.** Where the error was measured on validation records, its size is checked there:
 :mod:`socbench.estimators.nis_calibration` runs the filters on those records with this recipe and sets
 :attr:`ModelErrorStats.nis_scale`, one factor per form on every model-error variance above (the four states' scales,
-the white part; the inflated ``σ_V²`` below) that makes their NIS mean 1 on them. :func:`apply` multiplies it in
-(:func:`nis_factor`: a factor below 1 only on a record at the calibration records' temperatures).
+the white part; the inflated ``σ_V²`` below) that makes their NIS mean 1 on them, and, where those records are at
+different loads, how the factor follows the record's mean-square current (:attr:`ModelErrorStats.nis_load`).
+:func:`apply` multiplies it in (:func:`nis_factor`: a factor below 1 only on a record at the calibration records'
+temperatures).
 
 With ``noise="sensor"`` the model and the sensor covariance are used as they are (the covariance without model error).
 
@@ -200,6 +202,10 @@ class ModelErrorStats:
     #: ``((form, α), …)``: the factor on every model-error variance the filters of that form are given, set by the NIS
     #: calibration on the validation records (:mod:`socbench.estimators.nis_calibration`); a form not listed: 1
     nis_scale: tuple = ()
+    #: ``((form, (q, L_ref, L_lo, L_hi)), …)``: how that factor follows the load (:func:`load_term`): ``α·(L/L_ref)^q``
+    #: for a record of mean-square current ``L`` [A²], ``L`` held within ``[L_lo, L_hi]``; a form not listed: no load
+    #: dependence
+    nis_load: tuple = ()
 
     def __post_init__(self):
         t = tuple(float(x) for x in np.ravel(self.temps))
@@ -238,6 +244,14 @@ class ModelErrorStats:
         if any(f not in FORMS or not (np.isfinite(a) and a > 0) for f, a in scales):
             raise ConfigError(f"model_error: 'nis_scale' maps forms ({', '.join(FORMS)}) to factors > 0")
         object.__setattr__(self, "nis_scale", scales)
+        loads = tuple((str(f), tuple(float(x) for x in v)) for f, v in (
+            {k: (d["exponent"], d["ref_ms_current_a2"], *d["range_ms_current_a2"]) if isinstance(d, dict) else d
+             for k, d in self.nis_load.items()}.items() if isinstance(self.nis_load, dict) else self.nis_load))
+        if any(f not in FORMS or len(v) != 4 or not all(np.isfinite(v)) or not 0 < v[2] <= v[1] <= v[3]
+               for f, v in loads):
+            raise ConfigError("model_error: 'nis_load' maps forms to {exponent, ref_ms_current_a2, "
+                              "range_ms_current_a2: [lowest, highest]} with lowest <= ref <= highest, all > 0")
+        object.__setattr__(self, "nis_load", loads)
         if self.measured_on not in MEASURED_ON:
             raise ConfigError(f"model_error: 'measured_on' must be one of {', '.join(map(repr, MEASURED_ON))}")
 
@@ -246,9 +260,24 @@ class ModelErrorStats:
         """The NIS calibration's factor on the model-error variances for filters of ``form`` (1: not calibrated)."""
         return dict(self.nis_scale).get(form, 1.0)
 
-    def with_nis_scale(self, form: str, alpha: float) -> ModelErrorStats:
-        """These statistics with the factor ``alpha`` for ``form`` (:attr:`nis_scale`)."""
-        return replace(self, nis_scale=tuple({**dict(self.nis_scale), form: float(alpha)}.items()))
+    def with_nis_scale(self, form: str, alpha: float, load=None) -> ModelErrorStats:
+        """These statistics with the factor ``alpha`` for ``form`` (:attr:`nis_scale`) and its load dependence
+        ``load = (q, L_ref, L_lo, L_hi)`` (:attr:`nis_load`; None: none)."""
+        loads = {k: v for k, v in self.nis_load if k != form}
+        if load is not None:
+            loads[form] = tuple(float(x) for x in load)
+        return replace(self, nis_scale=tuple({**dict(self.nis_scale), form: float(alpha)}.items()),
+                       nis_load=tuple(loads.items()))
+
+    def load_term(self, form: str, profile: Profile | None = None) -> float:
+        """``(L/L_ref)^q`` of :attr:`nis_load` for ``form`` on ``profile`` (``L`` its mean-square current, held within
+        the calibrated range); 1 without a load dependence or a record."""
+        load = dict(self.nis_load).get(form)
+        if load is None or profile is None:
+            return 1.0
+        q, ref, lo, hi = load
+        ms = float(np.clip(np.mean(np.square(profile.current_a)), lo, hi))
+        return float((ms / ref) ** q)
 
     def scaled(self, alpha: float) -> ModelErrorStats:
         """These statistics with every SD (slow, fast, resistive, white) times ``√alpha``: the variances the filters
@@ -258,7 +287,7 @@ class ModelErrorStats:
         f = float(np.sqrt(alpha))
         return replace(self, slow_sd=np.asarray(self.slow_sd) * f, fast_sd=np.asarray(self.fast_sd) * f,
                        resistance_sd=np.asarray(self.resistance_sd) * f, white_sd=np.asarray(self.white_sd) * f,
-                       nis_scale=())
+                       nis_scale=(), nis_load=())
 
     def white_var(self, temperature_c=None) -> float:
         """Mean of ``σ_0²(T_k)`` over the temperatures of a record (None: at :data:`T_REF_C`)."""
@@ -307,6 +336,8 @@ class ModelErrorStats:
                 "tau_r_s": self.tau_r_s, "window_s": self.window_s, "records": list(self.records),
                 "seconds_per_temperature": list(self.samples), "measured_on": self.measured_on,
                 "temperature_covered_c": list(self.covered_c), "nis_scale": dict(self.nis_scale),
+                "nis_load": {f: {"exponent": q, "ref_ms_current_a2": ref, "range_ms_current_a2": [lo, hi]}
+                             for f, (q, ref, lo, hi) in self.nis_load},
                 "recipe": "socbench.estimators.model_error: open-loop residual; slow, fast and resistive parts -> "
                           "coloured states (ModelError effect), white part -> R"}
 
@@ -317,7 +348,8 @@ class ModelErrorStats:
                        tuple(d["white_sd_v"]), float(d["tau_slow_s"]), float(d["tau_fast_s"]), float(d["tau_r_s"]),
                        float(d.get("window_s", WINDOW_S)), tuple(d.get("records", ())),
                        tuple(d.get("seconds_per_temperature", ())), str(d.get("measured_on", "")),
-                       tuple(d.get("temperature_covered_c", ())), dict(d.get("nis_scale", {})))
+                       tuple(d.get("temperature_covered_c", ())), dict(d.get("nis_scale", {})),
+                       dict(d.get("nis_load", {})))
         except ConfigError:
             raise
         except (KeyError, TypeError, ValueError):
@@ -616,13 +648,14 @@ def out_of_sample_here(stats: ModelErrorStats, profile: Profile | None = None) -
 
 
 def nis_factor(stats: ModelErrorStats, form: str, profile: Profile | None = None) -> float:
-    """The NIS calibration's factor on the model-error variances for ``form`` (:attr:`ModelErrorStats.nis_scale`) on
-    ``profile``: as calibrated where the record lies at the calibration records' temperatures
+    """The NIS calibration's factor on the model-error variances for ``form`` (:attr:`ModelErrorStats.nis_scale`, at
+    ``profile``'s load: :meth:`ModelErrorStats.load_term`) on ``profile``: as calibrated where the record lies at the
+    calibration records' temperatures
     (:func:`out_of_sample_here`); elsewhere never below 1. The validation records measured the error at their
     temperatures; a factor that shrank it there says nothing of another temperature, where the error met is larger
     than the one measured (the Panasonic 25 °C fit, calibrated on the 25 °C Cycle_1 by 0.85, held the truth within
     3σ on the 0 °C US06 in 36/23 % of the samples (EKF/UKF) with it applied, 52/39 % without)."""
-    alpha = stats.scale_for(form)
+    alpha = stats.scale_for(form) * stats.load_term(form, profile)
     return alpha if alpha >= 1.0 or out_of_sample_here(stats, profile) else 1.0
 
 

@@ -12,7 +12,7 @@ A file names its load, truth, schedule and sensors; anything not given keeps the
     [truth]         ...                    # socbench.scenarios.truth.TruthParams
     [schedule]      ambient_c = 25.0       # socbench.scenarios.schedule.Schedule
     [hppc]          rest_s = 540.0         # socbench.scenarios.scenario.HppcSpec
-    [validation]    payloads_kg = [5.0]    # socbench.scenarios.scenario.ValidationSpec (the noise recipe's flights)
+    [validation]    payloads_kg = [2.0, 8.0]   # socbench.scenarios.scenario.ValidationSpec (the recipe's flights)
     [measured]      dataset = "panasonic_18650pf", record = "...", characterisation = [...]
                                            # socbench.scenarios.scenario.MeasuredSpec (socbench.scenarios.measured)
     [sensors]       dt = 1.0, soc0_error = 0.05, capacity_mismatch = 0.03

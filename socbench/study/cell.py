@@ -33,6 +33,7 @@ Beside the row a cell record keeps, for the reliability report:
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import time
 
 import numpy as np
@@ -114,14 +115,17 @@ class Toolkit:
             return model, sensor, None
         from ..estimators import estimator_class, model_error, nis_calibration
 
-        key = (cache_key, getattr(scenario, "name", None))
         measured_on = getattr(scenario, "noise_measured_on", lambda: "")()
-        stats = _cached(key, lambda: model_error.estimate(model, records(), measured_on=measured_on))
+        noise_records, fingerprint = _records(scenario, "noise_records")
+        # keyed by what the records hold, not by the scenario: scenarios of one cell and lab share one measurement
+        key = (cache_key if fingerprint else None, fingerprint, measured_on)
+        stats = _cached(key, lambda: model_error.estimate(model, noise_records, measured_on=measured_on))
         form = estimator_class(estimator).model_error_form
-        calibration = getattr(scenario, "calibration_records", None)
-        if calibration is not None:  # the recipe's size checked on the validation loads: NIS mean 1 there
-            stats = _cached(key + (form,), lambda: nis_calibration.calibrate(model, sensor, stats, calibration(),
-                                                                              form))
+        if getattr(scenario, "calibration_records", None) is not None:
+            # the recipe's size checked on the validation loads: NIS mean 1 there
+            calibration, calibration_key = _records(scenario, "calibration_records")
+            stats = _cached(key + (calibration_key, form, sensor),
+                            lambda: nis_calibration.calibrate(model, sensor, stats, calibration, form))
         run_model, tuned = model_error.apply(model, sensor, stats, profile,
                                              extra_voltage_sd=getattr(scenario, "added_voltage_sd", 0.0), form=form)
         return run_model, tuned, stats.to_dict()
@@ -160,6 +164,9 @@ _REALIZED: dict = {}
 _MAX_REALIZED = 4
 # the model error a fitted model makes on a scenario's noise records: once per (fit, scenario) per process
 _MODEL_ERROR: dict = {}
+# a scenario's noise and calibration records with their fingerprints: once per (scenario, method) per process
+_RECORDS: dict = {}
+_MAX_RECORDS = 8
 
 
 def _cached(key: tuple, compute):
@@ -171,6 +178,24 @@ def _cached(key: tuple, compute):
             _MODEL_ERROR.pop(next(iter(_MODEL_ERROR)))
         _MODEL_ERROR[key] = compute()
     return _MODEL_ERROR[key]
+
+
+def _records(scenario, method: str):
+    """``(records, fingerprint)``: ``scenario.<method>()`` once per scenario and method in this process
+    (:data:`_RECORDS`), with a digest of every record's time, current, voltage, temperature and reference SOC."""
+    key = (getattr(scenario, "name", None), method)
+    if key[0] is None or key not in _RECORDS:
+        records = list(getattr(scenario, method)())
+        digest = hashlib.sha1()
+        for p in records:
+            for a in (p.time_s, p.current_a, p.voltage_v, p.temperature_c, p.soc_ref):
+                digest.update(b"-" if a is None else np.ascontiguousarray(a, dtype=float).tobytes())
+        if key[0] is None:
+            return records, None
+        if len(_RECORDS) >= _MAX_RECORDS:
+            _RECORDS.pop(next(iter(_RECORDS)))
+        _RECORDS[key] = (records, digest.hexdigest())
+    return _RECORDS[key]
 
 
 def _scenario(toolkit: Toolkit, name: str):
