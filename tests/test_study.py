@@ -364,3 +364,36 @@ def test_report_names_the_best_cell_and_draws_the_figures(tmp_path):
             png = out / f"{prefix}_{scen}.png"
             assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert len(rep["figures"]) == 6
+
+
+def test_scenarios_of_one_cell_and_lab_share_one_measured_noise_recipe(tmp_path, monkeypatch):
+    """The recipe and its calibration are keyed by what their records hold: the two default flight scenarios (same
+    truth cell, lab tests and validation flights) measure the model's error once; a scenario with other validation
+    flights measures it again."""
+    from socbench.estimators import model_error, nis_calibration
+    from socbench.scenarios import load_scenario
+    from socbench.study import cell
+
+    calls = {"estimate": 0, "calibrate": 0}
+
+    def counted(name, fn):
+        def wrapper(*a, **k):
+            calls[name] += 1
+            return fn(*a, **k)
+        return wrapper
+
+    monkeypatch.setattr(model_error, "estimate", counted("estimate", model_error.estimate))
+    monkeypatch.setattr(nis_calibration, "calibrate", counted("calibrate", nis_calibration.calibrate))
+    monkeypatch.setattr(cell, "_MODEL_ERROR", {})
+    monkeypatch.setattr(cell, "_RECORDS", {})
+    other = tmp_path / "other.toml"
+    other.write_text('extends = "flight-0kg"\n[validation]\npayloads_kg = [3.0]\n')
+    model = make_model("thevenin", paper_params("thevenin"))
+    tk = Toolkit()
+    seen = []
+    for name in ("flight-0kg", "flight-10kg", str(other)):
+        scen = load_scenario(name)
+        _, noise, stats = tk.filter_noise("ekf", model, scen, scen.realize([0]), "model", cache_key="fit")
+        seen.append((calls["estimate"], calls["calibrate"], stats["records"]))
+    assert [s[:2] for s in seen] == [(1, 1), (1, 1), (2, 2)]
+    assert seen[0][2] == seen[1][2] != seen[2][2]

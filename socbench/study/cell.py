@@ -33,7 +33,6 @@ Beside the row a cell record keeps, for the reliability report:
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import time
 
 import numpy as np
@@ -118,7 +117,7 @@ class Toolkit:
         measured_on = getattr(scenario, "noise_measured_on", lambda: "")()
         noise_records, fingerprint = _records(scenario, "noise_records")
         # keyed by what the records hold, not by the scenario: scenarios of one cell and lab share one measurement
-        key = (cache_key if fingerprint else None, fingerprint, measured_on)
+        key = (cache_key if fingerprint is not None else None, fingerprint, measured_on)
         stats = _cached(key, lambda: model_error.estimate(model, noise_records, measured_on=measured_on))
         form = estimator_class(estimator).model_error_form
         if getattr(scenario, "calibration_records", None) is not None:
@@ -182,19 +181,18 @@ def _cached(key: tuple, compute):
 
 def _records(scenario, method: str):
     """``(records, fingerprint)``: ``scenario.<method>()`` once per scenario and method in this process
-    (:data:`_RECORDS`), with a digest of every record's time, current, voltage, temperature and reference SOC."""
+    (:data:`_RECORDS`), with the fingerprints of its records (:func:`~socbench.study.grid.profile_fingerprint`);
+    a scenario without a name: never kept, fingerprint None."""
+    from .grid import profile_fingerprint
+
     key = (getattr(scenario, "name", None), method)
-    if key[0] is None or key not in _RECORDS:
+    if key[0] is None:
+        return list(getattr(scenario, method)()), None
+    if key not in _RECORDS:
         records = list(getattr(scenario, method)())
-        digest = hashlib.sha1()
-        for p in records:
-            for a in (p.time_s, p.current_a, p.voltage_v, p.temperature_c, p.soc_ref):
-                digest.update(b"-" if a is None else np.ascontiguousarray(a, dtype=float).tobytes())
-        if key[0] is None:
-            return records, None
         if len(_RECORDS) >= _MAX_RECORDS:
             _RECORDS.pop(next(iter(_RECORDS)))
-        _RECORDS[key] = (records, digest.hexdigest())
+        _RECORDS[key] = (records, tuple(profile_fingerprint(p) for p in records))
     return _RECORDS[key]
 
 
