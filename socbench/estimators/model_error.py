@@ -244,9 +244,10 @@ class ModelErrorStats:
         if any(f not in FORMS or not (np.isfinite(a) and a > 0) for f, a in scales):
             raise ConfigError(f"model_error: 'nis_scale' maps forms ({', '.join(FORMS)}) to factors > 0")
         object.__setattr__(self, "nis_scale", scales)
-        loads = tuple((str(f), tuple(float(x) for x in v)) for f, v in (
-            {k: (d["exponent"], d["ref_ms_current_a2"], *d["range_ms_current_a2"]) if isinstance(d, dict) else d
-             for k, d in self.nis_load.items()}.items() if isinstance(self.nis_load, dict) else self.nis_load))
+        loads = self.nis_load.items() if isinstance(self.nis_load, dict) else self.nis_load  # JSON form or tuples
+        loads = tuple((str(f), tuple(float(x) for x in (
+            (v["exponent"], v["ref_ms_current_a2"], *v["range_ms_current_a2"]) if isinstance(v, dict) else v)))
+            for f, v in loads)
         if any(f not in FORMS or len(v) != 4 or not all(np.isfinite(v)) or not 0 < v[2] <= v[1] <= v[3]
                for f, v in loads):
             raise ConfigError("model_error: 'nis_load' maps forms to {exponent, ref_ms_current_a2, "
@@ -650,11 +651,11 @@ def out_of_sample_here(stats: ModelErrorStats, profile: Profile | None = None) -
 def nis_factor(stats: ModelErrorStats, form: str, profile: Profile | None = None) -> float:
     """The NIS calibration's factor on the model-error variances for ``form`` (:attr:`ModelErrorStats.nis_scale`, at
     ``profile``'s load: :meth:`ModelErrorStats.load_term`) on ``profile``: as calibrated where the record lies at the
-    calibration records' temperatures
-    (:func:`out_of_sample_here`); elsewhere never below 1. The validation records measured the error at their
-    temperatures; a factor that shrank it there says nothing of another temperature, where the error met is larger
-    than the one measured (the Panasonic 25 °C fit, calibrated on the 25 °C Cycle_1 by 0.85, held the truth within
-    3σ on the 0 °C US06 in 36/23 % of the samples (EKF/UKF) with it applied, 52/39 % without)."""
+    calibration records' temperatures (:func:`out_of_sample_here`); elsewhere never below 1. The validation records
+    measured the error at their temperatures; a factor that shrank it there says nothing of another temperature, where
+    the error met is larger than the one measured (the Panasonic 25 °C fit, calibrated on the 25 °C Cycle_1 by 0.85,
+    held the truth within 3σ on the 0 °C US06 in 36/23 % of the samples (EKF/UKF) with it applied, 52/39 %
+    without)."""
     alpha = stats.scale_for(form) * stats.load_term(form, profile)
     return alpha if alpha >= 1.0 or out_of_sample_here(stats, profile) else 1.0
 

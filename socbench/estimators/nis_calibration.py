@@ -24,8 +24,8 @@ and 0.24 at α = ¼, ½, 1), where the plain step α·N overshoots and swings (t
 temperature, and the resistive part grows as ``I``): where the truth's resistance falls with the current (charge
 transfer, heating), a model fitted at one load misses the voltage as about ``I²`` at another. Where the validation
 records are at loads at least :data:`LOAD_LEVER` apart in mean-square current ``L`` (and at one temperature, within
-:data:`LOAD_TEMPERATURE_SPREAD_K`: else the pooled factor), each record gives its own factor
-``α_j``, and the calibration keeps ``α(L) = α·(L/L_ref)^q`` (:attr:`ModelErrorStats.nis_load`), fitted through them
+:data:`LOAD_TEMPERATURE_SPREAD_K`: else the pooled factor), each record gives its own factor ``α_j``, and the
+calibration keeps ``α(L) = α·(L/L_ref)^q`` (:attr:`ModelErrorStats.nis_load`), fitted through them
 in logs, ``q ∈ [0, LOAD_EXPONENT_MAX]``, ``L`` held within the calibrated loads (never extrapolated). The default
 flight scenarios validate at 2 and 8 kg of payload: with one 5 kg validation flight the EKF's NIS mean ran from 0.35
 on the 0 kg flight to 0.9 on the 10 kg one for the models without RC branches, and the particle filter's from 0.06
@@ -64,7 +64,7 @@ from .noise import SensorNoise
 #: for these records (reported, not hidden)
 ALPHA_MIN = 0.25
 ALPHA_MAX = 4.0
-#: rounds of α_{j+1} = α_j · NIS(α_j)
+#: rounds of the update α_{j+1} = α_j · N_j^{1/s_j} (module docstring)
 ROUNDS = 2
 #: the steepness s of NIS ∝ α^(−s) the update assumes after its first round (measured between the rounds), held within
 #: this range: an EKF's NIS falls about as 1/α, a bootstrap particle filter's about as 1/α² (its particles' spread
@@ -156,8 +156,8 @@ def _calibrate_over_load(model, sensor: SensorNoise, stats: ModelErrorStats, rec
     """Records at loads ``L_j`` (mean-square currents) at least :data:`LOAD_LEVER` apart: the factor of each record
     alone, ``α_j``, then ``ln α_j = ln α + q ln(L_j/L_ref)`` by least squares weighted by the records' samples
     (``α_j`` within :data:`LOAD_ALPHA_RANGE`, ``L_ref`` their weighted geometric mean, ``q`` within ``[0,
-    LOAD_EXPONENT_MAX]``, ``α`` within the bounds), followed between the lowest
-    and the highest load calibrated and held beyond them."""
+    LOAD_EXPONENT_MAX]``, ``α`` within the bounds), followed between the lowest and the highest load calibrated and
+    held beyond them."""
     alphas, logs, weights = [], [], []
     for prof, load in zip(records, loads):
         a = _factor(model, sensor, stats, [prof], form, LOAD_ALPHA_RANGE)
