@@ -163,20 +163,24 @@ _REALIZED: dict = {}
 _MAX_REALIZED = 4
 # the model error a fitted model makes on a scenario's noise records: once per (fit, scenario) per process
 _MODEL_ERROR: dict = {}
+_MAX_MODEL_ERROR = 64
 # a scenario's noise and calibration records with their fingerprints: once per (scenario, method) per process
 _RECORDS: dict = {}
 _MAX_RECORDS = 8
 
 
+def _memo(cache: dict, key, compute, limit: int | None = None):
+    """``compute()`` once per ``key`` in ``cache`` (this process); at ``limit`` entries the oldest one goes first."""
+    if key not in cache:
+        if limit is not None and len(cache) >= limit:
+            cache.pop(next(iter(cache)))
+        cache[key] = compute()
+    return cache[key]
+
+
 def _cached(key: tuple, compute):
     """``compute()`` once per ``key`` in this process (:data:`_MODEL_ERROR`; a key led by None: never kept)."""
-    if key[0] is None:
-        return compute()
-    if key not in _MODEL_ERROR:
-        if len(_MODEL_ERROR) >= 64:
-            _MODEL_ERROR.pop(next(iter(_MODEL_ERROR)))
-        _MODEL_ERROR[key] = compute()
-    return _MODEL_ERROR[key]
+    return compute() if key[0] is None else _memo(_MODEL_ERROR, key, compute, _MAX_MODEL_ERROR)
 
 
 def _records(scenario, method: str):
@@ -185,34 +189,28 @@ def _records(scenario, method: str):
     a scenario without a name: never kept, fingerprint None."""
     from .grid import profile_fingerprint
 
-    key = (getattr(scenario, "name", None), method)
-    if key[0] is None:
+    name = getattr(scenario, "name", None)
+    if name is None:
         return list(getattr(scenario, method)()), None
-    if key not in _RECORDS:
+
+    def compute():
         records = list(getattr(scenario, method)())
-        if len(_RECORDS) >= _MAX_RECORDS:
-            _RECORDS.pop(next(iter(_RECORDS)))
-        _RECORDS[key] = (records, tuple(profile_fingerprint(p) for p in records))
-    return _RECORDS[key]
+        return records, tuple(profile_fingerprint(p) for p in records)
+
+    return _memo(_RECORDS, (name, method), compute, _MAX_RECORDS)
 
 
 def _scenario(toolkit: Toolkit, name: str):
-    key = (type(toolkit).__qualname__, name)
-    if key not in _SCENARIOS:
-        _SCENARIOS[key] = toolkit.load_scenario(name)
-    return _SCENARIOS[key]
+    return _memo(_SCENARIOS, (type(toolkit).__qualname__, name), lambda: toolkit.load_scenario(name))
 
 
 def _realized(toolkit: Toolkit, name: str, seeds: tuple):
-    key = (type(toolkit).__qualname__, name, seeds)
-    if key not in _REALIZED:
+    def compute():
         scen = _scenario(toolkit, name)
-        profile = scen.realize(list(seeds))
         soc0 = np.broadcast_to(np.asarray(scen.initial_soc(list(seeds)), dtype=float), (len(seeds),)).copy()
-        if len(_REALIZED) >= _MAX_REALIZED:
-            _REALIZED.pop(next(iter(_REALIZED)))
-        _REALIZED[key] = (scen, profile, soc0)
-    return _REALIZED[key]
+        return scen, scen.realize(list(seeds)), soc0
+
+    return _memo(_REALIZED, (type(toolkit).__qualname__, name, seeds), compute, _MAX_REALIZED)
 
 
 def _error_text(exc: BaseException) -> str:
