@@ -161,7 +161,8 @@ class Toolkit:
 _SCENARIOS: dict = {}
 _REALIZED: dict = {}
 _MAX_REALIZED = 4
-# the model error a fitted model makes on a scenario's noise records: once per (fit, scenario) per process
+# the model error a fitted model makes on a scenario's noise records, and its calibration: once per (fit, records'
+# fingerprints) per process, so scenarios that share their records share one measurement
 _MODEL_ERROR: dict = {}
 _MAX_MODEL_ERROR = 64
 # a scenario's noise and calibration records with their fingerprints: once per (scenario, method) per process
