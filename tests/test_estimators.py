@@ -72,17 +72,47 @@ def test_batched_kalman_equals_filterpy(name, model_name):
 
 
 @pytest.mark.parametrize("jitter", [{"roughening": 0.2}, {"kernel_h": 0.5}])
-def test_batched_pf_equals_per_run_filterpy_resampling(jitter):
+@pytest.mark.parametrize("weight_extra", [0.0, 0.004 ** 2])
+def test_batched_pf_equals_per_run_filterpy_resampling(jitter, weight_extra):
     m = _model("thevenin")
     p = _realize(m, 120, 3)
+    noise = replace(NOISE, weight_extra_var=weight_extra)
     opts = {"n_particles": 64, "resample_threshold": 0.5, **jitter}
-    batched = make_estimator("pf", m, NOISE, **opts).run(p, soc0=0.85, P0=_p0(m, 0.05), seed=11)
-    ref = make_reference("pf", m, NOISE, **opts).run(p, soc0=0.85, P0=_p0(m, 0.05), seed=11)
+    batched = make_estimator("pf", m, noise, **opts).run(p, soc0=0.85, P0=_p0(m, 0.05), seed=11)
+    ref = make_reference("pf", m, noise, **opts).run(p, soc0=0.85, P0=_p0(m, 0.05), seed=11)
     assert np.all(batched.info["resampled"] >= 2)  # the resampling path is exercised in every run
     assert batched.info["tempered"].sum() >= 1  # and the tempered update too
     for f in FIELDS:
         np.testing.assert_allclose(getattr(batched, f), getattr(ref, f), rtol=0, atol=1e-9, err_msg=f)
     np.testing.assert_array_equal(batched.gated, ref.gated)
+
+
+@pytest.mark.parametrize("tau", [20.0, 300.0])
+def test_pf_weight_extra_counts_a_correlated_error_once_per_correlation_time(tau):
+    """``SensorNoise.weight_extra_var = σ_c²·2τ/dt``: the first sample is one full look at an error of variance σ_c²,
+    every later one ``dt/(2τ)`` of a look (the Fisher information of an AR(1) series' mean). At rest (SOC constant, no
+    process noise) the cloud's SOC spread after ``k`` samples must be the posterior of a Gaussian prior and those looks
+    through the OCV slope ``s``: ``1/σ_k² = 1/σ_0² + (s²/σ_c²)·(1 + (k − 1)/(1 + 2τ/dt))``; with white weights it
+    shrinks as ``1/√k`` instead."""
+    m = _model("thevenin")
+    T, sc, sd0 = 400, 0.01, 0.05
+    t = np.arange(T, dtype=float)
+    sim = m.simulate(Profile(t, np.zeros(T)), soc0=0.5)
+    p = Profile(t, np.zeros((1, T)), voltage_v=sim.voltage_v[None], soc_ref=sim.soc[None],
+                meta=ProfileMeta(name="rest", capacity_ah=22.0))
+    z = np.array([0.5 - 1e-6, 0.5 + 1e-6])
+    y = m.output(m.x0(z, (2,)), np.zeros(2), None)[0]
+    slope = (y[1] - y[0]) / 2e-6
+    noise = SensorNoise(voltage_sd=sc, current_sd=0.0, weight_extra_var=sc ** 2 * 2.0 * tau)
+    P0 = _p0(m, sd0)
+    P0[1:] = 1e-24
+    est = make_estimator("pf", m, noise, n_particles=2000, roughening=0.0).run(p, soc0=0.5, P0=P0, seed=1)
+    k = np.array([1, 10, 100, 400])
+    want = (1.0 / sd0 ** 2 + slope ** 2 / sc ** 2 * (1.0 + (k - 1) / (1.0 + 2.0 * tau))) ** -0.5
+    np.testing.assert_allclose(est.soc_std[0, k - 1], want, rtol=0.05)
+    white = make_estimator("pf", m, replace(noise, weight_extra_var=0.0), n_particles=2000, roughening=0.0).run(
+        p, soc0=0.5, P0=P0, seed=1)
+    assert white.soc_std[0, -1] < 0.5 * est.soc_std[0, -1]  # the widened weights made a difference
 
 
 def test_systematic_indices_match_filterpy():

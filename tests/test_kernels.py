@@ -514,12 +514,14 @@ def test_every_estimator_freezes_a_divergence_like_numpy(name):
 
 @pytest.mark.parametrize("name", ["ekf", "ukf", "pf", "coulomb"])
 def test_noise_forms_compiled(name):
-    """A random walk per state, a Q override matrix and an R override: the forms the compiled noise supports."""
+    """A random walk per state, a Q override matrix and an R override, and a widened particle-weight likelihood: the
+    forms the compiled noise supports."""
     model = make_model("thevenin", paper_params("thevenin"))
     p = _record(model, T=100)
     walk = SensorNoise(voltage_sd=0.01, current_sd=0.2, current_bias_sd=0.05, soc_walk_sd=1e-4, state_walk_sd=2e-3,
                        dt=2.0)
-    for noise, opts in ((walk, {}), (NOISE, {"Q": np.diag([1e-8, 1e-6]), "R": 2e-4})):
+    wide = SensorNoise(voltage_sd=0.01, current_sd=0.2, weight_extra_var=0.05 ** 2)
+    for noise, opts in ((walk, {}), (NOISE, {"Q": np.diag([1e-8, 1e-6]), "R": 2e-4}), (wide, {})):
         o = {**_options(name), "store_states": True, **opts}
         a = make_estimator(name, model, noise, engine="numpy", **o).run(p, soc0=0.6, seed=2)
         b = make_estimator(name, model, noise, engine="compiled", **o).run(p, soc0=0.6, seed=2)
@@ -616,3 +618,40 @@ def test_the_hinf_exception_is_numpy_s_own_sensitivity():
     fast = make_estimator("hinf", model, NOISE, engine="compiled", theta=1.0, store_states=True).run(p, soc0=soc0)
     assert not small.info["theta_capped"].any()
     _compare(small, fast)  # a θ the Riccati bound never caps: 1e-9 on every run
+
+
+# ================================================================================================ memory
+_LARGE_CLOUD = """
+import sys
+import numpy as np
+from socbench.estimators import SensorNoise, make_estimator
+from socbench.models import make_model, paper_params
+from socbench.profile import Profile
+m = make_model("thevenin", paper_params("thevenin"))
+t = np.arange(40.0)
+cur = np.where(t % 10 < 5, 30.0, 0.0)
+sim = m.simulate(Profile(t, cur), soc0=0.7)
+p = Profile(t, cur, voltage_v=sim.voltage_v)
+e = make_estimator("pf", m, SensorNoise(voltage_sd=0.01, current_sd=0.2), n_particles=3000, engine=sys.argv[1])
+np.save(sys.argv[2], e.run(p, soc0=0.6, seed=5).soc)
+"""
+
+
+def test_a_large_particle_cloud_runs_from_the_kernel_cache(tmp_path):
+    """A 3000-particle cloud, compiled, in two fresh processes (the first compiles or loads, the second loads the
+    cached kernel), equals numpy. The kernels write through pointers to scratch arrays; numba freed those arrays after
+    their last use as arrays (the ``ptr`` call), so the cached PF wrote into freed, unmapped memory and segfaulted from
+    about 1250 particles up (evaluate.keep_alive)."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "cloud.py"
+    script.write_text(_LARGE_CLOUD)
+    out = {}
+    for tag, engine in (("first", "compiled"), ("cached", "compiled"), ("numpy", "numpy")):
+        done = subprocess.run([sys.executable, str(script), engine, str(tmp_path / f"{tag}.npy")], capture_output=True,
+                              text=True, timeout=600)
+        assert done.returncode == 0, (tag, done.returncode, done.stderr[-2000:])
+        out[tag] = np.load(tmp_path / f"{tag}.npy")
+    np.testing.assert_array_equal(out["first"], out["cached"])
+    np.testing.assert_allclose(out["cached"], out["numpy"], rtol=0, atol=TOL)

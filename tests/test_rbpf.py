@@ -3,11 +3,14 @@
 Two behaviours: on a record its model describes exactly, it is the Kalman filter's answer (particles on the SOC, the
 other states in closed form); with a known model error planted in the voltage (the noise recipe's calibration records of
 ``tests/test_model_error.py``: a Gauss–Markov error of random size and correlation time, a wrong resistance, white
-noise), it carries the recipe's coloured states and its ±3σ band holds the truth 90–100 % of the time, where the
-bootstrap PF (which takes the error as white, the recipe's inflated form) does not.
+noise), it carries the recipe's coloured states and its ±3σ band holds the truth 90–100 % of the time, where a
+bootstrap PF that weighs its particles as if the error were white (the recipe's inflated form without
+``SensorNoise.weight_extra_var``) does not.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -28,6 +31,8 @@ def test_rbpf_band_holds_the_truth_with_a_known_model_error(cfg):
     covered = {}
     for name, form in (("rbpf", "states"), ("pf", "inflated")):
         m, n = recipe.apply(model, sensor, stats, test, noise="model", form=form)
+        if name == "pf":
+            n = replace(n, weight_extra_var=0.0)  # white weights
         s = score(make_estimator(name, m, n, soc0_sd=0.05, n_particles=100).run(test, soc0=guess, seed=4), test)
         assert s["failed_runs"] == 0
         covered[name] = s["frac_within_3sigma"]
@@ -35,7 +40,7 @@ def test_rbpf_band_holds_the_truth_with_a_known_model_error(cfg):
             assert 0.9 <= covered[name] <= 1.0, (err, covered)
             assert np.mean(s["runs"]["frac_within_3sigma"] >= 0.8) >= 0.85  # not a few perfect draws hiding bad ones
             assert 0.2 < s["nis_mean"] < 3.0
-    assert covered["pf"] < 0.9  # the bootstrap PF on the same draws: overconfident, so the test can fail
+    assert covered["pf"] < 0.9  # white weights on the same draws: overconfident, so the test can fail
 
 
 def test_rbpf_gives_the_kalman_answer_on_a_record_its_model_describes():

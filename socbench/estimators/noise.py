@@ -20,6 +20,16 @@ entry (one noise source). Two approximations, said out loud:
 ``soc_walk_sd`` / ``state_walk_sd`` are optional allowances for model error (per sample period ``dt``);
 ``walk_sd`` gives one walk SD per state instead (e.g. the coloured model-error state of
 :class:`~socbench.models.effects.ModelError`, whose walk the recipe of :mod:`socbench.estimators.model_error` sets).
+
+``weight_extra_var`` widens the likelihood a particle filter weighs its particles with, and nothing else::
+
+    R_w,k = R_k + weight_extra_var   (k ≥ 1;  R_w,0 = R_0)
+
+for a voltage error that ``σ_V`` counts as white although it is correlated over time (the model-error recipe's
+inflated form sets it). ``R_k`` stays the per-sample spread of the innovation (its NIS, its band); ``R_w`` counts the
+correlated part as a Gauss–Markov error of variance ``σ_c²`` and correlation time ``τ`` informs: the first sample one
+full look (``1/σ_c²``), every later one ``(1 − ρ)/(1 + ρ)/σ_c² ≈ dt/(2τ σ_c²)`` (``ρ = e^{−dt/τ}``; the Fisher
+information of the mean of an AR(1) series), i.e. a variance ``σ_c²·(1 + 2τ/dt)``.
 """
 
 from __future__ import annotations
@@ -44,6 +54,7 @@ class SensorNoise:
     walk_sd          one random-walk SD per ``dt`` for the model's states, in state order (replaces the two above
                      when given); states beyond it (an estimator's own parameter states, appended after the model's,
                      which carry their own walk) get none
+    weight_extra_var V², added to R in a particle filter's weights only (module docstring; 0 = none)
     """
 
     voltage_sd: float
@@ -53,9 +64,11 @@ class SensorNoise:
     soc_walk_sd: float = 0.0
     state_walk_sd: float = 0.0
     walk_sd: tuple = ()
+    weight_extra_var: float = 0.0
 
     def __post_init__(self):
-        for name in ("voltage_sd", "current_sd", "current_bias_sd", "soc_walk_sd", "state_walk_sd"):
+        for name in ("voltage_sd", "current_sd", "current_bias_sd", "soc_walk_sd", "state_walk_sd",
+                     "weight_extra_var"):
             v = getattr(self, name)
             if not np.isfinite(v) or v < 0:
                 raise ConfigError(f"SensorNoise.{name} must be a finite number >= 0, got {v!r}")
@@ -158,6 +171,11 @@ class NoiseModel:
         if callable(self.Q_override):
             return np.asarray(self.Q_override(B, dt), dtype=float)
         return self.Q_override
+
+    def weight_extra(self, k: int) -> float:
+        """What a particle filter adds to ``R_k`` in its weights at sample ``k`` of a run (module docstring): nothing
+        at the first sample, which is one full look at the error, then ``weight_extra_var``."""
+        return 0.0 if k == 0 else self.sensor.weight_extra_var
 
     def R(self, D, shape=()) -> np.ndarray:
         if self.R_override is None:

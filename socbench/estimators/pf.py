@@ -4,7 +4,8 @@ Each run carries ``N`` particles ``X_j`` with weights ``w_j`` (Gordon, Salmond &
 
     update    Y_j = h(X_j, I_k),  R_j = σ_V² + σ_I² D_j²
               ŷ = Σ w_j Y_j,   S = Σ w_j (Y_j − ŷ)² + Σ w_j R_j,   e = v_k − ŷ,   NIS = e²/S
-              w_j ← w_j · N(v_k; Y_j, R_j) / Σ(…)          (in the log domain; skipped when the χ² gate rejects)
+              w_j ← w_j · N(v_k; Y_j, R_j + R_x) / Σ(…)     (in the log domain; skipped when the χ² gate rejects;
+                                                            R_x = ``SensorNoise.weight_extra_var``, below)
               if that would leave N_eff < temper_threshold·N, the likelihood is applied in tempered stages with
               resampling and a shrinkage kernel between them (progressive correction, see ``assimilate``)
               report ẑ = Σ w_j z_j, soc_std² = Σ w_j (z_j − ẑ)²
@@ -231,15 +232,16 @@ class ParticleFilter(Estimator):
         return StepDraws(seed, n_runs, self.n_particles, self.n, sd_i is not None, additive is not None, runs)
 
     # ------------------------------------------------------------------ measurement update with tempering
-    def assimilate(self, X, w, ll, gated, v, i, temp, stage_draws):
+    def assimilate(self, X, w, ll, gated, v, i, temp, stage_draws, extra: float = 0.0):
         """Weights ``w ∝ w · L`` for the rows not gated, by :func:`progressive_correction`; the moved particles'
-        likelihood is the model's output at them against ``v``. Returns ``(X, w, stages (M,))``. Rows are
-        independent, so a per-run caller (the reference) gets the same numbers from a one-row slice."""
+        likelihood is the model's output at them against ``v`` (variance ``R + extra``). Returns ``(X, w, stages
+        (M,))``. Rows are independent, so a per-run caller (the reference) gets the same numbers from a one-row
+        slice."""
 
         def relikelihood(part, Xp):
             tp = None if temp is None else temp[part][:, None]
             Yp, _, Dp = self.model.output(Xp, i[part][:, None], tp, jac=self.noise.needs_D)
-            return log_likelihood(v[part][:, None], Yp, self.noise.R(Dp, Yp.shape))
+            return log_likelihood(v[part][:, None], Yp, self.noise.R(Dp, Yp.shape) + extra)
 
         return progressive_correction(X, w, ll, gated, self.options, stage_draws, relikelihood)
 
@@ -274,8 +276,9 @@ class ParticleFilter(Estimator):
                 e = vk - yhat
                 nis = e * e / S
                 gated = gate(nis)
-                X, w, n_stages = self.assimilate(X, w, log_likelihood(vk[:, None], Y, Rk), gated, vk, ik, tk,
-                                                 lambda s, k=k: draws.stage(k, s))
+                extra = noise.weight_extra(k)
+                X, w, n_stages = self.assimilate(X, w, log_likelihood(vk[:, None], Y, Rk + extra), gated, vk, ik, tk,
+                                                 lambda s, k=k: draws.stage(k, s), extra)
                 staged += (n_stages > 1) & ~rec.failed  # runs failed earlier are frozen: they count nothing
                 mean, var = cloud_moments(w, X)
                 failed = rec.fail(k, diverged(mean, var[:, 0], nis, opt["var_max"], opt["nis_max"]))

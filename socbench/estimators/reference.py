@@ -237,9 +237,9 @@ class ReferencePF(ParticleFilter):
             e = v - yhat
             gated = gate(np.array([e * e / S]))
             temp_1 = None if temp is None else np.array([temp])
-            Xs, ws, _ = self.assimilate(X[None], w[None], log_likelihood(v, Y, Rk)[None], gated, np.array([v]),
-                                        np.array([i]), temp_1,
-                                        lambda s, k=k: draws.stage(k, s))
+            extra = noise.weight_extra(k)
+            Xs, ws, _ = self.assimilate(X[None], w[None], log_likelihood(v, Y, Rk + extra)[None], gated, np.array([v]),
+                                        np.array([i]), temp_1, lambda s, k=k: draws.stage(k, s), extra)
             X, w = Xs[0], ws[0]
             mean = w @ X
             var = w @ (X - mean) ** 2

@@ -63,7 +63,7 @@ def noise_arrays(noise, n: int):
     has_walk = (s.has_walk or noise.walk is not None) and noise.Q_override is None  # NoiseModel.Q: the override alone
     nz = np.array([s.voltage_sd**2, s.input_var, np.nan if noise.R_override is None else float(noise.R_override),
                    s.dt, 1.0 if has_walk else 0.0, 0.0 if noise.Q_override is None else 1.0, s.current_sd**2,
-                   s.current_bias_sd**2])
+                   s.current_bias_sd**2, s.weight_extra_var])
     Qo = np.zeros((n, n)) if noise.Q_override is None else np.ascontiguousarray(noise.Q_override, dtype=float)
     return nz, np.ascontiguousarray(walk, dtype=float), Qo
 

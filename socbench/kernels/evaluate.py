@@ -96,6 +96,19 @@ def ptr_off(typingctx, p, k):
 
 
 @intrinsic
+def keep_alive(typingctx, arrays):
+    """Nothing, but a use of every array in the tuple ``arrays``: call it at the end of a kernel with the arrays it
+    only reaches through :func:`ptr`. numba frees an array after its variable's last use, and a ``ptr(a)`` call is
+    the last use of an array read through its pointer alone, so the array would be freed while the pointer is still
+    written through (measured: a 1300-particle cloud's scratch, an ``mmap`` block, unmapped before the first write:
+    a segfault; smaller blocks stay mapped in the heap and the writes went to freed memory)."""
+    def codegen(context, builder, sig, args):
+        return context.get_dummy_value()
+
+    return types.none(arrays), codegen
+
+
+@intrinsic
 def ptr_at(typingctx, arr, k):
     """Pointer to element ``k`` (flat, C order) of a C-contiguous array."""
     def codegen(context, builder, sig, args):
@@ -1145,6 +1158,7 @@ def eval_points(im, fm2, X, I, DT, TEMP, has_temp, jac, XN, F, B, Y, H, D, statu
         Y[p] = y
         D[p] = d
         status[p] = max(s1, s2)
+    keep_alive((work,))
 
 
 @kernel
@@ -1162,4 +1176,5 @@ def eval_cloud(im, fm, X, I, i_out, dt, temp, has_temp, XN, Y, D):
                            ptr(work), ptr(PW))
     s2 = model_output_points(ptr(im), ptr(fm), ptr(X), npts, i_out, temp, has_temp, ptr(Y), ptr(D), ptr(H),
                              ptr(work), ptr(PW))
+    keep_alive((work, PW, F, B, H))
     return max(s1, s2)

@@ -33,13 +33,14 @@ import math
 
 import numpy as np
 
-from .evaluate import WORK_SIZE, model_output, model_step, ptr, ptr_at
+from .evaluate import WORK_SIZE, keep_alive, model_output, model_step, ptr, ptr_at
 from .jit import kernel
 from .linalg import cholesky_lower, diverged_cov, diverged_var, eigh_jacobi, gate, repair_psd, symmetrise
 
 #: nz slots
-NOISE_FIELDS = ("voltage_var", "input_var", "r_override", "dt0", "has_walk", "q_override", "current_var", "bias_var")
-V_VAR, IN_VAR, R_OVR, DT0, HAS_WALK, Q_OVR, CUR_VAR, BIAS_VAR = range(8)
+NOISE_FIELDS = ("voltage_var", "input_var", "r_override", "dt0", "has_walk", "q_override", "current_var", "bias_var",
+                "weight_extra_var")
+V_VAR, IN_VAR, R_OVR, DT0, HAS_WALK, Q_OVR, CUR_VAR, BIAS_VAR, W_EXTRA = range(9)
 #: opt slots
 OPTION_FIELDS = ("gate_threshold", "gate_release", "var_max", "nis_max", "psd_floor", "psd_rel_floor", "schedule_soc")
 G_THR, G_REL, VAR_MAX, NIS_MAX, PSD_ABS, PSD_REL, SCHEDULE = range(7)
@@ -393,6 +394,7 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             vout[r, 1] = qh[0, 0]
         elif hinf:
             vout[r, 0] = capped
+    keep_alive((x, H, K, B, w, P, F, Q, M, V, work, scratch, xn, xe, He, PHt, col, A, G, qh))
 
 
 # ================================================================================================ UKF
@@ -541,6 +543,7 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                 failed_at[r] = k + 1
                 freeze(outf, outb, xs, pd, store, r, k + 1, T, n, x0[r, 0], math.sqrt(P0[r, 0, 0]), volt[r, 0])
                 break
+    keep_alive((x, H, K, B, w, P, F, Q, M, V, work, scratch, xe, Pxy, Y, X, Xf, L))
 
 
 # ================================================================================================ coulomb counting
@@ -605,3 +608,4 @@ def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo
             process_cov(nzp, walkp, Qop, Bp, n, dts[k], nz[CUR_VAR], Qp)
             propagate(Fp, Pp, Qp, n, Mp)
             symmetrise(Pp, n)
+    keep_alive((x, H, B, w, P, F, Q, M, scratch, xn))

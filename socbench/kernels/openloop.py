@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .evaluate import WORK_SIZE, model_output, model_step, ptr, ptr_at
+from .evaluate import WORK_SIZE, keep_alive, model_output, model_step, ptr, ptr_at
 from .jit import kernel
 from .lowering import try_lower
 
@@ -55,6 +55,7 @@ def open_loop_rows(r0, r1, im, fm2, x0, cur, temp, has_temp, dts, jumps, volts, 
                 for a in range(n):
                     x[a] = xn[a]
                 x[0] += jumps[k + 1]
+    keep_alive((x, xn, H, B, F, scratch))
 
 
 

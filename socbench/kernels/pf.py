@@ -18,8 +18,8 @@ import math
 import numpy as np
 
 from ..estimators import draws as D
-from .evaluate import WORK_SIZE, model_output_points, model_step_points, points_scratch, ptr
-from .filters import DT0, freeze, measurement_var, record
+from .evaluate import WORK_SIZE, keep_alive, model_output_points, model_step_points, points_scratch, ptr
+from .filters import DT0, W_EXTRA, freeze, measurement_var, record
 from .jit import kernel
 from .linalg import diverged_var, eigh_jacobi, gate
 
@@ -224,8 +224,9 @@ def clamp_particles(X, N, n):
 
 
 @kernel
-def likelihoods(imp, fmp, X, v, i, temp, has_temp, nz, N, Y, Rk, ll, Hp, sp, PW):
-    """``Y, R`` and ``log N(v; Y, R)`` (up to the constant) of every particle (the model on the whole cloud at once,
+def likelihoods(imp, fmp, X, v, i, temp, has_temp, nz, extra, N, Y, Rk, ll, Hp, sp, PW):
+    """``Y, R`` and ``log N(v; Y, R + extra)`` (up to the constant; ``extra`` the weights' extra variance,
+    noise.NoiseModel.weight_extra) of every particle (the model on the whole cloud at once,
     :func:`~.evaluate.model_output_points`; ``Rk`` holds the feedthroughs ``D`` in between); returns the model
     status."""
     st = model_output_points(imp, fmp, X, N, i, temp, has_temp, Y, Rk, Hp, sp, PW)
@@ -234,6 +235,7 @@ def likelihoods(imp, fmp, X, v, i, temp, has_temp, nz, N, Y, Rk, ll, Hp, sp, PW)
     for p in range(N):
         r = measurement_var(nz, Rk[p])
         Rk[p] = r
+        r += extra
         res = v - Y[p]
         ll[p] = -0.5 * res * res / r - 0.5 * math.log(r)
     return 0
@@ -314,8 +316,9 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
             ik = cur[r, k]
             tk = temp[r, k]
             vk = volt[r, k]
+            extra = 0.0 if k == 0 else nz[W_EXTRA]  # noise.NoiseModel.weight_extra
             # ---------------------------------------------------------------- update
-            st = likelihoods(imp, fmp, Xp, vk, ik, tk, has_temp, nzp, N, Yp, Rkp, llp, Hp, sp, PWp)
+            st = likelihoods(imp, fmp, Xp, vk, ik, tk, has_temp, nzp, extra, N, Yp, Rkp, llp, Hp, sp, PWp)
             if st != 0:
                 status[r] = st
                 break
@@ -360,7 +363,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                     clamp_particles(Xp, N, n)
                     for p in range(N):
                         lw[p] = -math.log(N)
-                    st = likelihoods(imp, fmp, Xp, vk, ik, tk, has_temp, nzp, N, Yp, Rkp, llp, Hp, sp, PWp)
+                    st = likelihoods(imp, fmp, Xp, vk, ik, tk, has_temp, nzp, extra, N, Yp, Rkp, llp, Hp, sp, PWp)
                     if st != 0:
                         break
             if st != 0:
@@ -459,3 +462,5 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                 failed_at[r] = k + 1
                 freeze(outf, outb, xs, pd, store, r, k + 1, T, n, x0[r, 0], std0[r], volt[r, 0])
                 break
+    keep_alive((X, Xr, w, lw, ll, tmp, Y, Rk, cum, idx, H, Xn, Ip, PW, Bv, mean, var, mean_r, ev, E, Ei, Es, F, root,
+                Vm, U, work, scratch))
