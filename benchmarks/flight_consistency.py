@@ -86,8 +86,11 @@ def main(argv=None) -> int:
           "tracks less tightly than an overconfident one.", ""]
     df = frames["model"]
     outside = df[(df["estimator"] != "coulomb") & ~df["nis_mean"].between(*BAND)]
-    w += ["## Filter cells outside the band with the recipe", "",
-          "| model | estimator | scenario | NIS mean | within ±3σ | SOC RMSE [%] |", "|---|---|---|---|---|---|"]
+    w += ["## Filter cells outside the band with the recipe", ""]
+    if outside.empty:
+        w.append("None.")
+    else:
+        w += ["| model | estimator | scenario | NIS mean | within ±3σ | SOC RMSE [%] |", "|---|---|---|---|---|---|"]
     for _, r in outside.sort_values(["estimator", "scenario", "model"]).iterrows():
         w.append(f"| {r.model} | {r.estimator} | {r.scenario} | {r.nis_mean:.3g} | {r.frac_within_3sigma:.2f} | "
                  f"{100 * r.soc_rmse:.2f} |")
