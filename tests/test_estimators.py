@@ -113,6 +113,14 @@ def test_pf_weight_extra_counts_a_correlated_error_once_per_correlation_time(tau
     white = make_estimator("pf", m, replace(noise, weight_extra_var=0.0), n_particles=2000, roughening=0.0).run(
         p, soc0=0.5, P0=P0, seed=1)
     assert white.soc_std[0, -1] < 0.5 * est.soc_std[0, -1]  # the widened weights made a difference
+    # the full look is the first sample the run assimilates: three wild readings first, which the gate rejects
+    wild = p.voltage_v.copy()
+    wild[0, :3] += 2.0
+    late = make_estimator("pf", m, noise, n_particles=2000, roughening=0.0).run(
+        Profile(t, p.current_a, voltage_v=wild, soc_ref=p.soc_ref, meta=p.meta), soc0=0.5, P0=P0, seed=1)
+    assert late.gated[0, :3].all() and not late.gated[0, 3:].any()
+    np.testing.assert_allclose(late.soc_std[0, :3], sd0, rtol=0.05)  # nothing learnt from the rejected readings
+    np.testing.assert_allclose(late.soc_std[0, 3 + k[:-1] - 1], want[:-1], rtol=0.05)
 
 
 def test_systematic_indices_match_filterpy():

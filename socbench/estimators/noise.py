@@ -23,7 +23,7 @@ entry (one noise source). Two approximations, said out loud:
 
 ``weight_extra_var`` widens the likelihood a particle filter weighs its particles with, and nothing else::
 
-    R_w,k = R_k + weight_extra_var   (k ≥ 1;  R_w,0 = R_0)
+    R_w,k = R_k + weight_extra_var   (after the run's first assimilated sample, which has R_w = R)
 
 for a voltage error that ``σ_V`` counts as white although it is correlated over time (the model-error recipe's
 inflated form sets it). ``R_k`` stays the per-sample spread of the innovation (its NIS, its band); ``R_w`` counts the
@@ -172,10 +172,11 @@ class NoiseModel:
             return np.asarray(self.Q_override(B, dt), dtype=float)
         return self.Q_override
 
-    def weight_extra(self, k: int) -> float:
-        """What a particle filter adds to ``R_k`` in its weights at sample ``k`` of a run (module docstring): nothing
-        at the first sample, which is one full look at the error, then ``weight_extra_var``."""
-        return 0.0 if k == 0 else self.sensor.weight_extra_var
+    def weight_extra(self, looked) -> np.ndarray:
+        """What a particle filter adds to ``R_k`` in its weights, per run (module docstring): nothing before the run's
+        first assimilated sample (``looked`` False: that sample is one full look at the error; a sample the innovation
+        gate rejects is none), then ``weight_extra_var``."""
+        return np.where(looked, self.sensor.weight_extra_var, 0.0)
 
     def R(self, D, shape=()) -> np.ndarray:
         if self.R_override is None:

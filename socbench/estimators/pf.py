@@ -232,16 +232,16 @@ class ParticleFilter(Estimator):
         return StepDraws(seed, n_runs, self.n_particles, self.n, sd_i is not None, additive is not None, runs)
 
     # ------------------------------------------------------------------ measurement update with tempering
-    def assimilate(self, X, w, ll, gated, v, i, temp, stage_draws, extra: float = 0.0):
+    def assimilate(self, X, w, ll, gated, v, i, temp, stage_draws, extra):
         """Weights ``w ∝ w · L`` for the rows not gated, by :func:`progressive_correction`; the moved particles'
-        likelihood is the model's output at them against ``v`` (variance ``R + extra``). Returns ``(X, w, stages
-        (M,))``. Rows are independent, so a per-run caller (the reference) gets the same numbers from a one-row
-        slice."""
+        likelihood is the model's output at them against ``v`` (variance ``R + extra``, ``extra (M,)`` per row).
+        Returns ``(X, w, stages (M,))``. Rows are independent, so a per-run caller (the reference) gets the same
+        numbers from a one-row slice."""
 
         def relikelihood(part, Xp):
             tp = None if temp is None else temp[part][:, None]
             Yp, _, Dp = self.model.output(Xp, i[part][:, None], tp, jac=self.noise.needs_D)
-            return log_likelihood(v[part][:, None], Yp, self.noise.R(Dp, Yp.shape) + extra)
+            return log_likelihood(v[part][:, None], Yp, self.noise.R(Dp, Yp.shape) + extra[part][:, None])
 
         return progressive_correction(X, w, ll, gated, self.options, stage_draws, relikelihood)
 
@@ -262,6 +262,7 @@ class ParticleFilter(Estimator):
         K_rough, h = opt["roughening"], opt["kernel_h"]
         resampled = np.zeros(R, dtype=int)
         staged = np.zeros(R, dtype=int)
+        looked = np.zeros(R, dtype=bool)  # whether the run has assimilated a sample yet (noise.NoiseModel.weight_extra)
         with np.errstate(all="ignore"):
             for k in range(T):
                 u, eps_i, eps_q = draws.step(k)
@@ -276,9 +277,10 @@ class ParticleFilter(Estimator):
                 e = vk - yhat
                 nis = e * e / S
                 gated = gate(nis)
-                extra = noise.weight_extra(k)
-                X, w, n_stages = self.assimilate(X, w, log_likelihood(vk[:, None], Y, Rk + extra), gated, vk, ik, tk,
-                                                 lambda s, k=k: draws.stage(k, s), extra)
+                extra = noise.weight_extra(looked)
+                X, w, n_stages = self.assimilate(X, w, log_likelihood(vk[:, None], Y, Rk + extra[:, None]), gated, vk,
+                                                 ik, tk, lambda s, k=k: draws.stage(k, s), extra)
+                looked |= ~gated
                 staged += (n_stages > 1) & ~rec.failed  # runs failed earlier are frozen: they count nothing
                 mean, var = cloud_moments(w, X)
                 failed = rec.fail(k, diverged(mean, var[:, 0], nis, opt["var_max"], opt["nis_max"]))

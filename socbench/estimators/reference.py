@@ -226,6 +226,7 @@ class ReferencePF(ParticleFilter):
         clamp = _clamp_one(X)
         w = np.full(N, 1.0 / N)
         gate = self.gate(1)
+        looked = False  # whether the run has assimilated a sample yet (noise.NoiseModel.weight_extra)
         for k in range(T):
             u, eps_i, eps_q = draws.step(k)
             i, v = inputs.current[0, k], inputs.voltage[0, k]
@@ -237,9 +238,10 @@ class ReferencePF(ParticleFilter):
             e = v - yhat
             gated = gate(np.array([e * e / S]))
             temp_1 = None if temp is None else np.array([temp])
-            extra = noise.weight_extra(k)
+            extra = noise.weight_extra(looked)
             Xs, ws, _ = self.assimilate(X[None], w[None], log_likelihood(v, Y, Rk + extra)[None], gated, np.array([v]),
-                                        np.array([i]), temp_1, lambda s, k=k: draws.stage(k, s), extra)
+                                        np.array([i]), temp_1, lambda s, k=k: draws.stage(k, s), np.array([extra]))
+            looked = looked or not gated[0]
             X, w = Xs[0], ws[0]
             mean = w @ X
             var = w @ (X - mean) ** 2

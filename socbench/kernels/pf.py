@@ -312,11 +312,12 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
             w[p] = 1.0 / N
             lw[p] = math.log(w[p])  # the log-weights are carried from sample to sample (numpy takes log(w) anew)
         consecutive = np.int64(0)
+        looked = False  # whether the run has assimilated a sample yet
         for k in range(T):
             ik = cur[r, k]
             tk = temp[r, k]
             vk = volt[r, k]
-            extra = 0.0 if k == 0 else nz[W_EXTRA]  # noise.NoiseModel.weight_extra
+            extra = nz[W_EXTRA] if looked else 0.0  # noise.NoiseModel.weight_extra
             # ---------------------------------------------------------------- update
             st = likelihoods(imp, fmp, Xp, vk, ik, tk, has_temp, nzp, extra, N, Yp, Rkp, llp, Hp, sp, PWp)
             if st != 0:
@@ -335,6 +336,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
             e = vk - yhat
             nis = e * e / S
             gated, consecutive = gate(nis, opt[0], consecutive, opt[1])
+            looked = looked or not gated
             # tempered assimilation (pf.ParticleFilter.assimilate)
             left = 0.0 if gated else 1.0
             stages = 0
