@@ -38,7 +38,10 @@ tables, gating, clamping and divergences.
 literal constant is passed to a compiled function (numba compiles a copy of it, and of everything it calls, per
 literal); small helpers with few call sites are inlined (``kernel(inline=True)``), the rest stay calls (inlining
 everything triples the compile time); kernels loop over a slice of runs and Python threads share the runs out (numba's
-``prange`` costs more to compile than it saves); compiled code never allocates inside the time loop.
+``prange`` costs more to compile than it saves); compiled code never allocates inside the time loop; a kernel ends with
+:func:`~socbench.kernels.evaluate.keep_alive` over the arrays it allocated and reaches only through pointers (numba
+frees an array after its variable's last use, which for those is the ``ptr`` call: the kernel would write into freed
+memory, and a large block is unmapped on free: a segfault).
 
 **Compilation** is lazy and cached (:mod:`socbench.kernels.jit`): nothing compiles at import; the first call of each
 kernel compiles it (tens of seconds for all of them, once per machine and version) and stores it under a fingerprint
