@@ -138,8 +138,8 @@ flight cell, with a NIS mean of 1). So the particle weights count each coloured 
 
     weight_extra_var = Σ_c σ_c²·2τ_c/dt₀      (slow: τ_slow, its second share: τ_mid, fast: τ_fast, resistive: τ_r)
 
-(:class:`~socbench.estimators.noise.SensorNoise`: the first sample one full look, every later one ``dt/(2τ)`` of a
-look), while ``σ_V²`` stays the innovation's per-sample spread. Estimators declare which form they take
+(:class:`~socbench.estimators.noise.SensorNoise`: the run's first assimilated sample one full look, every later one
+``dt/(2τ)`` of a look), while ``σ_V²`` stays the innovation's per-sample spread. Estimators declare which form they take
 (``Estimator.model_error_form``).
 """
 
