@@ -5,7 +5,9 @@ Each run carries ``N`` particles ``X_j`` with weights ``w_j`` (Gordon, Salmond &
     update    Y_j = h(X_j, I_k),  R_j = σ_V² + σ_I² D_j²
               ŷ = Σ w_j Y_j,   S = Σ w_j (Y_j − ŷ)² + Σ w_j R_j,   e = v_k − ŷ,   NIS = e²/S
               w_j ← w_j · N(v_k; Y_j, R_j + R_x) / Σ(…)     (in the log domain; skipped when the χ² gate rejects;
-                                                            R_x = ``SensorNoise.weight_extra_var``, below)
+                                                            R_x: ``NoiseModel.weight_extra``, 0 until the run's
+                                                            first assimilated sample, then
+                                                            ``SensorNoise.weight_extra_var``)
               if that would leave N_eff < temper_threshold·N, the likelihood is applied in tempered stages with
               resampling and a shrinkage kernel between them (progressive correction, see ``assimilate``)
               report ẑ = Σ w_j z_j, soc_std² = Σ w_j (z_j − ẑ)²
