@@ -27,9 +27,9 @@ entry (one noise source). Two approximations, said out loud:
 
 for a voltage error that ``σ_V`` counts as white although it is correlated over time (the model-error recipe's
 inflated form sets it). ``R_k`` stays the per-sample spread of the innovation (its NIS, its band); ``R_w`` counts the
-correlated part as a Gauss–Markov error of variance ``σ_c²`` and correlation time ``τ`` informs: the first sample one
-full look (``1/σ_c²``), every later one ``(1 − ρ)/(1 + ρ)/σ_c² ≈ dt/(2τ σ_c²)`` (``ρ = e^{−dt/τ}``; the Fisher
-information of the mean of an AR(1) series), i.e. a variance ``σ_c²·(1 + 2τ/dt)``.
+correlated part as much as a Gauss–Markov error of variance ``σ_c²`` and correlation time ``τ`` informs: the first
+sample one full look (``1/σ_c²``), every later one ``(1 − ρ)/(1 + ρ)/σ_c² ≈ dt/(2τ σ_c²)`` (``ρ = e^{−dt/τ}``; the
+Fisher information of the mean of an AR(1) series), i.e. a variance ``σ_c²·(1 + 2τ/dt)``.
 """
 
 from __future__ import annotations
