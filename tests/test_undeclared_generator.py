@@ -6,11 +6,15 @@ the effect search on field records shaped like its loads.
 * a vehicle's stop (a small steady auxiliary current, below C/20, for a minute or two) is not a rest that measures
   the current sensor: the search reads no offset from such records, and reads the offset when there is one;
 * the footprint of each hidden effect alone, and the rates by detectability;
+* the footprint beyond the base: what a rescaled base cannot take (a nearly linear charge-transfer over-potential is
+  taken, a capacity fade is not);
 * a hidden extra RC branch is one the truth base lacks: its time constant lies outside the ×TWIN_TAU window of every
   branch of the truth's base structure (the window in which the search calls a branch a misfit of the base's own).
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -25,10 +29,12 @@ from socbench.diagnose.randomized import (
     draw_case,
     eval_current,
     footprint,
+    footprint_beyond_base,
     missing_time_constant,
 )
 from socbench.diagnose.search import FIELD_REST_MIN_S, REST_OFFSET_C, TWIN_TAU, rest_current
 from socbench.identify.fit import branch_time_constants
+from socbench.models.effects import augment, make_effect
 from socbench.profile import Profile
 
 
@@ -88,6 +94,32 @@ def test_each_hidden_effect_has_its_own_footprint():
     assert max(own.values()) > 0.2 * both  # one of the two carries a real share of what both add
     single = draw_case(next(k for k in range(10) if case_kind(k)[0] == "single"), 11)
     assert footprint(single, only=single.effects[0]) == pytest.approx(footprint(single), rel=1e-9)
+
+
+def _with_hidden(case, name, **values):
+    """``case`` with ``name`` at ``values`` as its one hidden effect (the records' currents are kept: the footprints
+    simulate the truth on them)."""
+    effect = make_effect(name, **values)
+    return dataclasses.replace(case, effects=(name,), hidden={name: effect},
+                               truth=augment(case.truth_without, [effect]), draws={**case.draws, name: values})
+
+
+def test_the_footprint_beyond_the_base_is_what_a_rescaled_base_cannot_take():
+    """A charge-transfer over-potential with I0 = 5 C is within 2 % of linear over a 3 C load: a rescaled R0 takes it,
+    so little of its footprint is left beyond the base. A 20 % capacity fade drifts the SOC, which no scaling of
+    resistances and capacitances reproduces: most of its footprint is left. Four drawn cells; the fit starts from
+    the truth's own parameters, so it never ends above the plain footprint."""
+    cases = [draw_case(k, 11) for k in range(10) if case_kind(k)[0] == "single"][:4]
+    for case in cases:
+        q = case.capacity_ah
+        linear_bv = _with_hidden(case, "butler_volmer", I0=5.0 * q, dR=0.0)
+        fade = _with_hidden(case, "capacity", cap0=1.0 / 0.8)
+        fp_bv, fp_fade = footprint(linear_bv), footprint(fade)
+        assert fp_bv > 0.5 and fp_fade > 0.5, (fp_bv, fp_fade)  # both show on the records
+        beyond_bv, beyond_fade = footprint_beyond_base(linear_bv), footprint_beyond_base(fade)
+        assert beyond_bv < 0.2 * fp_bv, (case.index, fp_bv, beyond_bv)
+        assert beyond_fade > 0.6 * fp_fade, (case.index, fp_fade, beyond_fade)
+        assert beyond_bv <= fp_bv * (1 + 1e-9) and beyond_fade <= fp_fade * (1 + 1e-9)
 
 
 def test_rates_by_detectability_put_each_case_in_its_footprint_class():
