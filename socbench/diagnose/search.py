@@ -713,10 +713,11 @@ class Search:
         On the randomised benchmark (against the search without it): seed 2026, named first 73 → 75 of 120, cut
         ≥ 30 % 86 → 88, nulls and pairs unchanged (39/40, 14/40), one wrong name where nothing was named (an
         efficiency for a hidden branch), SOC not worse 187 → 185 of 200 (two cases whose filter, on the better model,
-        trusts a voltage whose residual is still structured); development seed 31 named first 42 → 46 of 72, no other
-        change; seed 47 named first unchanged, two wrong names where nothing was named (a leak for an efficiency within
-        the noise, a hysteresis in a pair). Asked in later rounds too it added two false second effects on seed 47
-        for one pair more: it is asked in the first round only."""
+        trusts a voltage whose residual is still structured); development seed 31 named first 42 → 46 of 72 and cut
+        ≥ 30 % 52 → 55, nothing else changed; seed 47 named first unchanged, two wrong names where nothing was named
+        (a leak for an efficiency within the noise, a hysteresis in a pair), SOC not worse 114 → 113 of 120. Asked
+        in later rounds too it added two false second effects on seed 47 for one pair more: it is asked in the first
+        round only."""
         if names or BASE_REFIT not in self.candidates or fold_sigs is None:
             return None
         refit = next((c for c in cands if c.effect == BASE_REFIT and np.isfinite(c.score)), None)
