@@ -342,6 +342,7 @@ def misses_beyond_base(results) -> dict | None:
     return {"missed": len(missed), "within_noise_beyond_base": len(hidden),
             "within_noise_plain": sum(randomized.own_footprint(r, r["effects"][0]) < 1.0 for r in hidden),
             "above_noise_beyond_base": len(seen), "named_first_above": sum(r["first"] == r["effects"][0] for r in seen),
+            "below_noise_beyond_base": len(single) - len(seen),
             "big_misses": [{"index": r["index"], "effect": r["effects"][0], "beyond": beyond(r), "first": r["first"]}
                            for r in sorted(missed, key=lambda r: -beyond(r)) if beyond(r) >= 3.0]}
 
@@ -353,12 +354,17 @@ def render_misses(m: dict | None) -> list:
     listed = ", ".join(f"{b['index']} ({b['effect']}, {b['beyond']:.1f}; named first: {b['first'] or 'nothing'})"
                        for b in m["big_misses"])
     above, hits = m["above_noise_beyond_base"], m["named_first_above"]
+    low = m.get("below_noise_beyond_base", 0)
+    named_low = (f" (of the {low} cases below 1, the search named {low - m['within_noise_beyond_base']} first all "
+                 "the same, on evidence that can only be the fit test, which fixed the base's parameters, or rests "
+                 "that measured the current sensor)" if low else "")
     return [f"What the misses are. Of the {m['missed']} single-effect cases whose hidden effect was not named first, "
             f"{m['within_noise_beyond_base']} have a footprint beyond the base below 1 ({m['within_noise_plain']} of "
             "them a plain footprint below 1 too): the truth's own base structure, rescaled, reproduces what the effect "
-            "adds to the evaluation voltage within the noise, so no search could tell it from base-fit error on these "
-            f"records. Among the {above} cases whose effect stands above the noise beyond the base, the search named "
-            f"it first in {hits} ({100 * hits / max(above, 1):.0f} %). The misses with a footprint beyond the base of "
+            "adds to the evaluation voltage within the noise, so the evaluation voltage alone cannot tell it from "
+            f"base-fit error{named_low}. Among the {above} cases whose effect stands above the noise beyond the base, "
+            f"the search named it first in {hits} ({100 * hits / max(above, 1):.0f} %). The misses with a footprint "
+            "beyond the base of "
             f"3 or more (case index, effect, footprint beyond the base, what was named first): {listed or 'none'}.",
             ""]
 

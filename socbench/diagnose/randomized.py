@@ -544,8 +544,9 @@ def footprint_beyond_base(case: Case, dt: float = 1.0, max_samples: int = 4000, 
     :data:`~socbench.diagnose.search.BASE_OFFSET_V` per cell), fitted by least squares on the noise-free voltage
     (:data:`BEYOND_BASE_NFEV` evaluations). An effect a rescaled base reproduces within the noise (a charge-transfer
     over-potential nearly linear over the load's currents, a branch the base's own branch can move onto) cannot be
-    told from base-fit error on these records, whatever the search does: the benchmark reports its rates by this
-    number beside the plain footprint."""
+    told from base-fit error by the evaluation voltage alone: where the search names it, the evidence is the fit
+    test (which fixed the base's parameters) or rests that measured the current sensor. The benchmark reports its
+    rates by this number beside the plain footprint."""
     names, recs = _effect_voltages(case, only, dt, max_samples)
     if not names:
         return 0.0
@@ -782,8 +783,10 @@ def markdown(summary: dict) -> str:
                                            "each parameter rescaled ×0.25–4 and one voltage offset per record, "
                                            "fitted to the noise-free evaluation voltage from the truth's own "
                                            "parameters, cannot reproduce, over the voltage noise; below 1 the "
-                                           "effect cannot be told from base-fit error on these records, whatever "
-                                           "the search does):", "beyond the base / noise"))
+                                           "evaluation voltage alone cannot tell the effect from base-fit error: "
+                                           "where it is named the evidence is the fit test, which fixed the base's "
+                                           "parameters, or rests that measured the current sensor):",
+               "beyond the base / noise"))
     for key, caption, head in tables:
         if not R.get(key) or not any(b["named_first_single"]["n"] or b["named_in_pair"]["n"] for b in R[key]):
             continue
