@@ -82,10 +82,15 @@ def main(argv=None) -> int:
                          "(an upper bound on naming it first; its time is not in the diagnosis times)")
     ap.add_argument("--refine-ocv", default="coarse", choices=tuple(REFINE_OCV),
                     help="the diagnosis' refinement of an HPPC's rest-point OCV (socbench diagnose --refine-ocv)")
-    ap.add_argument("--render-only", action="store_true", help="rewrite the Markdown (--md) from the JSON (--json)")
+    ap.add_argument("--render-only", action="store_true",
+                    help="recompute the rates from the cases stored in the JSON (--json), write them back, and rewrite "
+                         "the Markdown (--md); no case is run again")
     args = ap.parse_args(argv)
     if args.render_only:
-        text = markdown(json.loads(Path(args.json).read_text()))
+        summary = json.loads(Path(args.json).read_text())
+        summary["rates"] = rates(summary["results"])
+        Path(args.json).write_text(json.dumps(summary, indent=1, default=float))
+        text = markdown(summary)
         if args.md:
             Path(args.md).write_text(text)
         print(text)

@@ -31,6 +31,7 @@ from socbench.diagnose.randomized import (
     footprint,
     footprint_beyond_base,
     missing_time_constant,
+    rates,
 )
 from socbench.diagnose.search import FIELD_REST_MIN_S, REST_OFFSET_C, TWIN_TAU, rest_current
 from socbench.identify.fit import branch_time_constants
@@ -137,6 +138,23 @@ def test_rates_by_detectability_put_each_case_in_its_footprint_class():
     assert high["named_first_single"] == {"n": 1, "hits": 1, "rate": 1.0} and high["cut_30_single"]["hits"] == 1
     assert mid["named_in_pair"] == {"n": 1, "hits": 0, "rate": 0.0}
     assert high["named_in_pair"] == {"n": 1, "hits": 1, "rate": 1.0}
+
+
+def test_the_rates_count_the_effects_named_that_are_not_there():
+    """Cases with a hidden effect where something not hidden is named too (beside or instead of what is): counted
+    over single and two-effect cases, never over null cases (those have their own rate)."""
+    def case(kind, effects, added):
+        return {"kind": kind, "effects": effects, "added": added, "first": added[0] if added else None,
+                "footprint": 1.0, "rmse_before": 1.0, "rmse_after": 1.0}
+
+    res = [case("single", ["capacity"], ["capacity"]),
+           case("single", ["capacity"], ["capacity", "hysteresis"]),  # a false second effect
+           case("single", ["extra_rc"], ["coulombic_efficiency"]),  # a false first one
+           case("pair", ["capacity", "hysteresis"], ["hysteresis"]),  # one missed, nothing false
+           case("null", [], ["extra_rc"])]  # the null rate's business
+    r = rates(res)
+    assert r["false_effect_hidden"] == {"n": 4, "hits": 2, "rate": 0.5}
+    assert r["nothing_added_null"]["hits"] == 0
 
 
 def _outside_every_window(tau, branch_taus) -> bool:

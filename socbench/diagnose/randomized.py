@@ -646,6 +646,8 @@ def rates(results) -> dict:
         "both_named_pair": _share(set(r["effects"]) <= set(r["added"]) for r in pairs),
         "soc_not_worse": _share(s for s in soc if s is not None),
         "cut_30_hidden": _share(cut(r) for r in hidden),
+        # not a target of the issue: what the search names that is not there, beside what is
+        "false_effect_hidden": _share(bool(set(r["added"]) - set(r["effects"])) for r in hidden),
         "errors": sum("error" in r for r in results),
     }
     rows = []
@@ -759,6 +761,10 @@ def markdown(summary: dict) -> str:
         v = R[key]
         met = "yes" if v["rate"] is not None and v["rate"] >= target else "**no**"
         L.append(f"| {LABELS[key]} | {v['hits']}/{v['n']} = {_pct(v['rate'])} | ≥ {100 * target:.0f} % | {met} |")
+    false = R.get("false_effect_hidden")
+    if false:
+        L.append(f"| cases with a hidden effect where an effect that is not there is named too (no target) | "
+                 f"{false['hits']}/{false['n']} = {_pct(false['rate'])} | – | – |")
     wall, slow = summary["wall_s"], summary["diagnosis_wall_max_s"]
     L.append(f"| wall time of the whole run ({summary['jobs']} workers) | {wall:.0f} s | ≤ {RUN_WALL_S:.0f} s | "
              f"{'yes' if wall <= RUN_WALL_S else '**no**'} |")
