@@ -492,11 +492,11 @@ class Search:
             # first (fitted within the rests' bounds) whatever it does to the held-out error — on a record whose
             # error another effect dominates (a cold cell) it cuts nothing until that effect is added beside it
             measured = best is not None and best.effect == "current_bias" and bool(self.bias_measured)
+            at_floor = rmse_now <= self.floor(BASE_REFIT in names)
             if best is None or not np.isfinite(best.score) or not measured and (
-                    best.score <= 0 or best.rmse_after > (1.0 - self.min_gain) * rmse_now
-                    or rmse_now <= self.floor(BASE_REFIT in names)):
-                joint = None if rmse_now <= self.floor(BASE_REFIT in names) \
-                    else self._joint_with_refit(cands, names, fold_sigs, sigs_all, rmse_now, n_eff)
+                    best.score <= 0 or best.rmse_after > (1.0 - self.min_gain) * rmse_now or at_floor):
+                joint = None if at_floor else self._joint_with_refit(cands, names, fold_sigs, sigs_all, rmse_now,
+                                                                     n_eff)
                 if joint is None:
                     break
                 best = joint
@@ -724,10 +724,14 @@ class Search:
         bar = (1.0 - self.min_gain) * min(rmse_now, refit.rmse_after if refit is not None else rmse_now)
         tried = [c for c in cands if c.effect != BASE_REFIT and np.isfinite(c.score) and c.fit is not None
                  and not self.measured_input(c.effect)][:JOINT_TRIES]
+        # the joint step adds the refit's parameters too: its score pays for them (the candidate's own score counts
+        # the effect's alone)
+        refit_penalty = 2.0 * len(self.params_of(BASE_REFIT)[0]) / n_eff
         best = None
         for alone in tried:
             joint = self._try(alone.effect, names + [BASE_REFIT], None, fold_sigs, sigs_all.get(alone.effect),
                               rmse_now, n_eff, start=self._carried_start(alone, names))
+            joint.score -= refit_penalty
             if np.isfinite(joint.score) and joint.score > 0 and joint.rmse_after <= bar \
                     and (best is None or joint.score > best.score):
                 best = dataclasses.replace(joint, evidence=joint.evidence + (
