@@ -509,12 +509,12 @@ def _effect_voltages(case: Case, only: str | None, dt: float, max_samples: int):
     names = [n for n in case.effects if only is None or n == only]
     effects = [case.hidden[n] for n in names if n in case.hidden]
     truth = case.truth if only is None else augment(case.truth_without, effects) if effects else case.truth_without
-    b0 = case.draws.get("current_bias", {}).get("b0", 0.0) if "current_bias" in names else 0.0
+    bias = case.draws.get("current_bias", {}).get("b0", 0.0)  # the field sensor's offset, hidden or not counted
     out = []
     for ev in case.evals:
         p = _coarse(ev, dt, max_samples)
-        p_true = p.with_(current_a=p.current_a - case.draws.get("current_bias", {}).get("b0", 0.0))
-        seen = p_true if b0 == 0.0 else p
+        p_true = p.with_(current_a=p.current_a - bias)
+        seen = p if "current_bias" in names and bias != 0.0 else p_true
         out.append((seen, truth.simulate(p_true, soc0=0.98).voltage_v,
                     case.truth_without.simulate(seen, soc0=0.98).voltage_v))
     return names, out
