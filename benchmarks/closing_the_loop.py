@@ -163,7 +163,12 @@ HOW = (
     "mode, then the winner with SOC-dependent lookup parameters; with an OCV from the HPPC's rest points two of which "
     "lie more than 15 % of SOC apart (`refine_ocv=\"coarse\"`, the default; `True` for every HPPC), the winner again "
     "with that curve refined between the points from the record's discharge segments, `socbench.identify.pseudo_ocv`, "
-    "kept when it validates 10 % better). Every evaluation record is averaged to at most "
+    "kept when it validates 10 % better). The cell's properties the fit test itself shows come first "
+    "(`socbench.identify.fit_test_effect`): the base is fitted again on its own record with an extra RC branch, and "
+    "with a hysteresis state, beside it (a few starts in constant mode, then in the chosen form); one is a first step "
+    "when it fits that record 10 % better with no parameter at a bound, and predicts the evaluation records, nothing "
+    "fitted on them, 10 % better (a branch also within the record and clear of the base's own by ×3). Every "
+    "evaluation record is averaged to at most "
     "4000 bins and cut into 4 blocks of equal duration (blocked cross-validation): each candidate effect is fitted in "
     "its physical bounds 4 times, each time without one block, and scored on the block it did not see; the held-out "
     "RMSE is over every sample. Candidates are the effects whose residual signature explains the most variance "
@@ -300,12 +305,17 @@ WHY_WEAK = {
                    "only a temperature that moves within or between records tells them apart.",
     "hysteresis": "only current reversals reveal it (drive cycles regenerate briefly, flights not at all), the NMC/NCA "
                   "gaps of 4–16 mV are of the order of the noise, and a record that stays on one branch shows it as "
-                  "an offset, which the base refit absorbs.",
+                  "an offset, which the base refit absorbs. Beside a slow OCV test (a third of the cases) the HPPC's "
+                  "rest points lie half a gap below its mean branch, and it is looked for there first "
+                  "(`socbench.identify.fit_test_effect`); an HPPC alone, taken after discharge steps, shows it little.",
     "capacity": "the SOC drifts leave nearly the same residual on a steadily discharging record, and a fade comes "
                 "with grown resistances here; on a flat LFP curve the drift shows only in the end-of-discharge knee.",
     "current_bias": "without rests in the record nothing measures the offset directly, and its drift is then "
                     "nearly a capacity error or a leak.",
-    "extra_rc": f"the fit test shows the missing branch too. Its time constant is drawn outside ×{TWIN_TAU:g} of the "
+    "extra_rc": "the fit test shows the missing branch too, and it is looked for there first (the base refitted on "
+                "its HPPC with the branch beside it, `socbench.identify.fit_test_effect`): found where the HPPC's "
+                "rests show it, not where the fitted base's own branches take it up. Its time constant is drawn "
+                f"outside ×{TWIN_TAU:g} of the "
                 "truth base's branches, yet on a DP base one between the DP's two is taken up by the fitted DP (its "
                 "slow branch moves onto whichever of the two slower branches is larger), and one slower than the "
                 "HPPC's rests is read into the OCV points at their ends; what is left the base refit (the branches "

@@ -15,10 +15,16 @@
    :mod:`socbench.identify.pseudo_ocv`, each kept when it validates 10 % better and its branches stay within the
    record's duration), so that the effects are not spent on base-fit error. Nothing is read from names or metadata
    but the declared capacity.
-3. **Search** (:mod:`socbench.diagnose.search`): blocked cross-validation over every evaluation record
+3. **The fit test's own evidence** (:func:`effect_on_fit_test_record`, :mod:`socbench.identify.fit_test_effect`): the
+   cell's properties that the fit test shows best (a slow branch in an HPPC's rests, a hysteresis beside a slow test's
+   mean branch) are looked for there first: the base fitted again on its record with the effect beside it, kept when
+   that record and the evaluation records (nothing fitted on them) are both fitted 10 % better. A kept effect is the
+   search's first step, the same in every fold, scored against the base fitted without it; the search goes on from
+   the refitted base with it.
+4. **Search** (:mod:`socbench.diagnose.search`): blocked cross-validation over every evaluation record
    (:func:`~socbench.diagnose.data.make_folds`), signatures, one bounded fit per fold, held-out scores, the forward
    steps while the held-out RMSE falls by ≥ 10 %.
-4. **SOC** (where the data carry a reference SOC): the EKF and the UKF on the base model and on the augmented model of
+5. **SOC** (where the data carry a reference SOC): the EKF and the UKF on the base model and on the augmented model of
    every fold, block ``j`` scored with fold ``j``'s run (:func:`soc_errors`); the filters' voltage noise is the
    white-noise equivalent (:func:`filter_voltage_sd`) of the correlated held-out residual outside block ``j`` (each
    of those blocks scored by the fold model that did not see it: the error the model makes on data it was not
@@ -49,6 +55,7 @@ from ..identify import (
     select_fit,
     validation_rmse,
 )
+from ..identify.fit_test_effect import FIT_TEST_EFFECTS, effect_on_fit_test
 from ..models import make_model
 from ..models.base import T_REF_C
 from ..models.effects import EFFECTS
@@ -56,7 +63,7 @@ from ..profile import Profile
 from .cv import cv_residual
 from .data import Folds, bin_average, make_folds
 from .leftover import leftover, ocv_gap
-from .search import BASE_REFIT, Search, initial_soc, residual_noise, rest_current
+from .search import BASE_REFIT, TWIN_TAU, Search, format_params, initial_soc, residual_noise, rest_current
 
 #: a fit record whose |I| never exceeds this C-rate is a slow OCV test
 SLOW_TEST_C_RATE = 0.1
@@ -99,6 +106,7 @@ class Diagnosis:
             "after": self.after,
             "candidates": [c.to_dict() for c in first],
             "steps": [{"effect": s.effect, "kind": "base" if s.effect == BASE_REFIT else "effect",
+                       "found_on": "fit test" if s.fit_test else "evaluation data",
                        "rmse_v_before": s.rmse_before, "rmse_v_after": s.rmse_after, "params": s.params,
                        "score": s.score, "evidence": s.evidence} for s in self.steps],
             "split": self.split.describe(),
@@ -261,7 +269,8 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
                     info["ocv"] += " refined between them from the discharge segments"
         res = fits[chosen]
         label = {k: (k if k.startswith("lookup") else f"constant, {k}") for k in scores}
-        info["selection"] = {"chosen": label[chosen],
+        info["selection"] = {"chosen": label[chosen], "setting": sel.chosen,
+                             "form": "lookup" if chosen.startswith("lookup") else "constant",
                              "validation_rmse_v": {label[k]: v for k, v in scores.items()},
                              "note": "each setting fitted on the fit record; mean open-loop RMSE on the evaluation "
                                      "records (no parameter fitted on them)"}
@@ -273,6 +282,32 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
     t_fit = prof.temperature_c
     info["t_ref_c"] = float(np.mean(t_fit)) if t_fit is not None else T_REF_C
     return make_model(name, res.params), info
+
+
+def effect_on_fit_test_record(model_name: str, base, fit_profiles, evals, info: dict, candidates=None):
+    """The base refitted on its dynamic fit record with the effect of :data:`FIT_TEST_EFFECTS` (among
+    ``candidates``) the record shows and the evaluation records ``evals`` confirm
+    (:func:`socbench.identify.fit_test_effect.effect_on_fit_test`, in the setting and form ``info["selection"]``
+    chose), or None. ``info["fit_test_effect"]`` gets every effect's report, the one ``kept`` and its ``evidence``."""
+    effects = [e for e in FIT_TEST_EFFECTS if candidates is None or e in candidates]
+    if not effects:
+        return None
+    sel = info["selection"]
+    prof = next(p for p in fit_profiles if not is_slow_test(p))
+    lookup = {"mode": "lookup", "knots": LOOKUP_KNOTS} if sel["form"] == "lookup" else None
+    refit, reports = effect_on_fit_test(model_name, base, prof, evals, effects, setting=FIT_CANDIDATES[sel["setting"]],
+                                        lookup=lookup, settings={"hysteresis": {"h_ref": info["ocv_branch"]}},
+                                        twin=TWIN_TAU)
+    info["fit_test_effect"] = {"reports": reports, "kept": None}
+    if refit is not None:
+        name = refit.params.effects[0]["name"]
+        r = next(r for r in reports if r["effect"] == name)
+        info["fit_test_effect"].update({"kept": name, "evidence": (
+            f"fitted with the base on the fit record {prof.name} "
+            f"({format_params({k: v for k, v in r['values'].items() if k in EFFECTS[name].param_names})}): its RMSE "
+            f"{1000 * r['fit_rmse_v'][0]:.2f} → {1000 * r['fit_rmse_v'][1]:.2f} mV, the evaluation records predicted "
+            f"{1000 * r['validation_rmse_v'][0]:.1f} → {1000 * r['validation_rmse_v'][1]:.1f} mV")})
+    return refit
 
 
 #: SOC knots of the lookup-mode base fit: denser towards empty, where resistances rise (few knots keep the fit cheap)
@@ -436,8 +471,10 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
              candidates=None, min_gain: float = 0.10, max_steps: int = 3, max_nfev: int = 15, max_fits: int = 3,
              max_samples: int = 4000, slow_ocv: str = "mean", soc: bool = True,
              base_refit: bool = True, resistance_growth: bool = False, refine_ocv: bool | str = REFINE_OCV,
-             relax_ocv: bool = RELAX_OCV) -> Diagnosis:
+             relax_ocv: bool = RELAX_OCV, fit_test: bool = True) -> Diagnosis:
     """Run the whole diagnosis (module docstring). Profiles are :class:`~socbench.profile.Profile` objects.
+    ``fit_test``: the cell's properties are first looked for on the fit test itself
+    (:func:`effect_on_fit_test_record`).
     ``resistance_growth``: the capacity effect is fitted with the resistance growth of ageing beside its fade
     (:data:`socbench.diagnose.search.RESISTANCE_GROWTH`). ``refine_ocv``: the base fit also tries the HPPC's OCV
     refined between its rest points (:func:`fit_base`)."""
@@ -454,13 +491,23 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
     sigma = residual_noise(base, eval_profiles)
     per_bin = [p.n / max(e.n, 1) for p, e in zip(eval_profiles, evals)]
     noise_bin = sigma * float(np.sqrt(np.average([1.0 / m for m in per_bin], weights=[e.n for e in evals])))
-    search = Search(base, cv, fit_info["t_ref_c"], candidates, min_gain=min_gain, max_nfev=max_nfev,
-                    max_steps=max_steps, max_fits=max_fits, h_ref=fit_info["ocv_branch"], noise_sd=noise_bin,
-                    raw=eval_profiles, base_refit=base_refit, noise_scale=noise_bin / sigma if sigma > 0 else 0.0,
-                    resistance_growth=resistance_growth)
-    final, steps, rounds, before = search.run()
+    make_search = partial(Search, folds=cv, t_ref=fit_info["t_ref_c"], candidates=candidates, min_gain=min_gain,
+                     max_nfev=max_nfev, max_steps=max_steps, max_fits=max_fits, h_ref=fit_info["ocv_branch"],
+                     noise_sd=noise_bin, raw=eval_profiles, base_refit=base_refit,
+                     noise_scale=noise_bin / sigma if sigma > 0 else 0.0, resistance_growth=resistance_growth)
+    refit = start = None
+    if fit_test and "setting" in fit_info.get("selection", {}):
+        refit = effect_on_fit_test_record(model_name, base, fit_profiles, evals, fit_info, candidates)
+    if refit is not None:  # the search goes on from the refit's base with the effect as its first step
+        found = fit_info["fit_test_effect"]
+        search = make_search(make_model(model_name, refit.params.replace(effects=())))
+        start = search.fit_test_step(found["kept"], refit.params.effects[0]["values"], base, found["evidence"])
+        found["added"] = start is not None
+    search = make_search(base) if start is None else search
+    final, steps, rounds, _ = search.run(start)
     residuals = {"before": cv_residual(base, cv, search.soc0s)[0],
                  "after": steps[-1].held_residual if steps else None}
+    before = float(np.sqrt(np.mean(residuals["before"] ** 2)))
     residuals["after"] = residuals["before"] if residuals["after"] is None else residuals["after"]
     fit_info["voltage_noise_sd"] = sigma
     fit_info["voltage_noise_sd_binned"] = noise_bin
@@ -574,7 +621,7 @@ def soc_attribution(diag: Diagnosis, eval_profiles, dt: float = 1.0) -> dict | N
     if not vsd or not diag.steps or diag.search is None:
         return None
     search, last = diag.search, diag.steps[-1]
-    base = search.base
+    base = diag.base_model  # the base as fitted without any effect (the search's may be refitted with one)
     records = [_coarse(p, dt, SOC_MAX_SAMPLES) for p in eval_profiles]
     folds = make_folds(records, diag.split.k)
     soc0s = [initial_soc(base, p) for p in records]

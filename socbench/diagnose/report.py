@@ -81,8 +81,11 @@ def figures(diag, out_dir, prefix: str = "") -> list:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
+    seeded = sum(step.fit_test for step in diag.steps)  # steps found on the fit test come before any round
     for k, step in enumerate(diag.steps):
-        rnd = diag.rounds[k]
+        if step.fit_test:
+            continue
+        rnd = diag.rounds[k - seeded]
         sig = rnd["signatures"].get(step.effect)
         if sig is None:
             continue

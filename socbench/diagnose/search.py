@@ -147,6 +147,8 @@ SECOND_START = True
 #: effects of a round that would stop (none passed alone) fitted again jointly with the base refit
 #: (:meth:`Search._joint_with_refit`), the best-scoring ones
 JOINT_TRIES = 2
+#: relative change of the held-out RMSE below which an effect fitted alone counts as fitted to its null
+NULL_FIT_TOL = 1e-3
 #: compression of the training record for the fits (the held-out part is scored on every sample)
 FIT_COMPRESS = {"max_step_s": 60.0}
 
@@ -169,6 +171,8 @@ class Candidate:
     #: the largest ratio, over the blocks, of the held-out squared error after to before (reported: a real effect
     #: lowers the error wherever it shows, one that takes up base-fit error often makes some block worse)
     fold_ratio: float = float("nan")
+    #: found on the fit test (:mod:`socbench.identify.fit_test_effect`), not by a round of the search
+    fit_test: bool = False
 
     def to_dict(self) -> dict:
         score = round(float(self.score), 6) if np.isfinite(self.score) else None  # None: not fitted (valid JSON)
@@ -432,10 +436,44 @@ class Search:
         return chosen
 
     # ------------------------------------------------------------------ the search
-    def run(self):
+    def fit_test_step(self, name: str, values: dict, plain, evidence: str):
+        """The effect ``name`` at ``values``, fitted with the base on the fit test (:mod:`~socbench.identify.
+        fit_test_effect`), as a step: the same row in every fold, so no parameter of it is fitted on the evaluation
+        data and every block is held out. Scored against ``plain``, the base model fitted without it. None when the
+        search would not add it: ``plain`` within the noise floor, its score or cut short of the search's bar, or a
+        branch the search refuses (:meth:`twin_branch`)."""
+        r_before, sse_before, _ = cv_residual(plain, self.folds, self.soc0s)
+        rmse_before = float(np.sqrt(np.mean(r_before * r_before)))
+        if rmse_before <= self.floor():
+            return None
+        build, layout, lo, hi = self.builder([name])
+        pnames = layout[0][1]
+        row = np.clip([values[p] for p in pnames], lo, hi)
+        thetas = np.tile(row, (len(self.groups), 1))
+        # a state's initial value is the record's, not the fit test's: it alone is fitted, fold by fold
+        free = [m for m, p in enumerate(pnames) if p in EFFECTS[name].initial_params.values()]
+        if free:
+            def with_fixed(theta_free):
+                full = np.broadcast_to(row, theta_free.shape[:-1] + row.shape).copy()
+                full[..., free] = theta_free
+                return build(full)
+
+            states = fit_folds(with_fixed, self.folds, row[free], lo[free], hi[free], self.soc0s, groups=self.groups,
+                               names=[f"{name}.{pnames[m]}" for m in free], compress=FIT_COMPRESS,
+                               max_nfev=self.max_nfev)
+            thetas[:, free] = states.thetas
+        fit = FoldFit(thetas, self.groups, tuple(f"{name}.{p}" for p in pnames), 0, 0, 0.0)
+        c = self._scored(name, fit, build, layout, None, rmse_before, effective_samples(r_before), 0.0)
+        if not (np.isfinite(c.score) and c.score > 0 and c.rmse_after <= (1.0 - self.min_gain) * rmse_before):
+            return None
+        return dataclasses.replace(c, fit_test=True, fold_ratio=self.worst_block(c, sse_before), evidence=(
+            f"{evidence}; held-out RMSE {1000 * rmse_before:.1f} → {1000 * c.rmse_after:.1f} mV (no parameter fitted "
+            "on the evaluation data)"))
+
+    def run(self, start: Candidate | None = None):
         """``(final model, steps, rounds, before)``: steps = accepted candidates (effects, and the base refit when it
         was adopted), rounds = every round's list, ``before`` the base model's held-out RMSE (it has no parameter
-        fitted on the evaluation data)."""
+        fitted on the evaluation data). ``start``: a first step found before the search (:meth:`fit_test_step`)."""
         names, thetas, build = [], None, None  # what was added so far, its rows per group, its builder
         model = self.base
         r_now, sse_now, _ = cv_residual(self.base, self.folds, self.soc0s)
@@ -443,6 +481,12 @@ class Search:
         before = rmse_now
         self.offsets = None
         steps, rounds, carried = [], [], {}
+        if start is not None:
+            steps, names, thetas = [start], [n for n, _ in start.layout], start.fit.thetas
+            build = self.builder(names)[0]
+            model, self.offsets = build(start.fit.row(None))
+            rmse_now, r_now, sse_now = start.rmse_after, start.held_residual, start.fold_sse
+            self._remeasure_noise(model)
         for _ in range(self.max_steps + 1):  # max_steps effects, and the base refit once
             if sum(st.effect != BASE_REFIT for st in steps) >= self.max_steps:
                 break
@@ -722,8 +766,11 @@ class Search:
             return None
         refit = next((c for c in cands if c.effect == BASE_REFIT and np.isfinite(c.score)), None)
         bar = (1.0 - self.min_gain) * min(rmse_now, refit.rmse_after if refit is not None else rmse_now)
+        # an effect fitted to its null alone (a drift at zero: the held-out error unchanged) is, beside the refit,
+        # the refit alone, which failed already: the tries go to effects the fit moved
         tried = [c for c in cands if c.effect != BASE_REFIT and np.isfinite(c.score) and c.fit is not None
-                 and not self.measured_input(c.effect)][:JOINT_TRIES]
+                 and not self.measured_input(c.effect)
+                 and abs(c.rmse_after - rmse_now) > NULL_FIT_TOL * rmse_now][:JOINT_TRIES]
         # the joint step adds the refit's parameters too: its score pays for them (the candidate's own score counts
         # the effect's alone)
         refit_penalty = 2.0 * len(self.params_of(BASE_REFIT)[0]) / n_eff
@@ -821,13 +868,13 @@ class Search:
         if name == BASE_REFIT:
             params = {**{k[4:]: float(np.exp(v)) for k, v in params.items() if k.startswith("log_")},
                       **{k: v for k, v in params.items() if k.startswith("offset_")}}
-            evidence = (f"the base model's parameters scaled ({_fmt(params)}) and each record's voltage offset, "
-                        f"refitted on the evaluation data: held-out RMSE {1000 * rmse_now:.1f} → "
+            evidence = (f"the base model's parameters scaled ({format_params(params)}) and each record's voltage "
+                        f"offset, refitted on the evaluation data: held-out RMSE {1000 * rmse_now:.1f} → "
                         f"{1000 * rmse_after:.1f} mV ({100 * (1 - rmse_after / rmse_now):.0f} % lower)")
         else:
             regressor = "" if sig is None else sig.regressor
             evidence = (f"residual signature {regressor}: explains {100 * r2:.0f} % of the residual variance; "
-                        f"fitted in bounds ({_fmt(params)}): held-out RMSE {1000 * rmse_now:.1f} → "
+                        f"fitted in bounds ({format_params(params)}): held-out RMSE {1000 * rmse_now:.1f} → "
                         f"{1000 * rmse_after:.1f} mV ({100 * (1 - rmse_after / rmse_now):.0f} % lower)")
         if name == "current_bias" and self.bias_rest is not None:
             evidence += f"; rests read {1000 * self.bias_rest[0]:.1f} mA (bounds b to it)"
@@ -900,5 +947,6 @@ class Search:
         return build(th.reshape((layout or (th.shape[0],)) + th.shape[1:]))
 
 
-def _fmt(params: dict) -> str:
+def format_params(params: dict) -> str:
+    """``name=value, …`` of the evidence texts."""
     return ", ".join(f"{k}={v:.4g}" for k, v in params.items())

@@ -38,11 +38,12 @@ FIT_CANDIDATES: dict = {
 }
 
 
-def validation_rmse(fit: FitResult, record: Profile) -> float:
-    """Open-loop voltage RMSE of ``fit`` on ``record``, from the record's reference SOC at its start (else the SOC
-    the model reads off its first voltage, ``Model.soc_from_voltage``, as the diagnosis starts its simulations)."""
+def validation_rmse(fit, record: Profile) -> float:
+    """Open-loop voltage RMSE of ``fit`` (a :class:`FitResult`, or a model) on ``record``, from the record's reference
+    SOC at its start (else the SOC the model reads off its first voltage, ``Model.soc_from_voltage``, as the diagnosis
+    starts its simulations)."""
     record.require("voltage_v")
-    model = make_model(fit.name, fit.params)
+    model = make_model(fit.name, fit.params) if isinstance(fit, FitResult) else fit
     e = record.voltage_v - model.simulate(record).voltage_v
     return float(np.sqrt(np.mean(e * e))) if np.all(np.isfinite(e)) else float("inf")
 
