@@ -189,7 +189,10 @@ HOW = (
     "model, every later candidate being fitted jointly with it). Where in the first round neither an effect nor the "
     "base refit cuts the error by 10 % alone, the two best-scoring effects are fitted again jointly with the refit, "
     "and one is named when so it cuts the error by 10 % below both (an effect the HPPC fit took part of into the "
-    "base's own parameters). At the end, an SOC drift named is swapped for "
+    "base's own parameters). An SOC drift whose fit rests on a bound of its physical range (a leak of 5 %/h, a "
+    "charge efficiency of 0.9, capacity 1.6 × the fit test's, a current offset of 5 % of 1C the rests did not "
+    "measure) is not scored: at that limit it stands in for something else. At the end, an SOC drift named is "
+    "swapped for "
     "another one when that one, fitted beside everything else added, cuts the held-out RMSE by a further 10 % (a "
     "fade that comes with grown resistances loses its round alone to a leak at its bound, and wins once the base "
     "refit is beside it).")

@@ -80,14 +80,11 @@ def _starts(name: str, reference: FitResult, settings: dict):
     return [EFFECTS[name](**settings)]
 
 
-def _at_bound(effect: str, values: dict, fit: FitResult) -> str | None:
-    """Why the fitted ``effect`` is not identified by the record: a parameter at a bound of its range (the effect then
-    stands in for something else, a slow drift or an offset, rather than showing its own shape), or None. A state's
-    initial value (:attr:`~socbench.models.effects.Effect.initial_params`) may rest on its physical limit."""
-    cls = EFFECTS[effect]
-    bounds = cls(**values).bounds(make_model(fit.name, fit.params))
-    for p in cls.param_names if cls.joint_params is None else cls.joint_params:
-        if p in cls.initial_params.values() or p not in bounds:
+def bound_hit(values: dict, bounds: dict, names) -> str | None:
+    """The first of the parameters ``names`` whose value in ``values`` rests on a bound of its range in ``bounds``
+    (within :data:`BOUND_TOL`; a ratio for a positive range), as a sentence, or None."""
+    for p in names:
+        if p not in bounds:
             continue
         lo, hi = bounds[p]
         v = values[p]
@@ -96,6 +93,16 @@ def _at_bound(effect: str, values: dict, fit: FitResult) -> str | None:
         if near:
             return f"{p} = {v:.4g} at a bound of [{lo:.4g}, {hi:.4g}]: not identified by the record"
     return None
+
+
+def _at_bound(effect: str, values: dict, fit: FitResult) -> str | None:
+    """Why the fitted ``effect`` is not identified by the record: a parameter at a bound of its range (the effect then
+    stands in for something else, a slow drift or an offset, rather than showing its own shape), or None. A state's
+    initial value (:attr:`~socbench.models.effects.Effect.initial_params`) may rest on its physical limit."""
+    cls = EFFECTS[effect]
+    names = [p for p in (cls.param_names if cls.joint_params is None else cls.joint_params)
+             if p not in cls.initial_params.values()]
+    return bound_hit(values, cls(**values).bounds(make_model(fit.name, fit.params)), names)
 
 
 def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, *, setting: dict,
