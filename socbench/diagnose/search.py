@@ -490,11 +490,8 @@ class Search:
         self.offsets = None
         steps, rounds, carried = [], [], {}
         if start is not None:
-            steps, names, thetas = [start], [n for n, _ in start.layout], start.fit.thetas
-            build = self.builder(names)[0]
-            model, self.offsets = build(start.fit.row(None))
-            rmse_now, r_now, sse_now = start.rmse_after, start.held_residual, start.fold_sse
-            self._remeasure_noise(model)
+            steps = [start]
+            names, thetas, build, model, rmse_now, r_now, sse_now = self._adopt(start)
         for _ in range(self.max_steps + 1):  # max_steps effects, and the base refit once
             if sum(st.effect != BASE_REFIT for st in steps) >= self.max_steps:
                 break
@@ -562,16 +559,21 @@ class Search:
             carried = {c.effect: c for c in [c for c in cands if c.effect != BASE_REFIT and np.isfinite(c.score)
                                              and c.score > 0 and c.fit is not None][:CARRY]} \
                 if best.effect == BASE_REFIT else {}
-            names = [n for n, _ in best.layout]
-            thetas = best.fit.thetas
-            build = self.builder(names)[0]
-            model, self.offsets = build(best.fit.row(None))
-            rmse_now, r_now, sse_now = best.rmse_after, best.held_residual, best.fold_sse
-            self._remeasure_noise(model)
+            names, thetas, build, model, rmse_now, r_now, sse_now = self._adopt(best)
         if steps:
             steps = self._prune(self._swap_drift(steps, r_now), r_now)
             model, self.offsets = self.builder([n for n, _ in steps[-1].layout])[0](steps[-1].fit.row(None))
         return model, steps, rounds, before
+
+    def _adopt(self, step: Candidate):
+        """The search's state with ``step`` in the model: ``(names, rows per group, builder, all-data model, held-out
+        RMSE, held-out residual, per-block squared error)``; the records' voltage offsets are set and the noise
+        measured again on the model's residual."""
+        names = [n for n, _ in step.layout]
+        build = self.builder(names)[0]
+        model, self.offsets = build(step.fit.row(None))
+        self._remeasure_noise(model)
+        return names, step.fit.thetas, build, model, step.rmse_after, step.held_residual, step.fold_sse
 
     def _swap_drift(self, steps, r_now):
         """``steps`` with each SOC drift it named (:data:`SOC_DRIFT`) exchanged for another when that one, fitted

@@ -63,8 +63,6 @@ BOUND_TOL = 1e-3
 TAU_STARTS = (2.0, 2.7, 3.4)
 #: starting rates of a hysteresis state (Plett's γ)
 GAMMA_STARTS = (20.0, 150.0)
-#: starting exchange currents, in units of the 1C current
-I0_STARTS_C = (0.5, 2.0)
 #: starting resistance of an extra branch, a share of the fitted R0
 R_START_SHARE = 0.5
 
@@ -151,9 +149,9 @@ def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, 
         taus = branch_time_constants(best.params)
         near = [b for b, t in taus.items() if tau / twin <= t <= tau * twin]
         report.update({"tau_s": tau, "base_taus_s": {k: float(v) for k, v in taus.items()}})
-        if tau > profile.duration_s:
+        if why is None and tau > profile.duration_s:
             why = "branch slower than the record"
-        elif near:
+        elif why is None and near:
             why = f"branch within ×{twin:g} of the base's {near[0]}"
     if validation:
         before = float(np.mean([validation_rmse(base, v) for v in validation]))
