@@ -104,22 +104,20 @@ def _at_bound(effect: str, values: dict, fit: FitResult) -> str | None:
 
 
 def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, *, setting: dict,
-                    lookup: dict | None = None, settings: dict | None = None, twin: float = 3.0,
-                    reference: FitResult | None = None):
+                    reference: FitResult, lookup: dict | None = None, settings: dict | None = None,
+                    twin: float = 3.0):
     """``(refit or None, report)``: ``base``, model ``name`` as fitted on ``profile`` (the model the diagnosis would
     start from), against the same structure fitted on ``profile`` again with ``effect`` beside it, kept by the rules
     of the module docstring.
 
     The effect is fitted in constant mode with the sample ``setting`` (:data:`~socbench.identify.FIT_CANDIDATES`;
     few parameters, so several starts are cheap) and judged on its own record against ``reference``, the base fitted
-    the same way (fitted here when not given). Where ``base`` has SOC lookups, ``lookup`` holds their settings (mode,
-    knots): the base and the effect are fitted again so, from the effect as fitted in constant mode, and that fit is
-    the one validated against ``base``. ``settings``: the effect's own (the OCV's hysteresis branch). ``report``: what
-    was measured (``fit_rmse_v`` and ``validation_rmse_v`` before → after, the effect's fitted values) and
-    ``why_not``, the first rule the refit failed (None: kept)."""
+    the same way (:func:`effect_on_fit_test` fits it once for every effect). Where ``base`` has SOC lookups,
+    ``lookup`` holds their settings (mode, knots): the base and the effect are fitted again so, from the effect as
+    fitted in constant mode, and that fit is the one validated against ``base``. ``settings``: the effect's own (the
+    OCV's hysteresis branch). ``report``: what was measured (``fit_rmse_v`` and ``validation_rmse_v`` before → after,
+    the effect's fitted values) and ``why_not``, the first rule the refit failed (None: kept)."""
     ocv, q = base.params.ocv, base.params.capacity_ah
-    if reference is None:
-        reference = fit_model(name, profile, mode="constant", ocv=ocv, capacity_ah=q, **setting)
     best = None
     for start in _starts(effect, reference, settings or {}):
         try:
