@@ -53,9 +53,11 @@ from ..identify import (
     pseudo_ocv,
     relaxed_ocv,
     select_fit,
+    slow_test_count_error,
     validation_rmse,
 )
 from ..identify.fit_test_effect import FIT_TEST_EFFECTS, effect_on_fit_test
+from ..identify.hppc import quantisation_step
 from ..models import make_model
 from ..models.base import T_REF_C
 from ..models.effects import EFFECTS
@@ -157,6 +159,40 @@ def hppc_steps(profile) -> str:
         return "discharge"
 
 
+def slow_test_branches(profile: Profile, info: dict | None = None):
+    """The OCV branches of the slow test ``profile`` (:func:`~socbench.identify.ocv_from_slow_test`), its count
+    freed of the current sensor's offset. ``info`` (if given) gets the offset taken off and how it was read.
+
+    A slow test moves 0.1 % of its charge a minute: one-minute bins lose nothing of its OCV and average a noisy
+    current sensor down. Over tens of hours an offset counts as much charge as the test moves in hours: the rests
+    measure it (their true current is zero) within their noise over √samples, and what they leave is read from how
+    the branches disagree (:func:`~socbench.identify.slow_test_count_error`); the two are weighted by their
+    certainty (the rests' alone where the OCV is too flat to show it). The branches are the runs at the test's typical
+    (median) current, whatever a CV top-off did before."""
+    info = {} if info is None else info
+    q = _capacity(profile)
+    test = bin_average(profile, SLOW_TEST_BIN_S)
+    cur = np.abs(test.current_a)
+    moving = cur[cur > 1e-3 * float(cur.max())]
+    i_min = 0.5 * float(np.median(moving))
+    rest = rest_current(test, q or float(np.ptp(test.amp_hours())) or 1.0, quiet_a=0.25 * float(np.median(moving)))
+    offset = 0.0
+    if rest is not None:
+        offset = float(rest[0])
+        test = test.with_(current_a=test.current_a - offset)
+    left = slow_test_count_error(test, capacity_ah=q, i_min=i_min)
+    if left is not None:
+        # an undithered ADC reads a rest as one level: the offset is known to its step, not to zero
+        se_rest = None if rest is None else max(rest[1], quantisation_step(profile.current_a) / np.sqrt(12.0))
+        w = 1.0 if rest is None else float(se_rest**2 / (se_rest**2 + left[1] ** 2))
+        test = test.with_(current_a=test.current_a - w * left[0])
+        offset += w * left[0]
+        info["slow_test_count_error_a"] = {"from_branches": left[0], "se": left[1], "weight": w}
+    if rest is not None or left is not None:
+        info["slow_test_current_offset_a"] = offset
+    return ocv_from_slow_test(test, capacity_ah=q, i_min=i_min)
+
+
 def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean", validation=None,
              refine_ocv: bool = False, relax_ocv: bool = RELAX_OCV):
     """``(model, info)``: the base model fitted on the fit data (see the module docstring).
@@ -204,21 +240,7 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
     ocv = capacity = None
     info = {"records": [p.name for p in fit_profiles]}
     if slow:
-        # a slow test moves 0.1 % of its charge a minute: one-minute bins lose nothing of its OCV and average a noisy
-        # current sensor down, so that a noise spike does not cut a branch into pieces
-        test = bin_average(slow[0], SLOW_TEST_BIN_S)
-        # over tens of hours a current-sensor offset counts as much charge as the test moves in hours: the rests
-        # measure it (their true current is zero), and it is taken off before the charge is counted
-        cur = np.abs(test.current_a)
-        moving = cur[cur > 1e-3 * float(cur.max())]
-        rest = rest_current(test, _capacity(slow[0]) or float(np.ptp(test.amp_hours())) or 1.0,
-                            quiet_a=0.25 * float(np.median(moving)))
-        if rest is not None:
-            test = test.with_(current_a=test.current_a - rest[0])
-            info["slow_test_current_offset_a"] = rest[0]
-            cur = np.abs(test.current_a)
-        # the branches are the runs at the test's typical (median) current, whatever a CV top-off did before
-        s = ocv_from_slow_test(test, capacity_ah=_capacity(slow[0]), i_min=0.5 * float(np.median(moving)))
+        s = slow_test_branches(slow[0], info)
         use_mean = slow_ocv == "mean" and s.mean is not None
         ocv = s.mean if use_mean else s.discharge
         capacity = s.capacity_ah

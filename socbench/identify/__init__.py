@@ -1,7 +1,8 @@
 """Identification: HPPC analysis (rests, pulses, OCV points, pulse resistances) and parameter fitting.
 
 * :func:`analyze_hppc`, :func:`ocv_from_hppc`, :func:`ocv_from_slow_test`, :func:`rest_level` (the current sensor's
-  offset, noise and rest thresholds) — :mod:`socbench.identify.hppc`
+  offset, noise and rest thresholds), :func:`slow_test_count_error` (the offset a slow test's branches show) —
+  :mod:`socbench.identify.hppc`
 * :func:`fit_model` — any registered model in the paper's modes (``paper``, ``constant``, ``lookup``)
 * :func:`fit_parameters` — the generic bounded least-squares building block (batched finite-difference Jacobian)
 * :func:`compress_profile` — exact merging of constant-current steps before fitting
@@ -23,6 +24,7 @@ from .hppc import (
     ocv_from_hppc,
     ocv_from_slow_test,
     rest_level,
+    slow_test_count_error,
     unrecorded_charge,
 )
 from .lsq import LsqResult, covariance, fit_parameters, simulate_voltage
@@ -56,6 +58,7 @@ __all__ = [
     "ocv_from_hppc",
     "ocv_from_slow_test",
     "rest_level",
+    "slow_test_count_error",
     "unrecorded_charge",
     "LsqResult",
     "covariance",

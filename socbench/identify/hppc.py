@@ -724,6 +724,46 @@ def _binned(z: np.ndarray, v: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.n
     return zs, vs
 
 
+#: a slow test's branch runs on across a dip below its threshold this short [s] (a noisy sensor's sample or two, a
+#: pause), never across the test's rests of half an hour and more
+SLOW_GAP_S = 600.0
+
+
+def _closed(mask: np.ndarray, t: np.ndarray, max_gap_s: float) -> np.ndarray:
+    """``mask`` with its runs of False shorter than ``max_gap_s`` between two runs of True set True."""
+    out = mask.copy()
+    for a, b in _intervals(~mask):
+        if a > 0 and b < mask.size and t[b] - t[a - 1] <= max_gap_s:
+            out[a:b] = True
+    return out
+
+
+def _slow_branches(profile: Profile, capacity_ah: float | None, i_min: float | None):
+    """``(discharge, charge or None, q)``: each branch of a slow test as ``(z, v, t)`` per sample (the SOC counted as
+    :func:`ocv_from_slow_test` says, the voltage, the time) and the charge ``q`` its SOC is counted over. A branch
+    runs on across a dip of the current below ``i_min`` shorter than :data:`SLOW_GAP_S`."""
+    profile.require("voltage_v")
+    src = profile.meta.source or profile.name
+    i, v, t = profile.current_a, profile.voltage_v, profile.time_s
+    ah = profile.amp_hours()
+    if i_min is None:
+        i_min = 0.2 * float(np.max(np.abs(i)))
+    dis = _closed(i > i_min, t, SLOW_GAP_S)
+    if not dis.any():
+        raise DataError("no discharge in the slow OCV test", file=src, column="current_a")
+    runs = _intervals(dis)
+    a, b = max(runs, key=lambda r: ah[r[1] - 1] - ah[r[0]])
+    q_dis = float(ah[b - 1] - ah[a])
+    q = float(capacity_ah) if capacity_ah else q_dis
+    discharge = (1.0 - (ah[a:b] - ah[a]) / q, v[a:b], t[a:b])
+    chg = _closed(i < -i_min, t, SLOW_GAP_S) & (np.arange(i.size) >= b)
+    charge = None
+    if chg.any():
+        c0, c1 = max(_intervals(chg), key=lambda r: r[1] - r[0])
+        charge = (1.0 - (ah[c0:c1] - ah[a]) / q, v[c0:c1], t[c0:c1])  # the same charge count as the discharge
+    return discharge, charge, q
+
+
 def ocv_from_slow_test(profile: Profile, capacity_ah: float | None = None, n_points: int = 101,
                        i_min: float | None = None) -> SlowOCV:
     """Pseudo-OCV branches of a slow (e.g. C/20) discharge and, when present, the following charge.
@@ -735,28 +775,13 @@ def ocv_from_slow_test(profile: Profile, capacity_ah: float | None = None, n_poi
     voltage limit before the full capacity) it is the discharge branch shifted by half the gap at the top of the
     overlap.
     """
-    profile.require("voltage_v")
+    (z_d, v_d, _), chg, q = _slow_branches(profile, capacity_ah, i_min)
     src = profile.meta.source or profile.name
-    i, v = profile.current_a, profile.voltage_v
-    ah = profile.amp_hours()
-    if i_min is None:
-        i_min = 0.2 * float(np.max(np.abs(i)))
-    dis = i > i_min
-    if not dis.any():
-        raise DataError("no discharge in the slow OCV test", file=src, column="current_a")
-    runs = _intervals(dis)
-    a, b = max(runs, key=lambda r: ah[r[1] - 1] - ah[r[0]])
-    q_dis = float(ah[b - 1] - ah[a])
-    q = float(capacity_ah) if capacity_ah else q_dis
-    z_d = 1.0 - (ah[a:b] - ah[a]) / q
-    zd, vd = monotone_points(*_binned(z_d, v[a:b], n_points))
+    zd, vd = monotone_points(*_binned(z_d, v_d, n_points))
     discharge = OCVCurve(zd, vd, f"C/20 discharge branch of {src}")
-    chg = (i < -i_min) & (np.arange(i.size) >= b)
     charge = mean = None
-    if chg.any():
-        c0, c1 = max(_intervals(chg), key=lambda r: r[1] - r[0])
-        z_c = 1.0 - (ah[c0:c1] - ah[a]) / q  # the same charge count as the discharge branch
-        zc, vc = monotone_points(*_binned(z_c, v[c0:c1], n_points))
+    if chg is not None:
+        zc, vc = monotone_points(*_binned(chg[0], chg[1], n_points))
         charge = OCVCurve(zc, vc, f"C/20 charge branch of {src}")
         grid = zd
         top = zc.max()
@@ -766,6 +791,53 @@ def ocv_from_slow_test(profile: Profile, capacity_ah: float | None = None, n_poi
         zm, vm = monotone_points(grid, vm)
         mean = OCVCurve(zm, vm, f"mean of the C/20 branches of {src}")
     return SlowOCV(discharge, charge, mean, q)
+
+
+#: the SOC range whose branch gap :func:`slow_test_count_error` reads (away from the ends, where the resistances
+#: rise and the branches have not settled)
+COUNT_ERROR_SOC = (0.2, 0.9)
+
+
+def slow_test_count_error(profile: Profile, capacity_ah: float | None = None, n_points: int = 101,
+                          i_min: float | None = None) -> tuple[float, float] | None:
+    """``(e, se)`` [A]: the current offset still in a slow test's charge count, read from how its two branches
+    disagree, and its standard error; None without a charge branch or an OCV slope to read it by.
+
+    A count off by ``e`` reads, at the time ``t`` (from the discharge's start), the SOC ``ẑ = z − e·t/Q``. Each
+    branch then lies at ``V(ẑ) ≈ U(ẑ) + U'(ẑ)·e·t(ẑ)/Q ∓ I·R``, ``t(ẑ)`` the time the branch passes ``ẑ``. The
+    charge branch passes every SOC later than the discharge, so the gap between them is::
+
+        V_c(ẑ) − V_d(ẑ) = G + e · U'(ẑ)·(t_c(ẑ) − t_d(ẑ))/Q
+
+    ``G`` the branches' polarisation (``(I_d + I_c)·R``, no SOC dependence assumed over :data:`COUNT_ERROR_SOC`). The
+    regression of the gap on that term and a constant gives ``e``. On a flat OCV (``U' ≈ 0``) the branches do not
+    show it, and neither does the OCV: the standard error is then large. Over a C/20 test's forty hours an offset of
+    0.1 % of 1C moves the charge branch by 4 % of SOC; the rests, which measure the offset directly, leave an error of
+    the current noise over √(rest samples)."""
+    dis, chg, q = _slow_branches(profile, capacity_ah, i_min)
+    if chg is None:
+        return None
+    zd, vd = _binned(dis[0], dis[1], n_points)
+    td = _binned(dis[0], dis[2], n_points)[1]
+    zc, vc = _binned(chg[0], chg[1], n_points)
+    tc = _binned(chg[0], chg[2], n_points)[1]
+    lo = max(COUNT_ERROR_SOC[0], zd.min(), zc.min())
+    hi = min(COUNT_ERROR_SOC[1], zd.max(), zc.max())
+    grid = zd[(zd >= lo) & (zd <= hi)]
+    if grid.size < 5:
+        return None
+    gap = np.interp(grid, zc, vc) - np.interp(grid, zd, vd)
+    mean = OCVCurve(*monotone_points(grid, 0.5 * (np.interp(grid, zc, vc) + np.interp(grid, zd, vd))), "")
+    k = mean.slope(grid) * (np.interp(grid, zc, tc) - np.interp(grid, zd, td)) / (3600.0 * q)
+    x = np.column_stack([np.ones_like(k), k])
+    coef, *_ = np.linalg.lstsq(x, gap, rcond=None)
+    r = gap - x @ coef
+    dof = max(grid.size - 2, 1)
+    cov = np.linalg.pinv(x.T @ x) * float(r @ r) / dof
+    # neighbouring bins share their error (a smooth misfit, not noise): the standard error of so many fewer samples
+    rho = float(np.clip(r[1:] @ r[:-1] / max(float(r @ r), 1e-300), 0.0, 0.99))
+    se = float(np.sqrt(max(cov[1, 1], 0.0) * (1.0 + rho) / (1.0 - rho)))
+    return (float(coef[1]), se) if np.isfinite(se) and se > 0 else None
 
 
 def edge_resistance(profile: Profile, frac: float = 0.2) -> float:
