@@ -56,6 +56,7 @@ from ..identify import (
     slow_test_count_error,
     validation_rmse,
 )
+from ..identify.fit import branches_identified
 from ..identify.fit_test_effect import FIT_TEST_EFFECTS, effect_on_fit_test
 from ..identify.hppc import quantisation_step
 from ..models import make_model
@@ -260,14 +261,20 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
     if mode == "auto" and validation:
         sel = select_fit(name, prof, validation, mode="constant", ocv=ocv, capacity_ah=capacity)
         fits, scores = dict(sel.fits), {k: float(np.mean(v)) for k, v in sel.scores.items()}
-        lookup = f"lookup, {sel.chosen}"
+        # a fit with a branch slower than its record is not chosen while another has none: that branch is an OCV or
+        # capacity error in disguise (identify.fit.branches_identified)
+        identified = {k for k, f in fits.items() if branches_identified(f.params, prof.duration_s)}
+        best_setting = min(identified or scores, key=scores.get)
+        lookup = f"lookup, {best_setting}"
         fits[lookup] = fit_model(name, prof, mode="lookup", ocv=ocv, capacity_ah=capacity, knots=LOOKUP_KNOTS,
-                                 **FIT_CANDIDATES[sel.chosen])
+                                 **FIT_CANDIDATES[best_setting])
         scores[lookup] = float(np.mean([validation_rmse(fits[lookup], r) for r in validation]))
-        chosen = min(scores, key=scores.get)
+        if branches_identified(fits[lookup].params, prof.duration_s):
+            identified.add(lookup)
+        chosen = min(identified or scores, key=scores.get)
 
         def setting(label):  # the fit arguments of a candidate label of this selection
-            return {"mode": "lookup", "knots": LOOKUP_KNOTS, **FIT_CANDIDATES[sel.chosen]} if label == lookup \
+            return {"mode": "lookup", "knots": LOOKUP_KNOTS, **FIT_CANDIDATES[best_setting]} if label == lookup \
                 else {"mode": "constant", **FIT_CANDIDATES[label]}
 
         if relax_ocv and ocv is None:  # the HPPC's rest points, moved by what the fit holds at each rest's end
@@ -291,11 +298,14 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
                     info["ocv"] += " refined between them from the discharge segments"
         res = fits[chosen]
         label = {k: (k if k.startswith("lookup") else f"constant, {k}") for k in scores}
-        info["selection"] = {"chosen": label[chosen], "setting": sel.chosen,
+        info["selection"] = {"chosen": label[chosen], "setting": best_setting,
                              "form": "lookup" if chosen.startswith("lookup") else "constant",
                              "validation_rmse_v": {label[k]: v for k, v in scores.items()},
+                             "branch_slower_than_record": sorted(label[k] for k in scores if k not in identified
+                                                                 and k in fits),
                              "note": "each setting fitted on the fit record; mean open-loop RMSE on the evaluation "
-                                     "records (no parameter fitted on them)"}
+                                     "records (no parameter fitted on them); a fit with a branch slower than the "
+                                     "record is not chosen while another has none"}
     else:
         mode = "constant" if mode == "auto" else mode
         res = fit_model(name, prof, mode=mode, ocv=ocv, capacity_ah=capacity)

@@ -93,6 +93,8 @@ TIE_R2 = 0.1
 REST_EVIDENCE_S = 600.0
 #: a rest current above this share of 1C (and four standard errors) is a current-sensor offset
 REST_OFFSET_C = 5e-4
+#: the rest current's standard error includes the scatter of the rests' levels beyond their noise (rest_current)
+REST_SPREAD = True
 #: no effect is added once the held-out RMSE is within this factor of the measured voltage noise. A base model fitted
 #: on its own record leaves some error of its own beside the noise (the fit is not exact), and near the noise any
 #: flexible effect can take up part of it. The factor was set as the critical value of that null distribution on
@@ -279,6 +281,15 @@ def rest_current(profiles, capacity_ah: float, quiet_a: float | None = None, min
     # the median of normal noise
     level, sd = reading_level(allv)
     se = float(1.2533 * sd / np.sqrt(allv.size)) if allv.size > 1 else 0.0
+    if REST_SPREAD and len(vals) >= 2:
+        # an offset reads the same in every rest: rests whose levels scatter beyond their own noise are not all rests
+        # (a vehicle creeping on its auxiliary load under a noisy sensor passes for one), and the level is known only
+        # to that scatter (the between-rest variance in excess of the within-rest, as a random effect)
+        each = [reading_level(v) for v in vals]
+        levels = np.array([m for m, _ in each])
+        within = np.array([(1.2533 * sd_k) ** 2 / v.size for (_, sd_k), v in zip(each, vals)])
+        excess = max(0.0, float(np.var(levels, ddof=1)) - float(np.mean(within)))
+        se = float(np.sqrt(se * se + excess / len(vals)))
     return level, se, float(sum(weights))
 
 

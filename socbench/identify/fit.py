@@ -151,6 +151,13 @@ def branch_time_constants(params: ModelParams, names=None, soc: float = 0.5) -> 
     return out
 
 
+def branches_identified(params: ModelParams, duration_s: float) -> bool:
+    """Whether every RC branch's time constant (:func:`branch_time_constants`) lies within ``duration_s``, the record
+    it was fitted on: a slower branch only ramps with the charge moved, an OCV slope or capacity error in disguise
+    that trades against the curve freely."""
+    return all(tau <= duration_s for tau in branch_time_constants(params).values())
+
+
 def _reference_value(ref: ModelParams | None, pname: str) -> float | None:
     if ref is None or pname not in ref.values:
         return None

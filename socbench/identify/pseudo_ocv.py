@@ -39,7 +39,7 @@ import numpy as np
 from ..models.registry import make_model
 from ..ocv import OCVCurve, monotone_points
 from ..profile import Profile
-from .fit import FitResult, branch_time_constants, fit_model, setup_fit
+from .fit import FitResult, branches_identified, fit_model, setup_fit
 from .select import validation_rmse
 
 #: SOC bin of the correction (0.5 %: ten points in a 5 % HPPC step)
@@ -154,7 +154,7 @@ def keep_refit(fit: FitResult, refit: FitResult, profile: Profile, validation, r
     branch only ramps with the charge moved and trades against the curve freely); with ``own_record`` the refit fits
     ``profile`` :data:`REFIT_GAIN` better; with ``validation`` records their mean open-loop RMSE falls by as much.
     ``report`` gains what was measured, ``kept`` and ``why_not`` (the first rule failed; None: kept)."""
-    identified = all(tau <= profile.duration_s for tau in branch_time_constants(refit.params).values())
+    identified = branches_identified(refit.params, profile.duration_s)
     report.update({"fit_rmse_v": [fit.rmse_v, refit.rmse_v], "branches_identified": identified})
     why = None if identified else "an RC branch slower than the record"
     if why is None and own_record and refit.rmse_v > (1.0 - REFIT_GAIN) * fit.rmse_v:
