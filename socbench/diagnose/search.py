@@ -282,14 +282,19 @@ def rest_current(profiles, capacity_ah: float, quiet_a: float | None = None, min
     level, sd = reading_level(allv)
     se = float(1.2533 * sd / np.sqrt(allv.size)) if allv.size > 1 else 0.0
     if REST_SPREAD and len(vals) >= 2:
-        # an offset reads the same in every rest: rests whose levels scatter beyond their own noise are not all rests
-        # (a vehicle creeping on its auxiliary load under a noisy sensor passes for one), and the level is known only
-        # to that scatter (the between-rest variance in excess of the within-rest, as a random effect)
+        # an offset reads the same in every rest: rests whose levels scatter beyond their own noise (Cochran's Q above
+        # its 99th percentile) are not all rests (a vehicle creeping on its auxiliary load under a noisy sensor passes
+        # for one), and the level is known only to that scatter (the between-rest variance in excess of the
+        # within-rest, as a random effect). Rests that agree within their noise leave the error as it was
+        from scipy.stats import chi2
+
         each = [reading_level(v) for v in vals]
         levels = np.array([m for m, _ in each])
-        within = np.array([(1.2533 * sd_k) ** 2 / v.size for (_, sd_k), v in zip(each, vals)])
-        excess = max(0.0, float(np.var(levels, ddof=1)) - float(np.mean(within)))
-        se = float(np.sqrt(se * se + excess / len(vals)))
+        within = np.array([max((1.2533 * sd_k) ** 2 / v.size, 1e-30) for (_, sd_k), v in zip(each, vals)])
+        q_stat = float(np.sum((levels - level) ** 2 / within))
+        if q_stat > chi2.ppf(0.99, len(vals) - 1):
+            excess = max(0.0, float(np.var(levels, ddof=1)) - float(np.mean(within)))
+            se = float(np.sqrt(se * se + excess / len(vals)))
     return level, se, float(sum(weights))
 
 
