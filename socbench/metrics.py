@@ -34,6 +34,17 @@ def soc_error_stats(estimate, truth, axis=-1) -> dict:
     return {k: (float(v) if np.ndim(v) == 0 else v) for k, v in out.items()}
 
 
+def lag1_autocorrelation(e, max_rho: float = 0.999999) -> float:
+    """The lag-1 autocorrelation ρ of the series ``e`` (its mean removed), clipped to ``[0, max_rho]``: a smooth error
+    counts as ``N(1 − ρ)/(1 + ρ)`` independent samples, and the standard error of an average over it grows by
+    ``√((1 + ρ)/(1 − ρ))``."""
+    e = np.asarray(e, dtype=float)
+    ec = e - e.mean()
+    den = float(ec @ ec)
+    rho = float(ec[1:] @ ec[:-1]) / den if den > 0 else 0.0
+    return min(max(rho, 0.0), max_rho)
+
+
 def chi2_band(dof: int, n_samples: int, confidence: float = 0.95) -> tuple[float, float]:
     """Two-sided band for the *average* of ``n_samples`` independent χ²(dof) statistics.
 

@@ -72,6 +72,7 @@ import numpy as np
 from ..identify.fit import branch_time_constants
 from ..identify.fit_test_effect import bound_hit
 from ..identify.hppc import reading_level
+from ..metrics import lag1_autocorrelation
 from ..models.effects import EFFECTS, augment, make_effect, n_cells
 from ..segments import restart_soc
 from .cv import FoldFit, cv_residual, fit_folds, simulate_records
@@ -216,10 +217,7 @@ def initial_soc(model, profile) -> float:
 
 def effective_samples(r: np.ndarray) -> float:
     """``N (1 − ρ)/(1 + ρ)`` with ρ the lag-1 autocorrelation, floored at :data:`MIN_N_EFF`."""
-    rc = r - r.mean()
-    den = float(rc @ rc)
-    rho = float(rc[1:] @ rc[:-1]) / den if den > 0 else 0.0
-    rho = min(max(rho, 0.0), 0.999999)
+    rho = lag1_autocorrelation(r)
     return float(min(r.size, max(MIN_N_EFF, r.size * (1 - rho) / (1 + rho))))
 
 

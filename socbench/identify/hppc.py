@@ -86,6 +86,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..errors import DataError
+from ..metrics import lag1_autocorrelation
 from ..ocv import OCVCurve, monotone_points
 from ..profile import Profile
 
@@ -835,7 +836,7 @@ def slow_test_count_error(profile: Profile, capacity_ah: float | None = None, n_
     dof = max(grid.size - 2, 1)
     cov = np.linalg.pinv(x.T @ x) * float(r @ r) / dof
     # neighbouring bins share their error (a smooth misfit, not noise): the standard error of so many fewer samples
-    rho = float(np.clip(r[1:] @ r[:-1] / max(float(r @ r), 1e-300), 0.0, 0.99))
+    rho = lag1_autocorrelation(r, max_rho=0.99)
     se = float(np.sqrt(max(cov[1, 1], 0.0) * (1.0 + rho) / (1.0 - rho)))
     return (float(coef[1]), se) if np.isfinite(se) and se > 0 else None
 
