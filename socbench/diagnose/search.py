@@ -249,7 +249,8 @@ def residual_noise(model, profiles, soc0s=None) -> float:
 
 def rest_current(profiles, capacity_ah: float, quiet_a: float | None = None, min_s: float = REST_MIN_S):
     """``(median, standard error, seconds)`` of the measured current over the rests of ``profiles`` (one or a list),
-    or None without rests.
+    or None without rests. The standard error is the median's, widened by the scatter of the rests' own levels where
+    they disagree beyond their noise (:data:`REST_SPREAD`).
 
     A rest: at least ``min_s`` below ``quiet_a`` (default C/20) whose spread (robust sd) is within C/200 plus
     three times the current sensor's own noise (the robust sd of successive differences over the quiet samples,
