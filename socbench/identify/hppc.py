@@ -827,8 +827,9 @@ def slow_test_count_error(profile: Profile, capacity_ah: float | None = None, n_
     grid = zd[(zd >= lo) & (zd <= hi)]
     if grid.size < 5:
         return None
-    gap = np.interp(grid, zc, vc) - np.interp(grid, zd, vd)
-    mean = OCVCurve(*monotone_points(grid, 0.5 * (np.interp(grid, zc, vc) + np.interp(grid, zd, vd))), "")
+    v_c, v_d = np.interp(grid, zc, vc), np.interp(grid, zd, vd)
+    gap = v_c - v_d
+    mean = OCVCurve(*monotone_points(grid, 0.5 * (v_c + v_d)), "")
     k = mean.slope(grid) * (np.interp(grid, zc, tc) - np.interp(grid, zd, td)) / (3600.0 * q)
     x = np.column_stack([np.ones_like(k), k])
     coef, *_ = np.linalg.lstsq(x, gap, rcond=None)
