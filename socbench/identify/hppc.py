@@ -715,14 +715,14 @@ class SlowOCV:
         return self.mean if self.mean is not None else self.discharge
 
 
-def _binned(z: np.ndarray, v: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray]:
+def _binned(z: np.ndarray, *columns: np.ndarray, n_bins: int) -> tuple[np.ndarray, ...]:
+    """``(z̄, c̄ for c in columns)``: the means of ``z`` and of each column over ``n_bins`` equal bins of ``z``
+    (empty bins left out)."""
     edges = np.linspace(z.min(), z.max(), n_bins + 1)
     k = np.clip(np.searchsorted(edges, z, side="right") - 1, 0, n_bins - 1)
     cnt = np.bincount(k, minlength=n_bins)
     ok = cnt > 0
-    zs = np.bincount(k, weights=z, minlength=n_bins)[ok] / cnt[ok]
-    vs = np.bincount(k, weights=v, minlength=n_bins)[ok] / cnt[ok]
-    return zs, vs
+    return tuple(np.bincount(k, weights=c, minlength=n_bins)[ok] / cnt[ok] for c in (z, *columns))
 
 
 #: a slow test's branch runs on across a dip below its threshold this short [s] (a noisy sensor's sample or two, a
@@ -778,11 +778,11 @@ def ocv_from_slow_test(profile: Profile, capacity_ah: float | None = None, n_poi
     """
     (z_d, v_d, _), chg, q = _slow_branches(profile, capacity_ah, i_min)
     src = profile.meta.source or profile.name
-    zd, vd = monotone_points(*_binned(z_d, v_d, n_points))
+    zd, vd = monotone_points(*_binned(z_d, v_d, n_bins=n_points))
     discharge = OCVCurve(zd, vd, f"C/20 discharge branch of {src}")
     charge = mean = None
     if chg is not None:
-        zc, vc = monotone_points(*_binned(chg[0], chg[1], n_points))
+        zc, vc = monotone_points(*_binned(chg[0], chg[1], n_bins=n_points))
         charge = OCVCurve(zc, vc, f"C/20 charge branch of {src}")
         grid = zd
         top = zc.max()
@@ -818,10 +818,8 @@ def slow_test_count_error(profile: Profile, capacity_ah: float | None = None, n_
     dis, chg, q = _slow_branches(profile, capacity_ah, i_min)
     if chg is None:
         return None
-    zd, vd = _binned(dis[0], dis[1], n_points)
-    td = _binned(dis[0], dis[2], n_points)[1]
-    zc, vc = _binned(chg[0], chg[1], n_points)
-    tc = _binned(chg[0], chg[2], n_points)[1]
+    zd, vd, td = _binned(*dis, n_bins=n_points)
+    zc, vc, tc = _binned(*chg, n_bins=n_points)
     lo = max(COUNT_ERROR_SOC[0], zd.min(), zc.min())
     hi = min(COUNT_ERROR_SOC[1], zd.max(), zc.max())
     grid = zd[(zd >= lo) & (zd <= hi)]
