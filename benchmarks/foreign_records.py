@@ -178,7 +178,7 @@ def _leaks(stderr: str) -> list:
     return [ln for ln in stderr.splitlines() if ln.strip() and not ln.startswith("socbench ")]
 
 
-def run_case(seed: int, folder: str, refine_ocv: str = "coarse") -> dict:
+def run_case(seed: int, folder: str, refine_ocv: str = "always") -> dict:
     folder = Path(folder)
     out = draw(seed, folder)
     model = "thevenin" if seed % 2 == 0 else "dp"
@@ -366,8 +366,8 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--out", default=None, help="folder for the records and outputs (default: a temporary one)")
     ap.add_argument("--doc", default=str(REPO / "docs" / "foreign_records.md"))
-    ap.add_argument("--refine-ocv", default="coarse", choices=("coarse", "always", "never"),
-                    help="passed to socbench diagnose (default: its own default, coarse)")
+    ap.add_argument("--refine-ocv", default="always", choices=("coarse", "always", "never"),
+                    help="passed to socbench diagnose (default: its own default, always)")
     args = ap.parse_args(argv)
     folder = Path(args.out or tempfile.mkdtemp(prefix="socbench-foreign-"))
     folder.mkdir(parents=True, exist_ok=True)
@@ -377,7 +377,7 @@ def main(argv=None) -> int:
         cases = list(pool.map(run_case, seeds, [str(folder)] * len(seeds), [args.refine_ocv] * len(seeds)))
     s = summary(cases)
     command = (f"python benchmarks/foreign_records.py --cases {args.cases} --seed {args.seed} --jobs {args.jobs}"
-               + (f" --refine-ocv {args.refine_ocv}" if args.refine_ocv != "coarse" else ""))
+               + (f" --refine-ocv {args.refine_ocv}" if args.refine_ocv != "always" else ""))
     write_doc(Path(args.doc), s, cases, command, time.perf_counter() - t0)
     Path(args.doc).with_suffix(".json").write_text(json.dumps({"summary": s, "cases": cases}, indent=1))
     print(json.dumps({k: v for k, v in s.items() if k != "spurious"}), flush=True)

@@ -12,8 +12,8 @@ model's name and the records. Rates (one row per effect, so a weak effect shows)
 * null cases: nothing added;
 * every case: the held-out SOC error of the EKF and of the UKF not worse by more than 0.2 points.
 
-``--refine-ocv always|never`` runs the diagnosis with that refinement of the HPPC's rest-point OCV instead of the
-default ``coarse`` (``socbench diagnose --refine-ocv``), for comparisons.
+``--refine-ocv coarse|never`` runs the diagnosis with that refinement of the HPPC's rest-point OCV instead of the
+default ``always`` (``socbench diagnose --refine-ocv``), for comparisons.
 
 ``--oracle`` diagnoses every single-effect case once more with the hidden effect as the only candidate: how often
 it is added then bounds what any ranking of the candidates can name first (docs/undeclared_effects_oracle.md).
@@ -44,7 +44,7 @@ from socbench.diagnose.randomized import TARGETS, case_kind, draw_case, markdown
 REFINE_OCV = {"coarse": "coarse", "always": True, "never": False}
 
 
-def one(index: int, seed: int, oracle: bool = False, refine_ocv: str = "coarse") -> dict:
+def one(index: int, seed: int, oracle: bool = False, refine_ocv: str = "always") -> dict:
     import warnings
 
     warnings.filterwarnings("ignore")
@@ -80,7 +80,7 @@ def main(argv=None) -> int:
     ap.add_argument("--oracle", action="store_true",
                     help="diagnose each single-effect case again with the hidden effect as the only candidate "
                          "(an upper bound on naming it first; its time is not in the diagnosis times)")
-    ap.add_argument("--refine-ocv", default="coarse", choices=tuple(REFINE_OCV),
+    ap.add_argument("--refine-ocv", default="always", choices=tuple(REFINE_OCV),
                     help="the diagnosis' refinement of an HPPC's rest-point OCV (socbench diagnose --refine-ocv)")
     ap.add_argument("--render-only", action="store_true",
                     help="recompute the rates from the cases stored in the JSON (--json), write them back, and rewrite "

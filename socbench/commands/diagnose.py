@@ -37,10 +37,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--effects", help="comma-separated candidate effects (default: all)")
     parser.add_argument("--slow-ocv", default="mean", choices=("mean", "discharge"),
                         help="OCV from a slow test in the fit data: mean of both branches, or the discharge branch")
-    parser.add_argument("--refine-ocv", default="coarse", choices=("coarse", "always", "never"),
+    parser.add_argument("--refine-ocv", default="always", choices=("coarse", "always", "never"),
                         help="refine an HPPC's rest-point OCV between its points from its discharge segments (kept "
                              "when the evaluation data validate it): where two points lie more than "
-                             f"{100 * COARSE_OCV_GAP:g} %% of SOC apart (coarse, default), always, or never")
+                             f"{100 * COARSE_OCV_GAP:g} %% of SOC apart (coarse), always (default), or never")
     parser.add_argument("--no-soc", action="store_true", help="skip the EKF SOC comparison")
     parser.add_argument("--no-figures", action="store_true", help="skip the figures")
 

@@ -54,6 +54,11 @@ named only if, fitted jointly with the refit, it cuts the refit's error by ``min
 a refit is adopted, the ``CARRY`` best-scoring effects of its round are fitted again jointly with it, whatever their
 signature on the refitted residual (the refit took up part of their shape).
 
+A fit at the end of a range is not the effect's own shape: an SOC drift at the limit of its physical range
+(``DRIFT_AT_BOUND``), a hysteresis at Plett's γ floor or a branch at the longest time constant (``SLOW_END``: a state
+that never settles within the records, a slow offset or a ramp) stands in for an OCV or SOC-axis error and is not
+scored.
+
 The current sensor gets evidence of its own: where the records hold rests (at least ``FIELD_REST_MIN_S`` below C/20
 whose spread is the sensor's noise), the true current is zero, so the measured rest current *is* the offset. ``b`` is
 bounded to that median ± 3 standard errors (± C/500 for the sensor's resolution); with at least ``REST_EVIDENCE_S`` of
@@ -70,7 +75,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..identify.fit import branch_time_constants
-from ..identify.fit_test_effect import bound_hit
+from ..identify.fit_test_effect import BOUND_TOL, bound_hit
 from ..identify.hppc import reading_level
 from ..metrics import lag1_autocorrelation
 from ..models.effects import EFFECTS, augment, make_effect, n_cells
@@ -158,6 +163,14 @@ JOINT_TRIES = 2
 #: every other rate unchanged; development seeds 31 and 47: every rate unchanged; in two pairs another wrong drift is
 #: named instead of a wrong efficiency, one of them now naming its Butler–Volmer term and a wrong branch too)
 DRIFT_AT_BOUND = True
+#: a state effect whose all-data fit rests at the slow end of its rate's range is not scored (:meth:`Search._scored`),
+#: the rule the fit test's refit is held to (:func:`socbench.identify.fit_test_effect.fit_with_effect`): a hysteresis at
+#: Plett's γ floor settles over a whole capacity of charge moved, a slow offset; a branch at the longest time constant
+#: charges over hours, a ramp. Either takes up an OCV or SOC-axis error rather than showing its own shape. Parameter,
+#: and the end of its range that is slow (0 the lower, 1 the upper)
+SLOW_END = {"hysteresis": ("gamma", 0), "extra_rc": ("log10_tau", 1)}
+#: whether :data:`SLOW_END` applies
+SLOW_END_RULE = True
 #: relative change of the held-out RMSE below which an effect fitted alone counts as fitted to its null
 NULL_FIT_TOL = 1e-3
 #: compression of the training record for the fits (the held-out part is scored on every sample)
@@ -908,6 +921,10 @@ class Search:
         if DRIFT_AT_BOUND and at_bound is not None:  # a drift at the end of its physical range stands in for another
             score = -np.inf
             evidence += f"; {at_bound}: a drift at the limit of its physical range stands in for something else"
+        slow = self.at_slow_end(name, params) if SLOW_END_RULE else None
+        if slow is not None:
+            score = -np.inf
+            evidence += f"; {slow}: a state that never settles within the records stands in for a drift"
         if name == "extra_rc":
             refit = dict(zip(dict(layout).get(BASE_REFIT, ()), self._refit_row(layout, row)))
             twin = self.twin_branch(10.0 ** params["log10_tau"], refit)
@@ -926,6 +943,17 @@ class Search:
         return Candidate(name, score, rmse_now, rmse_after, params, r2, evidence,
                          tuple(getattr(final, "effects", ())), seconds + _time.perf_counter() - t0, r_after, sse, fit,
                          layout)
+
+    def at_slow_end(self, name: str, params: dict) -> str | None:
+        """Where effect ``name``'s fitted ``params`` rest at the slow end of its rate's range (:data:`SLOW_END`, within
+        :data:`~socbench.identify.fit_test_effect.BOUND_TOL` of the range), that as a phrase; else None."""
+        if name not in SLOW_END or not params:
+            return None
+        p, end = SLOW_END[name]
+        lo, hi = self.bounds[name][p]
+        if abs(params[p] - (lo, hi)[end]) > BOUND_TOL * (hi - lo):
+            return None
+        return f"{p} = {params[p]:.4g} at the {('lower', 'upper')[end]} end of [{lo:.4g}, {hi:.4g}]"
 
     @staticmethod
     def _refit_row(layout, row) -> np.ndarray:
