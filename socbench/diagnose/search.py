@@ -166,8 +166,14 @@ DRIFT_AT_BOUND = True
 #: a state effect whose all-data fit rests at the slow end of its rate's range is not scored (:meth:`Search._scored`),
 #: the rule the fit test's refit is held to (:func:`socbench.identify.fit_test_effect.fit_with_effect`): a hysteresis at
 #: Plett's γ floor settles over a whole capacity of charge moved, a slow offset; a branch at the longest time constant
-#: charges over hours, a ramp. Either takes up an OCV or SOC-axis error rather than showing its own shape. Parameter,
-#: and the end of its range that is slow (0 the lower, 1 the upper)
+#: charges over hours, a ramp. Either takes up an OCV or SOC-axis error rather than showing its own shape. On the
+#: randomised benchmark (seeds 2026, 31, 47, 777; the OCV refined on every HPPC), against the search without it:
+#: effects named that are not there 71 → 56 of 512 cases, nulls 125 → 126 of 128 (seed 31's case 0: a hysteresis at
+#: γ = 1.0001), hidden effect named first 248 → 251 of 384; its cost, three true states fitted at the slow end and no
+#: longer named (a hysteresis beside a slow test, a pair's hysteresis, a pair's branch) and one Butler–Volmer term
+#: named behind a branch at 10⁴ s. The tolerance is :data:`~socbench.identify.fit_test_effect.BOUND_TOL` of the
+#: range's width (γ ≤ 1.5), not the fit test's ratio. Parameter, and the end of its range that is slow (0 the lower,
+#: 1 the upper)
 SLOW_END = {"hysteresis": ("gamma", 0), "extra_rc": ("log10_tau", 1)}
 #: whether :data:`SLOW_END` applies
 SLOW_END_RULE = True
