@@ -217,7 +217,7 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
     the randomised benchmark, against ``"coarse"`` (below) and with the search's slow-end rule
     (:data:`socbench.diagnose.search.SLOW_END`) beside it: hidden effect named first 243 → 251 of 384 single-effect
     cases over seeds 2026, 31, 47 and 777, RMSE cut ≥ 30 % 272 → 281, nulls 126 → 126 of 128, pairs 56 → 55 of
-    128, effects named that are not there 75 → 56; 200 cases take about a third longer. Without the slow-end rule
+    128, effects named that are not there 75 → 56; seed 2026's 200 cases took 298 → 326 s. Without the slow-end rule
     the refinement let a null case through (seed 31: a hysteresis at Plett's γ floor on the refined curve's
     leftover), as it had when first tried (then off by default: on seeds 31 and 47 it cut one more single-effect case
     by 30 % but let that null through and made one case's SOC worse).

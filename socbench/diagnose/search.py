@@ -101,6 +101,8 @@ REST_EVIDENCE_S = 600.0
 REST_OFFSET_C = 5e-4
 #: the rest current's standard error includes the scatter of the rests' levels beyond their noise (rest_current)
 REST_SPREAD = True
+#: the standard error of a median of normal noise over that of a mean (√(π/2))
+MEDIAN_SE = 1.2533
 #: no effect is added once the held-out RMSE is within this factor of the measured voltage noise. A base model fitted
 #: on its own record leaves some error of its own beside the noise (the fit is not exact), and near the noise any
 #: flexible effect can take up part of it. The factor was set as the critical value of that null distribution on
@@ -298,7 +300,7 @@ def rest_current(profiles, capacity_ah: float, quiet_a: float | None = None, min
     # median sticks to a level and reads a sub-step offset as none (reading_level). The standard error is that of
     # the median of normal noise
     level, sd = reading_level(allv)
-    se = float(1.2533 * sd / np.sqrt(allv.size)) if allv.size > 1 else 0.0
+    se = float(MEDIAN_SE * sd / np.sqrt(allv.size)) if allv.size > 1 else 0.0
     if REST_SPREAD and len(vals) >= 2:
         # an offset reads the same in every rest: rests whose levels scatter beyond their own noise (Cochran's Q above
         # its 99th percentile) are not all rests (a vehicle creeping on its auxiliary load under a noisy sensor passes
@@ -308,7 +310,7 @@ def rest_current(profiles, capacity_ah: float, quiet_a: float | None = None, min
 
         each = [reading_level(v) for v in vals]
         levels = np.array([m for m, _ in each])
-        within = np.array([max((1.2533 * sd_k) ** 2 / v.size, 1e-30) for (_, sd_k), v in zip(each, vals)])
+        within = np.array([max((MEDIAN_SE * sd_k) ** 2 / v.size, 1e-30) for (_, sd_k), v in zip(each, vals)])
         q_stat = float(np.sum((levels - level) ** 2 / within))
         if q_stat > chi2.ppf(0.99, len(vals) - 1):
             excess = max(0.0, float(np.var(levels, ddof=1)) - float(np.mean(within)))
