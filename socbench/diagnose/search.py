@@ -480,12 +480,13 @@ class Search:
         return chosen
 
     # ------------------------------------------------------------------ the search
-    def fit_test_step(self, name: str, values: dict, plain, evidence: str):
+    def fit_test_step(self, name: str, values: dict, plain, evidence: str, alone: bool = True):
         """The effect ``name`` at ``values``, fitted with the base on the fit test (:mod:`~socbench.identify.
         fit_test_effect`), as a step: the same row in every fold, so no parameter of it is fitted on the evaluation
         data and every block is held out. Scored against ``plain``, the base model fitted without it. None when the
         search would not add it: ``plain`` within the noise floor, its score or cut short of the search's bar, or a
-        branch the search refuses (:meth:`twin_branch`)."""
+        branch the search refuses (:meth:`twin_branch`). ``alone=False``: the step is not held to the score and cut
+        (the caller judges it beside later steps, :func:`socbench.diagnose.core.search_beside`)."""
         r_before, sse_before, _ = cv_residual(plain, self.folds, self.soc0s)
         rmse_before = float(np.sqrt(np.mean(r_before * r_before)))
         if rmse_before <= self.floor():
@@ -508,7 +509,8 @@ class Search:
             thetas[:, free] = states.thetas
         fit = FoldFit(thetas, self.groups, tuple(f"{name}.{p}" for p in pnames), 0, 0, 0.0)
         c = self._scored(name, fit, build, layout, None, rmse_before, effective_samples(r_before), 0.0)
-        if not (np.isfinite(c.score) and c.score > 0 and c.rmse_after <= (1.0 - self.min_gain) * rmse_before):
+        if not np.isfinite(c.score) or alone and not (c.score > 0
+                                                        and c.rmse_after <= (1.0 - self.min_gain) * rmse_before):
             return None
         return dataclasses.replace(c, fit_test=True, fold_ratio=self.worst_block(c, sse_before), evidence=(
             f"{evidence}; held-out RMSE {1000 * rmse_before:.1f} → {1000 * c.rmse_after:.1f} mV (no parameter fitted "

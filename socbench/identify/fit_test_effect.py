@@ -21,7 +21,10 @@ The refit is kept (:func:`fit_with_effect`) when
 * for a branch, its time constant is within the record and outside ×``twin`` of every branch of the refitted base
   (a branch beside one the base has is a misfit of that branch, not one the structure lacks).
 
-Of the kept ones, the refit that fits its record best is the diagnosis' first step. Only the cell's properties are
+Of the kept ones, the refit that fits its record best is the diagnosis' first step. A refit that fails only the
+validation gain is returned as ``deferred``: another effect (a fade, a sensor offset) can dominate the evaluation
+records' error and hide its share there, and the diagnosis tries it again beside the effects its search adds
+(:func:`socbench.diagnose.core.search_beside`). Only the cell's properties are
 tried this way (:data:`FIT_TEST_EFFECTS`): what changed between the test and use (a temperature, an aged capacity, a
 sensor, a leak) is not in the fit test. The charge-transfer term was tried too: an HPPC's two pulse currents do not
 show it (on the randomised benchmark's eight Butler–Volmer cases of seed 2026 its refit fitted the HPPC 0–3 %
@@ -106,9 +109,9 @@ def _at_bound(effect: str, values: dict, fit: FitResult) -> str | None:
 def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, *, setting: dict,
                     reference: FitResult, lookup: dict | None = None, settings: dict | None = None,
                     twin: float = 3.0):
-    """``(refit or None, report)``: ``base``, model ``name`` as fitted on ``profile`` (the model the diagnosis would
-    start from), against the same structure fitted on ``profile`` again with ``effect`` beside it, kept by the rules
-    of the module docstring.
+    """``(refit or None, report)`` (the refit also when it is ``deferred``, below): ``base``, model ``name`` as
+    fitted on ``profile`` (the model the diagnosis would start from), against the same structure fitted on ``profile``
+    again with ``effect`` beside it, kept by the rules of the module docstring.
 
     The effect is fitted in constant mode with the sample ``setting`` (:data:`~socbench.identify.FIT_CANDIDATES`;
     few parameters, so several starts are cheap) and judged on its own record against ``reference``, the base fitted
@@ -116,7 +119,8 @@ def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, 
     ``lookup`` holds their settings (mode, knots): the base and the effect are fitted again so, from the effect as
     fitted in constant mode, and that fit is the one validated against ``base``. ``settings``: the effect's own (the
     OCV's hysteresis branch). ``report``: what was measured (``fit_rmse_v`` and ``validation_rmse_v`` before → after,
-    the effect's fitted values) and ``why_not``, the first rule the refit failed (None: kept)."""
+    the effect's fitted values), ``why_not``, the first rule the refit failed (None: kept), and ``deferred``: True
+    when the validation gain is the only rule it failed."""
     ocv, q = base.params.ocv, base.params.capacity_ah
     best = None
     for start in _starts(effect, reference, settings or {}):
@@ -151,27 +155,37 @@ def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, 
             why = "branch slower than the record"
         elif why is None and near:
             why = f"branch within ×{twin:g} of the base's {near[0]}"
+    deferred = False
     if validation:
         before = float(np.mean([validation_rmse(base, v) for v in validation]))
         after = float(np.mean([validation_rmse(best, v) for v in validation]))
         report["validation_rmse_v"] = [before, after]
         if why is None and not after <= (1.0 - VALIDATION_GAIN) * before:
             why = f"validation not {100 * VALIDATION_GAIN:.0f} % better"
+            deferred = True
     report["why_not"] = why
-    return (best if why is None else None), report
+    report["deferred"] = deferred
+    return (best if why is None or deferred else None), report
 
 
 def effect_on_fit_test(name: str, base, profile: Profile, validation, effects=FIT_TEST_EFFECTS, *, setting: dict,
                        lookup: dict | None = None, settings=None, twin: float = 3.0):
-    """``(refit or None, reports)``: of the ``effects`` that :func:`fit_with_effect` keeps (same arguments;
-    ``settings`` maps an effect to its own), the one whose refit fits ``profile`` best, and every effect's report."""
+    """``(refit or None, reports, deferred or None)``: of the ``effects`` that :func:`fit_with_effect` keeps (same
+    arguments; ``settings`` maps an effect to its own), the one whose refit fits ``profile`` best, and every effect's
+    report; ``deferred``: of the refits that failed only the validation gain (``report["deferred"]``), the one that
+    fits ``profile`` best. Alone it does not predict the evaluation records better, yet another effect may dominate
+    their error: the diagnosis tries it again beside what its search adds."""
     reference = fit_model(name, profile, mode="constant", ocv=base.params.ocv, capacity_ah=base.params.capacity_ah,
                           **setting)
-    kept, reports = [], []
+    kept, deferred, reports = [], [], []
     for effect in effects:
         refit, report = fit_with_effect(name, base, profile, validation, effect, setting=setting, lookup=lookup,
                                         settings=(settings or {}).get(effect), twin=twin, reference=reference)
         reports.append(report)
         if refit is not None:
-            kept.append(refit)
-    return (min(kept, key=lambda r: r.rmse_v) if kept else None), reports
+            (deferred if report["deferred"] else kept).append(refit)
+
+    def best_fit(refits):
+        return min(refits, key=lambda r: r.rmse_v) if refits else None
+
+    return best_fit(kept), reports, best_fit(deferred)
