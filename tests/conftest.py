@@ -25,3 +25,10 @@ def data_dir() -> Path:
     if not p.is_dir():
         pytest.fail(f"SOCBENCH_DATA_DIR={d} is not a directory")
     return p
+
+
+def pytest_collection_modifyitems(config, items):
+    """The tests marked ``slow`` first (a stable sort: the order is otherwise the collection's). pytest-xdist hands
+    tests to its workers in this order, and a minute-long test handed out last, while the other worker has run dry,
+    is what the whole run then waits for."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)

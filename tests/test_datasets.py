@@ -388,6 +388,7 @@ def test_cli_simulate_on_corrupt_file_exits_2_with_one_line(canonical_us06, tmp_
     assert len(err.splitlines()) == 1 and "current_a" in err and str(bad) in err and "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_the_sign_check_does_not_count_charge_across_a_logging_gap(tmp_path):
     """An HPPC whose logger pauses during each discharge step (the Panasonic layout) with a current sensor that reads
     slightly negative at rest: counted across the gaps, the last rest's −0.3 % C held for an hour says charge while

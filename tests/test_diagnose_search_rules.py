@@ -44,6 +44,7 @@ def test_noise_remeasured_and_measured_offset_taken_in_the_cold():
     assert d.after["rmse_v"] <= 0.1 * d.before["rmse_v"]
 
 
+@pytest.mark.slow
 def test_soc_drift_swapped_beside_the_later_steps(monkeypatch):
     """The leak that wins the first round alone rests on its bound (5 %/h): by default it is not scored
     (``DRIFT_AT_BOUND``) and the fade is named with no swap; without that rule the swap puts the fade in its place."""
@@ -208,6 +209,7 @@ def test_a_drift_at_the_limit_of_its_physical_range_is_not_scored(monkeypatch):
     assert off.effects_added == ["self_discharge"], off.effects_added
 
 
+@pytest.mark.slow
 def test_a_state_at_the_slow_end_of_its_rate_is_not_scored(monkeypatch):
     """A null case of the development seed 31 (case 0: a DP cell, no effect hidden) whose base, once refitted on the
     evaluation records, still leaves a slow error along the SOC: a hysteresis fitted there rests on Plett's γ floor

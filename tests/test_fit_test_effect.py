@@ -23,7 +23,7 @@ from socbench import loads
 from socbench.diagnose import core, diagnose
 from socbench.diagnose.core import _coarse, effect_on_fit_test_record, fit_base
 from socbench.diagnose.synthetic import eval_current
-from socbench.identify import fit_model
+from socbench.identify import fit_model, fit_test_effect
 from socbench.identify.fit_test_effect import _at_bound
 from socbench.models import Constant, ModelParams, make_model, paper_ocv
 from socbench.models.effects import augment, make_effect
@@ -138,12 +138,18 @@ def _fade(seed: int) -> float:
     return float(np.random.default_rng([seed, 4]).uniform(0.1, 0.2))
 
 
+@pytest.mark.slow
 def test_a_branch_a_fade_hides_on_the_evaluation_record_is_tried_beside_it(monkeypatch):
     """The cell has lost 10–20 % of its capacity since its HPPC: the evaluation record's error is the fade's, and the
     branch the HPPC shows (fitted there) predicts it no better alone. Deferred (the default), the refit is tried again
     beside what the search adds: the branch is named beside the fade in at least half the draws and in more than
     without the deferral, and where the deferred refit is kept, the held-out RMSE ends 10 % below the diagnosis
-    without it."""
+    without it.
+
+    The deferral is measured with the rests' evidence off (``REST_GAIN`` above 1): where the HPPC's rests show the
+    branch it is a first step held only to "not worse" on the evaluation record, and named beside the fade without
+    any deferral (5 of these 6 draws, with and without it)."""
+    monkeypatch.setattr(fit_test_effect, "REST_GAIN", 2.0)
     named = {True: 0, False: 0}
     for seed in range(DRAWS):
         _, fit, evals = draw("extra_rc", seed, fade=_fade(seed))
@@ -160,6 +166,7 @@ def test_a_branch_a_fade_hides_on_the_evaluation_record_is_tried_beside_it(monke
     assert named[True] >= DRAWS // 2 and named[True] > named[False], named
 
 
+@pytest.mark.slow
 def test_a_fade_alone_has_no_branch_named_beside_it():
     for seed in range(DRAWS):
         _, fit, evals = draw(None, seed, fade=_fade(seed))

@@ -463,6 +463,7 @@ def _hppc_recipe_on_a_drive(seed: int, tmp_path) -> dict:
     return out
 
 
+@pytest.mark.slow
 def test_mid_state_keeps_the_band_on_a_drive_the_hppc_recipe_did_not_see(tmp_path):
     """The recipe measured on an HPPC (in sample) meets a drive cycle whose error moves at periods of minutes, which
     one persistent slow state does not describe (module docstring). Over 24 random cells of the test generator the

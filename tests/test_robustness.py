@@ -24,6 +24,7 @@ def _sweep_module():
     return mod
 
 
+@pytest.mark.slow
 def test_ci_slice_of_the_robustness_sweep_has_no_nan_or_inf(tmp_path, capsys):
     """Every registered estimator on rint and fang (whose log term once sent every UKF run to NaN), three seeds of
     the short flight; the sweep's own analysis must find no NaN/inf, and writes its JSON and report."""

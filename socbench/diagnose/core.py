@@ -21,8 +21,11 @@
    mean branch) are looked for there first: the base fitted again on its record with the effect beside it, kept when
    that record and the evaluation records (nothing fitted on them) are both fitted 10 % better. A kept effect is the
    search's first step, the same in every fold, scored against the base fitted without it; the search goes on from
-   the refitted base with it. One that fails only the evaluation records' gain is tried again beside what the search
-   adds (:func:`search_beside`): another effect can dominate their error and hide its share.
+   the refitted base with it. A branch the HPPC's rests show (:mod:`socbench.identify.rest_relaxation`: fitted on
+   the relaxation alone, no OCV error enters) is a first step where the evaluation records are predicted no worse:
+   a measurement on the test, whose share of their error the OCV's can hide. One that fails only the evaluation
+   records' gain is tried again beside what the search adds (:func:`search_beside`): another effect can dominate
+   their error and hide its share.
 4. **Search** (:mod:`socbench.diagnose.search`): blocked cross-validation over every evaluation record
    (:func:`~socbench.diagnose.data.make_folds`), signatures, one bounded fit per fold, held-out scores, the forward
    steps while the held-out RMSE falls by ≥ 10 %.
@@ -356,11 +359,17 @@ def effect_on_fit_test_record(model_name: str, base, fit_profiles, evals, info: 
             continue
         name = found.params.effects[0]["name"]
         r = next(r for r in reports if r["effect"] == name)
-        info["fit_test_effect"].update({key: name, "evidence": (
+        rests = ""
+        if r.get("shown_by_rests"):
+            s0, s1 = r["rests"]["structure_v"]
+            rests = (f", what its {r['rests']['rests']} rests leave of the relaxation beyond the noise "
+                     f"{1000 * s0:.2f} → {1000 * s1:.2f} mV")
+        info["fit_test_effect"].update({key: name, "shown_by_rests": bool(r.get("shown_by_rests")),
+                                        "validation": r.get("validation", "gain"), "evidence": (
             f"fitted with the base on the fit record {prof.name} "
             f"({format_params({k: v for k, v in r['values'].items() if k in EFFECTS[name].param_names})}): its RMSE "
-            f"{1000 * r['fit_rmse_v'][0]:.2f} → {1000 * r['fit_rmse_v'][1]:.2f} mV, the evaluation records predicted "
-            f"{1000 * r['validation_rmse_v'][0]:.1f} → {1000 * r['validation_rmse_v'][1]:.1f} mV")})
+            f"{1000 * r['fit_rmse_v'][0]:.2f} → {1000 * r['fit_rmse_v'][1]:.2f} mV{rests}, the evaluation records "
+            f"predicted {1000 * r['validation_rmse_v'][0]:.1f} → {1000 * r['validation_rmse_v'][1]:.1f} mV")})
         break
     return refit, deferred
 
@@ -380,7 +389,7 @@ def search_beside(make_search, model_name: str, base, refit, evidence: str, plai
     added = [s.effect for s in plain_steps if s.effect != BASE_REFIT]
     search = make_search(make_model(model_name, refit.params.replace(effects=())), candidates=added)
     effect = refit.params.effects[0]
-    start = search.fit_test_step(effect["name"], effect["values"], base, evidence, alone=False)
+    start = search.fit_test_step(effect["name"], effect["values"], base, evidence, bar=None)
     if start is None:
         return None
     run = search.run(start)
@@ -585,7 +594,8 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
     if refit is not None:  # the search goes on from the refit's base with the effect as its first step
         found = fit_info["fit_test_effect"]
         search = make_search(make_model(model_name, refit.params.replace(effects=())))
-        start = search.fit_test_step(found["kept"], refit.params.effects[0]["values"], base, found["evidence"])
+        start = search.fit_test_step(found["kept"], refit.params.effects[0]["values"], base, found["evidence"],
+                                     bar="not worse" if found["shown_by_rests"] else "gain")
         found["added"] = start is not None
     search = make_search(base) if start is None else search
     final, steps, rounds, _ = search.run(start)

@@ -80,9 +80,10 @@ from scipy.optimize import least_squares
 from ..identify.fit import branch_time_constants
 from ..models import Lookup, ModelParams, make_model
 from ..models.effects import EFFECTS, augment, make_effect, n_cells
+from ..models.scaling import refittable_params, scaled_model
 from ..ocv import OCVCurve
 from ..profile import Profile, ProfileMeta
-from .search import BASE_OFFSET_V, BASE_SCALE, TWIN_TAU, refittable_params, scaled_model
+from .search import BASE_OFFSET_V, BASE_SCALE, TWIN_TAU
 
 EFFECT_NAMES = tuple(EFFECTS)
 

@@ -79,6 +79,7 @@ from ..identify.fit_test_effect import BOUND_TOL, bound_hit
 from ..identify.hppc import reading_level
 from ..metrics import lag1_autocorrelation
 from ..models.effects import EFFECTS, augment, make_effect, n_cells
+from ..models.scaling import refittable_params, scaled_model
 from ..segments import restart_soc
 from .cv import FoldFit, cv_residual, fit_folds, simulate_records
 from .data import Folds
@@ -214,22 +215,6 @@ class Candidate:
                 "worst_block_mse_ratio": round(float(self.fold_ratio), 4) if np.isfinite(self.fold_ratio) else None}
 
 
-def refittable_params(model) -> list:
-    """The parameters of ``model`` the base refit scales (those with a ``scaled`` method: resistances, capacitances,
-    their SOC lookups)."""
-    values = model.params.values
-    return [p for p in model.required_params() if p in values and hasattr(values[p], "scaled")]
-
-
-def scaled_model(model, names, scales):
-    """``model`` with each parameter of ``names`` scaled by ``scales[..., m]`` (a leading batch axis gives one variant
-    per row): the base refit's model."""
-    values = dict(model.params.values)
-    for m, p in enumerate(names):
-        values[p] = values[p].scaled(scales[..., m])
-    return type(model)(model.params.replace(values=values), model.mode)
-
-
 def initial_soc(model, profile) -> float:
     """The reference SOC at the start when the data carry one, else the SOC the model reads off the first voltage
     (:func:`socbench.segments.restart_soc`)."""
@@ -362,6 +347,8 @@ class Search:
         #: what the rests say about the current sensor: True (it reads an offset), False (it reads none), None (too
         #: few rests to tell)
         self.bias_measured = None
+        #: effects added as the fit test's rests show them (:meth:`fit_test_step` with ``bar="not worse"``)
+        self.shown_on_fit_test = set()
         if self.bias_rest is not None:
             mean, se, seconds = self.bias_rest
             lo, hi = self.bounds["current_bias"]["b0"]
@@ -480,16 +467,19 @@ class Search:
         return chosen
 
     # ------------------------------------------------------------------ the search
-    def fit_test_step(self, name: str, values: dict, plain, evidence: str, alone: bool = True):
+    def fit_test_step(self, name: str, values: dict, plain, evidence: str, bar: str | None = "gain"):
         """The effect ``name`` at ``values``, fitted with the base on the fit test (:mod:`~socbench.identify.
         fit_test_effect`), as a step: the same row in every fold, so no parameter of it is fitted on the evaluation
         data and every block is held out. Scored against ``plain``, the base model fitted without it. None when the
-        search would not add it: ``plain`` within the noise floor, its score or cut short of the search's bar, or a
-        branch the search refuses (:meth:`twin_branch`). ``alone=False``: the step is not held to the score and cut
-        (the caller judges it beside later steps, :func:`socbench.diagnose.core.search_beside`)."""
+        search would not add it: short of ``bar``, ``plain`` within the noise floor (but for ``"not worse"``), or a
+        branch the search refuses (:meth:`twin_branch`). ``bar``: ``"gain"``, the search's score and cut; ``"not
+        worse"``, the held-out RMSE not above ``plain``'s — for a branch the fit test's rests show
+        (:mod:`socbench.identify.rest_relaxation`), a measurement on the test that the evaluation records need only
+        not contradict, which no later step then drops (:meth:`_prune`); None, not held to either (the
+        caller judges it beside later steps, :func:`socbench.diagnose.core.search_beside`)."""
         r_before, sse_before, _ = cv_residual(plain, self.folds, self.soc0s)
         rmse_before = float(np.sqrt(np.mean(r_before * r_before)))
-        if rmse_before <= self.floor():
+        if rmse_before <= self.floor() and bar != "not worse":  # a measurement on the test needs no eval gain
             return None
         build, layout, lo, hi = self.builder([name])
         pnames = layout[0][1]
@@ -509,9 +499,13 @@ class Search:
             thetas[:, free] = states.thetas
         fit = FoldFit(thetas, self.groups, tuple(f"{name}.{p}" for p in pnames), 0, 0, 0.0)
         c = self._scored(name, fit, build, layout, None, rmse_before, effective_samples(r_before), 0.0)
-        if not np.isfinite(c.score) or alone and not (c.score > 0
-                                                        and c.rmse_after <= (1.0 - self.min_gain) * rmse_before):
+        if not np.isfinite(c.score) or bar == "gain" and not (c.score > 0 and c.rmse_after
+                                                                <= (1.0 - self.min_gain) * rmse_before):
             return None
+        if bar == "not worse":
+            if c.rmse_after > rmse_before:
+                return None
+            self.shown_on_fit_test.add(name)
         return dataclasses.replace(c, fit_test=True, fold_ratio=self.worst_block(c, sse_before), evidence=(
             f"{evidence}; held-out RMSE {1000 * rmse_before:.1f} → {1000 * c.rmse_after:.1f} mV (no parameter fitted "
             "on the evaluation data)"))
@@ -681,13 +675,15 @@ class Search:
         left. An effect that won an early round by taking up what a later one explains better (a leak standing in for a
         fade before the base refit took the aged cell's grown resistances) adds nothing beside it at the end, and a
         diagnosis should not name it. Measured inputs are never dropped (a current offset the rests measure, the
-        temperature where the records' measured temperature differs from the fit's)."""
+        temperature where the records' measured temperature differs from the fit's), nor a branch the fit test's rests
+        show (:meth:`fit_test_step`)."""
         n_eff = effective_samples(r_now)
         empty = {g: {} for g in self.groups}
         while True:
             final = steps[-1]
             names = [n for n, _ in final.layout]
-            droppable = [n for n in names if n != BASE_REFIT and not self.measured_input(n)]
+            droppable = [n for n in names if n != BASE_REFIT and not self.measured_input(n)
+                         and n not in self.shown_on_fit_test]
             trials = []
             for e in droppable:
                 rest, rows = self._without(final, e)

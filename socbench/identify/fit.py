@@ -32,7 +32,7 @@ effects are held as given. The fitted set carries them (``ModelParams.effects``)
 from __future__ import annotations
 
 import time as _time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -158,6 +158,13 @@ def branches_identified(params: ModelParams, duration_s: float) -> bool:
     return all(tau <= duration_s for tau in branch_time_constants(params).values())
 
 
+def _started(spec: ParamSpec, value: float | None) -> ParamSpec:
+    """``spec`` starting at ``value`` (within its bounds), or as it is where ``value`` is missing or not admissible."""
+    if value is None or not np.isfinite(value) or (spec.log and value <= 0):
+        return spec
+    return replace(spec, init=float(np.clip(value, spec.lower, spec.upper)))
+
+
 def _reference_value(ref: ModelParams | None, pname: str) -> float | None:
     if ref is None or pname not in ref.values:
         return None
@@ -270,8 +277,11 @@ def _forms_for(name: str, mode: str, n_params: int, knots, domain=(0.0, 1.0)) ->
 
 def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | None = None,
               capacity_ah: float | None = None, soc0: float | None = None, knots=None,
-              options: dict | None = None, effects=(), fit_effects: bool = True) -> FitProblem:
-    """Analyse the record and lay out θ (names, start, bounds, forms) for :func:`fit_model`."""
+              options: dict | None = None, effects=(), fit_effects: bool = True,
+              start: ModelParams | None = None) -> FitProblem:
+    """Analyse the record and lay out θ (names, start, bounds, forms) for :func:`fit_model`. ``start``: a parameter
+    set the fit starts from (each parameter at its median over SOC, within the bounds) instead of the record's
+    guesses."""
     if mode not in MODES:
         raise ConfigError(f"unknown fit mode '{mode}'; known: {', '.join(MODES)}")
     if name not in model_names():
@@ -342,6 +352,8 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
     n_br = _rc_branches(pnames)
     units = dict(getattr(model_class(name), "param_units", {}) or {})
     specs = [param_spec(p, guess, n_br, _reference_value(ref, p), units.get(p)) for p in pnames]
+    if start is not None:
+        specs = [_started(s, _reference_value(start, s.name)) for s in specs]
     forms = _forms_for(name, mode, len(specs), knots, domain)
     if domain != (0.0, 1.0) and any(isinstance(f, PolyForm) for f in forms):
         notes.append(f"SOC polynomials fitted on the record's SOC range [{domain[0]:.3f}, 1] and stored clamped to it")
@@ -431,23 +443,26 @@ def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
               capacity_ah: float | None = None, soc0: float | None = None, *, knots=None, options: dict | None = None,
               compress: bool | dict = True, warm_start: bool = True, max_nfev: int | None = None,
               time_weighted: bool = False, loss: str = "linear", segments=None, effects=(),
-              fit_effects: bool = True) -> FitResult:
+              fit_effects: bool = True, start: ModelParams | None = None) -> FitResult:
     """Fit model ``name`` to ``profile`` (see the module docstring). Returns a :class:`FitResult`.
 
     ``effects``: effects in the model, their ``joint_params`` fitted with the base parameters (held as given with
     ``fit_effects=False``); the fitted set carries them (``params.effects``).
 
     ``segments``: a record of several discharges is fitted segment by segment (None: found in the record; False:
-    one piece; see :func:`~socbench.identify.lsq.fit_parameters` and :mod:`socbench.segments`)."""
+    one piece; see :func:`~socbench.identify.lsq.fit_parameters` and :mod:`socbench.segments`).
+
+    ``start``: a parameter set to start from instead of the record's guesses (:func:`setup_fit`): a refit of a set
+    fitted before, with an effect held beside it."""
     t0 = _time.perf_counter()
     if compress is True:
         compress = dict(FIT_COMPRESSION)
-    prob = setup_fit(name, profile, mode, ocv, capacity_ah, soc0, knots, options, effects, fit_effects)
+    prob = setup_fit(name, profile, mode, ocv, capacity_ah, soc0, knots, options, effects, fit_effects, start)
     profile = prob.fit_profile(profile)
     theta0 = prob.theta0.copy()
     if warm_start and any(not isinstance(f, ConstantForm) for f in prob.forms):
         const = setup_fit(name, profile, "constant", prob.ocv, prob.capacity_ah, prob.soc0, None, prob.options,
-                          effects, fit_effects)
+                          effects, fit_effects, start)
         cres = fit_parameters(const.build, profile, const.theta0, const.lower, const.upper, names=const.labels,
                               soc0=prob.soc0, soc_jumps=prob.soc_jumps, weights=const.weights, compress=compress,
                               max_nfev=max_nfev, time_weighted=time_weighted, loss=loss, segments=segments)

@@ -13,11 +13,21 @@ own share::
 The refit is kept (:func:`fit_with_effect`) when
 
 * it fits its own record :data:`FIT_GAIN` better (the effect is in the test), fitted in constant mode against the
-  base fitted so (few parameters: several starts are cheap), then again in the base's own form,
+  base fitted so (few parameters: several starts are cheap), then again in the base's own form; or, for a branch,
+  the record's rests show it (:func:`_rests_refuse` passes on :func:`~socbench.identify.rest_relaxation.
+  rest_evidence`: the base's branches and one more fitted on the rests' relaxation alone, each rest's OCV level
+  free, the extra one takes :data:`REST_GAIN` of what the base's leave beyond the noise). The whole record's fit
+  spends a branch on the OCV's error between the rest points where that error dominates (coarse steps, a curve with
+  knees: tens of mV against a branch's few), so that fit gains little and puts the branch where the OCV wants it;
+  the rests read it free of the OCV. The branch is then held at the resistance and time constant the rests read and
+  the base refitted around it on the whole record, from the base's own fit,
 * no parameter of the effect rests on a bound of its range (:func:`_at_bound`: a hysteresis whose rate is at its
   floor is a slow offset, a branch at the longest time constant a ramp; either stands in for an OCV error),
 * it predicts the evaluation records, no parameter of it fitted there, :data:`VALIDATION_GAIN` better on average
-  (the effect matters where the model is used: the bar the diagnosis' search holds every addition to), and
+  (the effect matters where the model is used: the bar the diagnosis' search holds every addition to) — a branch
+  the rests show, no worse (``report["validation"] == "not worse"``: a measurement on the test, whose share of the
+  evaluation records' error their OCV error can dominate; the diagnosis holds its step to the same, and no later
+  step drops it, :meth:`socbench.diagnose.search.Search.fit_test_step`), and
 * for a branch, its time constant is within the record and outside ×``twin`` of every branch of the refitted base
   (a branch beside one the base has is a misfit of that branch, not one the structure lacks).
 
@@ -39,16 +49,28 @@ branch within the noise beyond the base, named before, lost: the fit test's hyst
 the end; an efficiency case, missed before, now names a hysteresis from the slow test, whose charge branch an
 efficiency below 1 also moves); seed 47: every rate unchanged, one false name fewer. ``docs/foreign_records.md``
 (another generator's two-branch cells): the missing branch named 3 → 4 of 15, a false hysteresis gone.
+
+The rests' path for a branch, measured against the diagnosis without it, both run on the same machine and libraries
+(numpy 2.4.6, scipy 1.17.1): ``docs/foreign_records.md``, the missing branch named 3 → 8 of 15 (cases 2, 8, 12, 20,
+26), no effect named that is not there added; seed 31, named first 46 → 47 of 72 and pairs 9 → 10 of 24; seed 47,
+SOC not worse 113 → 114 of 120 and a branch named that is not there in one pair (case 12, whose outcome also
+changes with the library versions); seed 777, one branch case named (128) and one hysteresis case lost (165,
+another such case); every other rate unchanged. Of the single-effect misses left on seeds 2026/31/47/777 (132 of
+384), 103 are effects whose footprint beyond the base structure, its parameters refitted, is below the voltage
+noise; refitting that base on the HPPC too leaves that footprint where it was (the 90 single cases of seeds 31 and
+47 but temperature, capacity and current offset): holding the base to the fit test does not make them nameable.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.stats import chi2
 
 from ..models.effects import EFFECTS
 from ..models.registry import make_model
 from ..profile import Profile
 from .fit import FitResult, branch_time_constants, fit_model
+from .rest_relaxation import rest_evidence
 from .select import validation_rmse
 
 #: the effects a fit test can show (properties of the cell)
@@ -62,6 +84,12 @@ VALIDATION_GAIN = 0.10
 LOOKUP_MAX_NFEV = 100
 #: a fitted parameter this close to a bound (relative; a ratio for positive ranges) is at it
 BOUND_TOL = 1e-3
+#: an extra branch is in the test, whatever the whole record gains, when its refit takes this share of what the base
+#: fit leaves of the rests' relaxation beyond the noise (:mod:`socbench.identify.rest_relaxation`)
+REST_GAIN = 0.5
+#: … and the squared error over the rests falls by more than fitting the branch's two parameters to white noise
+#: takes with this probability (χ² with 2 degrees of freedom, in units of the noise variance)
+REST_P = 1e-6
 #: starting time constants of an extra branch [log10 s]: the rests' minutes to hours
 TAU_STARTS = (2.0, 2.7, 3.4)
 #: starting rates of a hysteresis state (Plett's γ)
@@ -106,6 +134,34 @@ def _at_bound(effect: str, values: dict, fit: FitResult) -> str | None:
     return bound_hit(values, cls(**values).bounds(make_model(fit.name, fit.params)), names)
 
 
+def _rests_refuse(rests: dict, duration_s: float, twin: float, log10_tau_range) -> str | None:
+    """Why the rests' fit (:func:`~socbench.identify.rest_relaxation.rest_evidence`) does not show an extra branch,
+    or None when it does: it takes :data:`REST_GAIN` of the relaxation error beyond the noise, more than fitting two
+    parameters takes from white noise (:data:`REST_P`), at a time constant inside its range (``log10_tau_range``)
+    and within the longest rest (beyond it every rest holds a ramp, whose slope trades the branch's resistance
+    against its time constant), clear of the base's branches (as fitted beside it on the rests) by ×``twin``, and
+    none of those slower than the record or within ×``twin`` of another (a branch to spare: the extra one would only
+    take its place)."""
+    tau = 10.0 ** rests["log10_tau"]
+    taus = [t for t in rests["taus_s"].values() if t > 0]
+    if rests["cut"] < REST_GAIN:
+        return f"the extra branch takes {100 * rests['cut']:.0f} % of the relaxation error (< {100 * REST_GAIN:.0f} %)"
+    if rests["chi2"] < float(chi2.isf(REST_P, 2)):
+        return f"χ² = {rests['chi2']:.1f}: within what two parameters take from white noise"
+    lo, hi = log10_tau_range
+    if min(rests["log10_tau"] - lo, hi - rests["log10_tau"]) <= BOUND_TOL * (hi - lo) or tau > duration_s:
+        return f"τ = {tau:.0f} s at the end of its range or beyond the record"
+    if tau > rests["longest_rest_s"]:  # within every rest a ramp, whose slope trades the branch's R against its τ
+        return f"τ = {tau:.0f} s beyond the longest rest ({rests['longest_rest_s']:.0f} s): not resolved there"
+    if any(t > duration_s for t in taus):
+        return "a base branch fitted on the rests is slower than the record"
+    if any(abs(np.log(tau / t)) <= np.log(twin) for t in taus):
+        return f"τ = {tau:.0f} s within ×{twin:g} of a base branch fitted on the rests"
+    if any(abs(np.log(a / b)) <= np.log(twin) for k, a in enumerate(taus) for b in taus[k + 1:]):
+        return f"two base branches fitted on the rests within ×{twin:g} of each other: one is spare"
+    return None
+
+
 def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, *, setting: dict,
                     reference: FitResult, lookup: dict | None = None, settings: dict | None = None,
                     twin: float = 3.0):
@@ -134,13 +190,30 @@ def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, 
     if best is None:
         return None, {**report, "why_not": "every fit failed"}
     report["fit_rmse_v"] = [reference.rmse_v, best.rmse_v]
-    if not best.rmse_v <= (1.0 - FIT_GAIN) * reference.rmse_v:
-        return None, {**report, "why_not": f"fit record not {100 * FIT_GAIN:.0f} % better"}
-    if lookup is not None:  # the base's own form, from the effect as fitted in constant mode
+    shown = False  # the rests show the branch, whatever the whole record gains
+    if effect == "extra_rc":
+        rests = rest_evidence(reference, profile)
+        if rests is not None:
+            why_rests = _rests_refuse(rests, profile.duration_s, twin, EFFECTS[effect]().bounds(base)["log10_tau"])
+            report["rests"] = {**rests, "why_not": why_rests}
+            shown = why_rests is None
+    if shown:  # the branch as the rests read it, the base fitted around it on the whole record
+        try:
+            best = fit_model(name, profile, mode="constant", ocv=ocv, capacity_ah=q, effects=[EFFECTS[effect](
+                R=rests["R"], log10_tau=rests["log10_tau"], **(settings or {}))], fit_effects=False,
+                start=reference.params, **setting)
+        except Exception as exc:  # reported, never fatal: the diagnosis goes on from the base
+            return None, {**report, "why_not": f"fit around the rests' branch failed: {exc}"}
+        report["fit_rmse_v"] = [reference.rmse_v, best.rmse_v]
+    elif not best.rmse_v <= (1.0 - FIT_GAIN) * reference.rmse_v:
+        return None, {**report, "why_not": f"fit record not {100 * FIT_GAIN:.0f} % better"
+                      + (", nor do its rests show the branch" if "rests" in report else "")}
+    report["shown_by_rests"] = shown
+    if lookup is not None:  # the base's own form, from the effect as fitted in constant mode (held, when shown)
         try:
             best = fit_model(name, profile, ocv=ocv, capacity_ah=q,
                              effects=[EFFECTS[effect](**best.params.effects[0]["values"])], **setting, **lookup,
-                             max_nfev=LOOKUP_MAX_NFEV)
+                             max_nfev=LOOKUP_MAX_NFEV, fit_effects=not shown, start=best.params if shown else None)
         except Exception as exc:  # reported, never fatal: the diagnosis goes on from the base
             return None, {**report, "why_not": f"fit in the base's form failed: {exc}"}
     values = {k: float(v) for k, v in best.params.effects[0]["values"].items()}
@@ -161,8 +234,11 @@ def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, 
         after = float(np.mean([validation_rmse(best, v) for v in validation]))
         report["validation_rmse_v"] = [before, after]
         if why is None and not after <= (1.0 - VALIDATION_GAIN) * before:
-            why = f"validation not {100 * VALIDATION_GAIN:.0f} % better"
-            deferred = True
+            if shown and after <= before:  # the rests show it; the evaluation records' error is something else
+                report["validation"] = "not worse"
+            else:
+                why = f"validation not {100 * VALIDATION_GAIN:.0f} % better"
+                deferred = True
     report["why_not"] = why
     report["deferred"] = deferred
     return (best if why is None or deferred else None), report

@@ -232,28 +232,8 @@ def fit_parameters(
     theta0 = np.clip(theta0, lower + inner, upper - inner)
 
     model0 = build(theta0)
-    segs = resolve_segments(segments, profile, model0.ocv, getattr(model0, "capacity_ah", None))
-    # ---- the data the residual is computed on
-    if compress:
-        opts = dict(compress) if isinstance(compress, dict) else {}
-        opts.setdefault("max_ah", MAX_SOC_STEP * float(getattr(model0, "capacity_ah", 0.0) or 0.0) or None)
-        if segs.count == 1:
-            comp = compress_profile(profile, **opts)
-            prof, idx = comp.profile, comp.index
-        else:  # each segment on its own: a merged step never spans a boundary
-            comps = [compress_profile(profile.slice(a, b), **opts) for a, b in segs.spans()]
-            idx = np.concatenate([c.index + a for c, (a, _) in zip(comps, segs.spans())])
-            prof = _joined(profile, [c.profile for c in comps])
-    else:
-        prof, idx = profile, np.arange(profile.n)
-    restarts = [(int(np.searchsorted(idx, a)), float(restart_soc(profile, a, model0)))
-                for a in segs.starts[1:]] or None
-    jumps = None
-    if soc_jumps is not None:
-        sj = np.asarray(soc_jumps, dtype=float)
-        cum = np.concatenate([[0.0], np.cumsum(sj)])  # jumps landing in (idx_{j-1}, idx_j] are applied at idx_j
-        jumps = np.diff(cum[idx + 1], prepend=0.0)
-        jumps[0] = 0.0
+    view = fitting_view(profile, model0, segments, compress, soc_jumps)  # the data the residual is computed on
+    prof, idx, jumps, restarts = view.profile, view.index, view.jumps, view.restarts
     w = None if weights is None else np.asarray(weights, dtype=float)[idx]
     if time_weighted:
         # each kept sample stands for the time until the next one: weight its squared residual by that span, as a
@@ -368,7 +348,7 @@ def fit_parameters(
             J = jac(res_x)
         cov, stderr, corr = covariance(J, r, P)
     domain = _domain(build, res_x, t, cur, temp, start_state, jumps, restarts)
-    domain["segments"] = segs.count
+    domain["segments"] = 1 + len(restarts or ())
     rmse = float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
     rel = np.where(np.isfinite(span), 1e-4 * span, 0.0)
     at_bounds = tuple(n for n, th, lo, hi, tol in zip(names, res_x, lower, upper, rel)
@@ -378,6 +358,48 @@ def fit_parameters(
                      nsim=counts["nsim"],
                      n_samples=int(r.size), seconds=_time.perf_counter() - t_start, batched=bool(use_batch[0]),
                      at_bounds=at_bounds, rmse_start=rmse_start, profile=prof, domain=domain)
+
+
+@dataclass(frozen=True, eq=False)
+class FittingView:
+    """The record a fit simulates: ``profile`` (compressed, or the record itself), the original sample of each of its
+    samples (``index``), the SOC jumps moved onto its samples, and the segment restarts ``[(sample, SOC)]`` (None:
+    one piece)."""
+
+    profile: Profile
+    index: np.ndarray
+    jumps: np.ndarray | None
+    restarts: list | None
+
+
+def fitting_view(profile: Profile, model, segments=None, compress: bool | dict = True,
+                 soc_jumps=None) -> FittingView:
+    """The :class:`FittingView` of ``profile`` for ``model`` (its OCV and capacity find the segments and their restart
+    SOC; ``segments`` as :func:`fit_parameters` takes it): every segment compressed on its own (``compress``: True,
+    or a dict of :func:`~socbench.identify.compress.compress_profile` options; a merged step never spans a segment
+    boundary nor moves more than :data:`MAX_SOC_STEP` of the capacity), and the jumps landing in
+    ``(idx_{j−1}, idx_j]`` applied at ``idx_j``."""
+    segs = resolve_segments(segments, profile, model.ocv, getattr(model, "capacity_ah", None))
+    if compress:
+        opts = dict(compress) if isinstance(compress, dict) else {}
+        opts.setdefault("max_ah", MAX_SOC_STEP * float(getattr(model, "capacity_ah", 0.0) or 0.0) or None)
+        if segs.count == 1:
+            comp = compress_profile(profile, **opts)
+            prof, idx = comp.profile, comp.index
+        else:  # each segment on its own: a merged step never spans a boundary
+            comps = [compress_profile(profile.slice(a, b), **opts) for a, b in segs.spans()]
+            idx = np.concatenate([c.index + a for c, (a, _) in zip(comps, segs.spans())])
+            prof = _joined(profile, [c.profile for c in comps])
+    else:
+        prof, idx = profile, np.arange(profile.n)
+    restarts = [(int(np.searchsorted(idx, a)), float(restart_soc(profile, a, model)))
+                for a in segs.starts[1:]] or None
+    jumps = None
+    if soc_jumps is not None:
+        cum = np.concatenate([[0.0], np.cumsum(np.asarray(soc_jumps, dtype=float))])
+        jumps = np.diff(cum[idx + 1], prepend=0.0)
+        jumps[0] = 0.0
+    return FittingView(prof, idx, jumps, restarts)
 
 
 def _joined(profile: Profile, parts: list) -> Profile:
