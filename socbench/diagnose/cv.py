@@ -8,8 +8,9 @@ on every sample outside block ``j``; the all-data fit is one more group with no 
 Each group is its own :func:`scipy.optimize.least_squares` problem (trust-region reflective, bounds): fold ``j``'s
 optimiser never evaluates a residual that contains block ``j``, so its parameters are independent of that block's
 voltage bit for bit (one joint problem over all folds would couple them through its shared trust region and
-stopping rule). Every residual evaluation simulates the records once (the whole-record open loop,
-:meth:`~socbench.models.base.Model.open_loop`, whose cost grows with the parameter batch, so nothing is gained by
+stopping rule). Every residual evaluation simulates the records once (:func:`~socbench.identify.lsq.simulate_voltage`:
+the compiled step loop where the model lowers, else the whole-record open loop,
+:meth:`~socbench.models.base.Model.open_loop`; its cost grows with the parameter batch, so nothing is gained by
 batching the folds), every Jacobian the ``P`` forward differences as one parameter batch. This is
 :func:`socbench.identify.fit_parameters` for several records and several masks at once; it fits on the same compressed
 records (:func:`~socbench.identify.compress.compress_profile`).
@@ -28,7 +29,7 @@ from scipy.optimize import least_squares
 
 from ..errors import ConfigError, ModelError
 from ..identify.compress import compress_profile
-from ..identify.lsq import MAX_SOC_STEP, NONFINITE_RESIDUAL
+from ..identify.lsq import MAX_SOC_STEP, NONFINITE_RESIDUAL, simulate_voltage
 from .data import Folds
 
 
@@ -66,7 +67,7 @@ def simulate_records(build, thetas, records, soc0s) -> list:
     with np.errstate(all="ignore"):
         for r, (p, z0) in enumerate(zip(records, soc0s)):
             try:
-                y = model.open_loop(model.x0(z0, (B,)), p.time_s, p.current_a, p.temperature_c)[1]
+                y = simulate_voltage(model, p.time_s, p.current_a, p.temperature_c, model.x0(z0, (B,)))
             except (ModelError, ConfigError, FloatingPointError):
                 y = np.full((B, p.n), np.nan)
             if offsets is not None:
