@@ -40,6 +40,7 @@ from ..errors import ConfigError, DataError
 from ..models.effects import augment
 from ..models.params import Constant, ModelParams
 from ..models.registry import model_class, model_names
+from ..models.scaling import branch_index
 from ..ocv import OCVCurve
 from ..profile import Profile
 from .hppc import analyze_hppc, edge_resistance, unrecorded_charge
@@ -136,7 +137,7 @@ def model_parameter_names(name: str, options: dict | None = None) -> tuple:
 
 
 def _rc_branches(names) -> int:
-    return sum(1 for n in names if n[:1] == "R" and n[1:].isdigit() and int(n[1:]) >= 1)
+    return sum(1 for n in names if n[:1] == "R" and branch_index(n) is not None)
 
 
 def branch_time_constants(params: ModelParams, names=None, soc: float = 0.5) -> dict:
@@ -145,8 +146,8 @@ def branch_time_constants(params: ModelParams, names=None, soc: float = 0.5) -> 
     vals = params.values
     out = {}
     for p in vals if names is None else names:
-        j = p[1:]
-        if p[:1] == "R" and j.isdigit() and int(j) >= 1 and f"C{j}" in vals and p in vals:
+        j = branch_index(p)
+        if p[:1] == "R" and j is not None and f"C{j}" in vals and p in vals:
             out[f"R{j}C{j}"] = float(np.ravel(vals[p](soc))[0] * np.ravel(vals[f"C{j}"](soc))[0])
     return out
 

@@ -118,7 +118,7 @@ class _Rests:
         self.base = make_model(fit.name, fit.params.replace(effects=()))
         view = fitting_view(prob.fit_profile(profile), self.base, None,
                             {"max_step_s": REST_STEP_S, "growth": 1.5}, prob.soc_jumps)
-        self.view = view
+        self.view, self.windows = view, windows
         # a segment restarts from rest where the record has a gap: a rest there relaxes from a step the record does not
         # hold, which no branch of the model can follow
         starts = {int(view.index[k]) for k, _ in view.restarts or ()}
@@ -216,29 +216,32 @@ def _swapped(rests: _Rests, fit: RestFit) -> list:
     return rows
 
 
-def fit_rests(fit: FitResult, profile: Profile, extra: bool = False, windows=None) -> RestFit | None:
-    """The relaxation fit of the module docstring for ``fit`` on ``profile`` (the record it was fitted on): its branch
-    parameters scaled, and with ``extra`` one more branch; None when the record has no rests to read (not an HPPC, or
-    none long enough)."""
+def _read_rests(fit: FitResult, profile: Profile, windows=None) -> _Rests | None:
+    """The rests of ``profile`` (``windows``, default :func:`rest_windows`) set up for ``fit``; None when fewer than
+    two are left to read (not an HPPC, or none long enough)."""
     if windows is None:
         try:
             windows = rest_windows(profile, fit.params.capacity_ah)
         except DataError:
             return None
     rests = _Rests(fit, profile, windows)
-    return rests.fit(extra) if rests.counts.size >= 2 else None
+    return rests if rests.counts.size >= 2 else None
+
+
+def fit_rests(fit: FitResult, profile: Profile, extra: bool = False, windows=None) -> RestFit | None:
+    """The relaxation fit of the module docstring for ``fit`` on ``profile`` (the record it was fitted on): its branch
+    parameters scaled, and with ``extra`` one more branch; None when the record has no rests to read (not an HPPC, or
+    none long enough)."""
+    rests = _read_rests(fit, profile, windows)
+    return None if rests is None else rests.fit(extra)
 
 
 def rest_evidence(fit: FitResult, profile: Profile) -> dict | None:
     """The rests' verdict on one more branch beside ``fit``'s (module docstring): ``{"structure_v": [S_without,
     S_with], "cut", "chi2", "rests", "longest_rest_s", "noise_sd_v", "R", "log10_tau", "taus_s"}`` (``taus_s``: the
     base's branches as fitted beside the extra one), or None where the record has no rests to read."""
-    try:
-        windows = rest_windows(profile, fit.params.capacity_ah)
-    except DataError:
-        return None
-    rests = _Rests(fit, profile, windows)
-    if rests.counts.size < 2:
+    rests = _read_rests(fit, profile)
+    if rests is None:
         return None
     # without, from the fitted set; with, from there; without again from where the fit with it put the base's
     # branches, and with the extra branch in each one's place (it may only have taken a base branch's place)
@@ -251,7 +254,7 @@ def rest_evidence(fit: FitResult, profile: Profile) -> dict | None:
         with_ = again if again.rms_v < with_.rms_v else with_
     s0, s1, sigma = without.structure_v, with_.structure_v, without.noise_sd_v
     chi2 = without.n * (without.rms_v**2 - with_.rms_v**2) / sigma**2 if sigma > 0 else float("inf")
-    longest = max(float(profile.time_s[b - 1] - profile.time_s[a - 1]) for a, b in windows)
+    longest = max(float(profile.time_s[b - 1] - profile.time_s[a - 1]) for a, b in rests.windows)
     return {"structure_v": [s0, s1], "cut": float(1.0 - s1 / s0) if s0 > 0 else 0.0, "chi2": float(chi2),
             "rests": without.n_rests, "longest_rest_s": longest, "noise_sd_v": sigma, **with_.extra,
             "taus_s": with_.taus_s}

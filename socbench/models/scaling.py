@@ -15,10 +15,16 @@ def refittable_params(model) -> list:
     return [p for p in model.required_params() if p in values and hasattr(values[p], "scaled")]
 
 
+def branch_index(name: str) -> int | None:
+    """``j`` of an RC branch's parameter (``R_j``, ``C_j``, ``j ≥ 1``); None for any other (``R0``, …)."""
+    j = name[1:]
+    return int(j) if name[:1] in ("R", "C") and j.isdigit() and int(j) >= 1 else None
+
+
 def branch_params(model) -> list:
     """Of :func:`refittable_params`, those of the RC branches (``R1``, ``C1``, ``R2``, …): what a rest's relaxation
     depends on (no current flows, so ``R0`` is not seen)."""
-    return [p for p in refittable_params(model) if p[:1] in "RC" and p[1:].isdigit() and int(p[1:]) >= 1]
+    return [p for p in refittable_params(model) if branch_index(p) is not None]
 
 
 def scaled_model(model, names, scales):
