@@ -111,6 +111,8 @@ def main(argv=None) -> int:
     results = dict(done)
     with log.open("a") as f:
         if args.jobs > 1:
+            # the workers share the cores: the compiled kernels' batches run on one thread each (engine.n_threads)
+            os.environ.setdefault("SOCBENCH_THREADS", str(max(1, (os.cpu_count() or 1) // args.jobs)))
             with ProcessPoolExecutor(args.jobs) as pool:
                 futures = {pool.submit(one, k, args.seed, args.oracle, args.refine_ocv): k for k in todo}
                 for fut in as_completed(futures):

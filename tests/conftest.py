@@ -10,7 +10,9 @@ import pytest
 # One BLAS thread per test process (inherited by the xdist workers, which start after this file is read): the fits
 # factorise small matrices, where threads only add overhead, and on a shared 2-core machine several test processes
 # each running a thread pool slow one another down by orders of magnitude.
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+# Likewise one thread for the compiled kernels' batches (socbench.kernels.engine.parallel_runs): the xdist workers
+# already keep the cores busy. tests/test_kernels.py runs the threaded path itself, with the variable set there.
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "SOCBENCH_THREADS"):
     os.environ.setdefault(_var, "1")
 
 

@@ -350,7 +350,12 @@ def drive_record(cell: Cell, ins: Instrument, seed: int = 0, duration_s: float =
 def write_canonical(profile: Profile, path) -> Path:
     """Canonical CSV (time_s, current_a, voltage_v[, soc_ref]) and its JSON sidecar (capacity, name)."""
     path = Path(path)
-    profile.to_frame().to_csv(path, index=False)
+    frame = profile.to_frame()
+    values = frame.to_numpy(dtype=float)
+    if np.isfinite(values).all():  # 17 digits: exact; numpy writes them twice as fast as pandas' float formatting
+        np.savetxt(path, values, fmt="%.17g", delimiter=",", header=",".join(frame.columns), comments="")
+    else:  # pandas writes a missing value as an empty field
+        frame.to_csv(path, index=False)
     path.with_suffix(".json").write_text(json.dumps({"capacity_ah": profile.meta.capacity_ah, "n_series": 1,
                                                      "name": profile.name}))
     return path

@@ -394,9 +394,9 @@ def test_the_sign_check_does_not_count_charge_across_a_logging_gap(tmp_path):
     slightly negative at rest: counted across the gaps, the last rest's −0.3 % C held for an hour says charge while
     the reference fell 5 points, and 5 of 57 such random records were refused as "current sign looks flipped". Counted
     over sampled steps only, every one of them loads; the same records with the current flipped are still refused."""
-    from tests.hppc_records import random_hppc, write_canonical
+    from tests.hppc_records import random_hppc, random_setup, write_canonical
 
-    gapped = [rec for rec in map(random_hppc, range(200)) if rec.layout.gaps]
+    gapped = [random_hppc(s) for s in range(200) if random_setup(s)[2].gaps]  # the layout drawn, the rest not built
     assert len(gapped) >= 40
     for k, rec in enumerate(gapped):
         load(write_canonical(rec.profile, tmp_path / f"g{k}.csv"))

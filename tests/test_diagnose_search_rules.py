@@ -25,11 +25,20 @@ the outcome (seed 7 of socbench.diagnose.randomized; the CI rates run its first 
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
 from socbench.diagnose import diagnose
 from socbench.diagnose.randomized import draw_case
+
+
+@functools.cache
+def _fade_case():
+    """Case 18 of seed 7 (a fade with grown resistances) and its diagnosis with the defaults: two tests read it."""
+    case = draw_case(18, 7)
+    return case, diagnose(case.base, case.fit, case.evals, soc=False)
 
 
 def test_noise_remeasured_and_measured_offset_taken_in_the_cold():
@@ -50,9 +59,8 @@ def test_soc_drift_swapped_beside_the_later_steps(monkeypatch):
     (``DRIFT_AT_BOUND``) and the fade is named with no swap; without that rule the swap puts the fade in its place."""
     import socbench.diagnose.search as search
 
-    case = draw_case(18, 7)
+    case, d = _fade_case()
     assert case.effects == ("capacity",)
-    d = diagnose(case.base, case.fit, case.evals, soc=False)
     assert d.effects_added == ["capacity"], [(s.effect, s.evidence) for s in d.steps]
     assert not any("swapped" in s.evidence for s in d.steps)
     monkeypatch.setattr(search, "DRIFT_AT_BOUND", False)
@@ -68,8 +76,7 @@ def test_an_effect_the_final_model_does_not_need_is_dropped_at_the_end():
     spurious step is real: the best-scoring of the effects left out, fitted beside the final model."""
     from socbench.diagnose.search import effective_samples
 
-    case = draw_case(18, 7)
-    d = diagnose(case.base, case.fit, case.evals, soc=False)
+    _, d = _fade_case()
     s, final = d.search, d.steps[-1]
     assert d.effects_added == ["capacity"]
     names = [n for n, _ in final.layout]

@@ -144,25 +144,35 @@ def test_a_branch_a_fade_hides_on_the_evaluation_record_is_tried_beside_it(monke
     branch the HPPC shows (fitted there) predicts it no better alone. Deferred (the default), the refit is tried again
     beside what the search adds: the branch is named beside the fade in at least half the draws and in more than
     without the deferral, and where the deferred refit is kept, the held-out RMSE ends 10 % below the diagnosis
-    without it.
+    without it. "Without it" is what the diagnosis reports of its search before the deferral
+    (``fit_test_effect.without_it``); on the first draw where the deferral is kept, a diagnosis with the deferral off
+    gives exactly that.
 
     The deferral is measured with the rests' evidence off (``REST_GAIN`` above 1): where the HPPC's rests show the
     branch it is a first step held only to "not worse" on the evaluation record, and named beside the fade without
     any deferral (5 of these 6 draws, with and without it)."""
     monkeypatch.setattr(fit_test_effect, "REST_GAIN", 2.0)
     named = {True: 0, False: 0}
+    checked = False
     for seed in range(DRAWS):
         _, fit, evals = draw("extra_rc", seed, fade=_fade(seed))
-        runs = {}
-        for deferred in (True, False):
-            monkeypatch.setattr(core, "DEFER_FIT_TEST", deferred)
-            runs[deferred] = d = diagnose("thevenin", fit, evals, soc=False)
-            named[deferred] += set(d.effects_added) == {"extra_rc", "capacity"}
-        on, off = runs[True], runs[False]
-        assert not any("beside the later steps" in s.evidence for s in off.steps)
+        on = diagnose("thevenin", fit, evals, soc=False)
+        without = on.fit.get("fit_test_effect", {}).get("without_it")  # the search as it ended before the deferral
+        off = without["effects"] if without is not None else on.effects_added
+        named[True] += set(on.effects_added) == {"extra_rc", "capacity"}
+        named[False] += set(off) == {"extra_rc", "capacity"}
         if any(s.fit_test and "beside the later steps" in s.evidence for s in on.steps):
             assert on.fit["fit_test_effect"]["deferred"] == "extra_rc"
-            assert on.after["rmse_v"] <= 0.9 * off.after["rmse_v"], (seed, on.after, off.after)
+            assert on.after["rmse_v"] <= 0.9 * without["rmse_v"], (seed, on.after, without)
+            if not checked:  # once: what the diagnosis reports as "without it" is the diagnosis without the deferral
+                monkeypatch.setattr(core, "DEFER_FIT_TEST", False)
+                plain = diagnose("thevenin", fit, evals, soc=False)
+                monkeypatch.setattr(core, "DEFER_FIT_TEST", True)
+                assert not any("beside the later steps" in s.evidence for s in plain.steps)
+                assert plain.effects_added == without["effects"], (plain.effects_added, without)
+                assert plain.after["rmse_v"] == pytest.approx(without["rmse_v"], rel=1e-12)
+                checked = True
+    assert checked
     assert named[True] >= DRAWS // 2 and named[True] > named[False], named
 
 

@@ -282,6 +282,40 @@ def test_fits_use_the_compiled_open_loop_and_land_where_numpy_does():
         assert fit_c.values[k] == pytest.approx(v, rel=1e-5), k
 
 
+@pytest.mark.parametrize("what", ["open_loop", "ukf", "pf"])
+def test_a_batch_split_over_threads_equals_one_thread(what, monkeypatch):
+    """``parallel_runs`` hands slices of a batch to a kept thread pool (conftest runs the suite on one thread): the
+    same numbers, bit for bit, on two threads as on one, and the pool is the process' own and reused."""
+    import os
+
+    from socbench.kernels import engine
+    from socbench.kernels.openloop import open_loop
+
+    model = make_model("dp", paper_params("dp"))
+    rng = np.random.default_rng(12)
+    R = 16  # four slices of four runs per thread: min_runs and SLICES_PER_THREAD both act
+    soc0 = rng.uniform(0.2, 0.95, R)
+    p = _record(model, R=R)
+
+    def run():
+        if what == "open_loop":
+            return open_loop(model, model.x0(soc0, (R,)), p.time_s, p.current_a)[1]
+        est = make_estimator(what, model, NOISE, **_options(what))
+        e = est.run(p, soc0=soc0, seed=3)
+        assert e.info["engine"] == "compiled"
+        return np.stack([e.soc, e.soc_std])
+
+    monkeypatch.setenv("SOCBENCH_THREADS", "1")
+    one = run()
+    monkeypatch.setenv("SOCBENCH_THREADS", "2")
+    two = run()
+    pool = engine._POOLS.get((os.getpid(), 2))
+    assert pool is not None
+    assert np.array_equal(one, two)
+    run()
+    assert engine._POOLS[(os.getpid(), 2)] is pool  # kept, not started again
+
+
 # ================================================================================================ random numbers
 def test_counter_based_numbers_are_identical_in_numpy_and_compiled_code():
     from socbench.kernels.pf import normal, prefix, uniform0

@@ -607,6 +607,9 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
         beside = search_beside(make_search, model_name, base, pending, fit_info["fit_test_effect"]["evidence"], steps,
                                min_gain)
         fit_info["fit_test_effect"]["added"] = beside is not None
+        # what the search named without the refit beside it, and where it ended: the comparison the refit won or lost
+        fit_info["fit_test_effect"]["without_it"] = {"effects": [s.effect for s in steps if s.effect != BASE_REFIT],
+                                                     "rmse_v": steps[-1].rmse_after}
         if beside is not None:
             search, (final, steps, rounds, _) = beside
     residuals = {"before": cv_residual(base, cv, search.soc0s)[0],

@@ -20,7 +20,8 @@ The refit is kept (:func:`fit_with_effect`) when
   spends a branch on the OCV's error between the rest points where that error dominates (coarse steps, a curve with
   knees: tens of mV against a branch's few), so that fit gains little and puts the branch where the OCV wants it;
   the rests read it free of the OCV. The branch is then held at the resistance and time constant the rests read and
-  the base refitted around it on the whole record, from the base's own fit,
+  the base refitted around it on the whole record, from the base's own fit (the rests are read first: where they
+  show the branch, the free fit from several starts, whose result this replaces, is not run),
 * no parameter of the effect rests on a bound of its range (:func:`_at_bound`: a hysteresis whose rate is at its
   floor is a slow offset, a branch at the longest time constant a ramp; either stands in for an OCV error),
 * it predicts the evaluation records, no parameter of it fitted there, :data:`VALIDATION_GAIN` better on average
@@ -178,19 +179,8 @@ def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, 
     the effect's fitted values), ``why_not``, the first rule the refit failed (None: kept), and ``deferred``: True
     when the validation gain is the only rule it failed."""
     ocv, q = base.params.ocv, base.params.capacity_ah
-    best = None
-    for start in _starts(effect, reference, settings or {}):
-        try:
-            r = fit_model(name, profile, mode="constant", ocv=ocv, capacity_ah=q, effects=[start], **setting)
-        except Exception:  # a start whose fit fails is one start less
-            continue
-        if np.isfinite(r.rmse_v) and (best is None or r.rmse_v < best.rmse_v):
-            best = r
     report = {"effect": effect}
-    if best is None:
-        return None, {**report, "why_not": "every fit failed"}
-    report["fit_rmse_v"] = [reference.rmse_v, best.rmse_v]
-    shown = False  # the rests show the branch, whatever the whole record gains
+    shown = False  # the rests show the branch, whatever the whole record gains: then no free fit is needed
     if effect == "extra_rc":
         rests = rest_evidence(reference, profile)
         if rests is not None:
@@ -204,8 +194,19 @@ def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, 
                 start=reference.params, **setting)
         except Exception as exc:  # reported, never fatal: the diagnosis goes on from the base
             return None, {**report, "why_not": f"fit around the rests' branch failed: {exc}"}
-        report["fit_rmse_v"] = [reference.rmse_v, best.rmse_v]
-    elif not best.rmse_v <= (1.0 - FIT_GAIN) * reference.rmse_v:
+    else:
+        best = None
+        for start in _starts(effect, reference, settings or {}):
+            try:
+                r = fit_model(name, profile, mode="constant", ocv=ocv, capacity_ah=q, effects=[start], **setting)
+            except Exception:  # a start whose fit fails is one start less
+                continue
+            if np.isfinite(r.rmse_v) and (best is None or r.rmse_v < best.rmse_v):
+                best = r
+        if best is None:
+            return None, {**report, "why_not": "every fit failed"}
+    report["fit_rmse_v"] = [reference.rmse_v, best.rmse_v]
+    if not shown and not best.rmse_v <= (1.0 - FIT_GAIN) * reference.rmse_v:
         return None, {**report, "why_not": f"fit record not {100 * FIT_GAIN:.0f} % better"
                       + (", nor do its rests show the branch" if "rests" in report else "")}
     report["shown_by_rests"] = shown

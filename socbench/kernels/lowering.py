@@ -84,28 +84,42 @@ class Lowered:
 
 
 class _Builder:
-    """Appends ints and float slots; a float slot is a scalar or a ``(V,)`` array (one value per variant)."""
+    """Appends ints and float slots. A float slot is a scalar or a ``(V,)`` array (one value per variant); a block of
+    consecutive slots is a ``(k,)`` array (the same for every variant) or ``(V, k)`` (one row per variant), appended
+    whole: a model is lowered on every residual of a fit, and one Python call per OCV coefficient was most of it."""
 
     def __init__(self):
         self.ints: list = [0] * HEADER
-        self.floats: list = []
+        self.blocks: list = []  # (first slot, array (1 or V, k))
+        self.size = 0
         self.variants = 1
+
+    def _append(self, rows: np.ndarray) -> int:
+        if rows.shape[0] != 1:
+            if self.variants not in (1, rows.shape[0]):
+                raise NotLowerable(f"parameter batches of sizes {self.variants} and {rows.shape[0]}")
+            self.variants = rows.shape[0]
+        off = self.size
+        self.blocks.append((off, rows))
+        self.size += rows.shape[1]
+        return off
 
     def slot(self, value) -> int:
         v = np.asarray(value, dtype=float)
         if v.ndim > 1:
             raise NotLowerable(f"a parameter batch of shape {v.shape} (only one batch axis lowers)")
-        if v.ndim == 1:
-            if self.variants not in (1, v.size):
-                raise NotLowerable(f"parameter batches of sizes {self.variants} and {v.size}")
-            self.variants = v.size
-        self.floats.append(v)
-        return len(self.floats) - 1
+        return self._append(v.reshape(-1, 1))
+
+    def block(self, values) -> int:
+        """Consecutive slots from ``(k,)`` or ``(V, k)`` values; returns the offset of the first."""
+        v = np.asarray(values, dtype=float)
+        if v.ndim > 2:
+            raise NotLowerable(f"a parameter batch of shape {v.shape} (only one batch axis lowers)")
+        return self._append(np.atleast_2d(v))
 
     def slots(self, values) -> int:
-        """Consecutive slots; returns the offset of the first."""
-        values = list(values)
-        off = len(self.floats)
+        """Consecutive slots, one per value (each a scalar or ``(V,)``); returns the offset of the first."""
+        off = self.size
         for v in values:
             self.slot(v)
         return off
@@ -116,11 +130,10 @@ class _Builder:
         return off
 
     def finish(self, name: str) -> Lowered:
-        V = self.variants
-        fm = np.empty((V, len(self.floats)))
-        for j, v in enumerate(self.floats):
-            fm[:, j] = v
-        return Lowered(np.asarray(self.ints, dtype=np.int64), np.ascontiguousarray(fm), name)
+        fm = np.empty((self.variants, self.size))
+        for off, rows in self.blocks:
+            fm[:, off:off + rows.shape[1]] = rows
+        return Lowered(np.asarray(self.ints, dtype=np.int64), fm, name)
 
 
 # ---------------------------------------------------------------------------------------------- SOC functions
@@ -131,12 +144,12 @@ def _plain_function(b: _Builder, f) -> int:
         return b.record(FN_CONST, b.slot(f.value), 1, 0)
     if isinstance(f, Polynomial):
         c = np.asarray(f.coeffs, dtype=float)
-        return b.record(FN_POLY, b.slots(c[..., j] for j in range(c.shape[-1])), c.shape[-1], 0)
+        return b.record(FN_POLY, b.block(c), c.shape[-1], 0)
     if isinstance(f, Lookup):
         K = f.soc.size
-        off = b.slots(f.soc)
-        b.slots(f.value[..., j] for j in range(K))
-        b.slots(f._slopes[..., j] for j in range(K - 1))
+        off = b.block(f.soc)
+        b.block(f.value)
+        b.block(f._slopes)
         return b.record(FN_LOOKUP, off, K, 1 if f.batched else 0)
     raise NotLowerable(f"parameter form {type(f).__name__} has no compiled evaluator")
 
@@ -147,7 +160,7 @@ def _function(b: _Builder, f) -> int:
     if not isinstance(f, TemperatureTable):
         return _plain_function(b, f)
     nodes = [_plain_function(b, n) for n in f.nodes]
-    off = b.slots(f.temps)
+    off = b.block(f.temps)
     return b.record(FN_TABLE, off, len(nodes), 1 if f.scale == "log" else 0, *nodes)
 
 
@@ -161,9 +174,9 @@ def _extension_limit(curve) -> float:
 
 def _pchip(b: _Builder, c) -> int:
     m = c.soc.size
-    off = b.slots(c.soc)
-    b.slots(np.asarray(c._coef, dtype=float).ravel())
-    b.slots([c.voltage[0], c.voltage[-1], c._slope_lo, c._slope_hi, _extension_limit(c)])
+    off = b.block(c.soc)
+    b.block(np.asarray(c._coef, dtype=float).ravel())
+    b.block([c.voltage[0], c.voltage[-1], c._slope_lo, c._slope_hi, _extension_limit(c)])
     return b.record(OCV_PCHIP, off, m, 0)
 
 
@@ -172,7 +185,7 @@ def _ocv(b: _Builder, curve) -> int:
 
     if isinstance(curve, TemperatureOCV):
         recs = [_pchip(b, c) for c in curve.curves]
-        off = b.slots(curve.temps)
+        off = b.block(curve.temps)
         return b.record(OCV_TABLE, off, len(recs), 0, *recs)
     if type(curve) is not OCVCurve:
         raise NotLowerable(f"OCV curve type {type(curve).__name__} has no compiled evaluator")
@@ -212,7 +225,7 @@ def lower(model) -> Lowered:
         if values is None:
             raise NotLowerable(f"effect '{e.name}' with these settings has no compiled form")
         values = tuple(values)
-        off = b.slots(values) if values else len(b.floats)
+        off = b.slots(values) if values else b.size
         if e.name == "current_bias" and bias < 0:
             bias = start
         table.append((code, start, e.n_states, off))
