@@ -689,3 +689,47 @@ def test_a_large_particle_cloud_runs_from_the_kernel_cache(tmp_path):
         out[tag] = np.load(tmp_path / f"{tag}.npy")
     np.testing.assert_array_equal(out["first"], out["cached"])
     np.testing.assert_allclose(out["cached"], out["numpy"], rtol=0, atol=TOL)
+
+
+_CACHE_PROBE = """
+import sys
+import numpy as np
+import socbench
+assert socbench.__file__.startswith(sys.argv[1]), socbench.__file__
+from socbench.kernels.pf import prefix
+prefix(np.uint64(7), 3, 5, 11)
+print(sum(prefix.stats.cache_hits.values()), sum(prefix.stats.cache_misses.values()))
+"""
+
+
+def test_a_copy_of_the_same_sources_loads_the_kernels_compiled_before(tmp_path):
+    """The cache is keyed on the sources' content (jit.fingerprint), not on where they lie or when they were
+    written: a second copy of the package, its files newer, loads the kernel the first copy compiled (numba's own
+    locators would compile it again: another path, another modification time); an edited copy compiles afresh."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    package = Path(jit.__file__).resolve().parents[1]
+    env = {**os.environ, "SOCBENCH_NUMBA_CACHE": str(tmp_path / "cache")}
+
+    def run(copy):
+        root = tmp_path / copy
+        if not root.exists():
+            shutil.copytree(package, root / "socbench", ignore=shutil.ignore_patterns("__pycache__"))
+        done = subprocess.run([sys.executable, "-c", _CACHE_PROBE, str(root)], capture_output=True, text=True,
+                              timeout=600, env={**env, "PYTHONPATH": str(root)}, cwd=tmp_path)
+        assert done.returncode == 0, done.stderr[-2000:]
+        hits, misses = map(int, done.stdout.split()[-2:])
+        return hits, misses
+
+    assert run("first") == (0, 1)  # compiled (and cached)
+    time.sleep(1.1)  # the copy's files are newer than the first's
+    assert run("second") == (1, 0)  # loaded
+    edited = tmp_path / "third" / "socbench"
+    shutil.copytree(package, edited, ignore=shutil.ignore_patterns("__pycache__"))
+    (edited / "kernels" / "linalg.py").write_text((edited / "kernels" / "linalg.py").read_text() + "\n# edited\n")
+    assert run("third") == (0, 1)  # another fingerprint: compiled afresh

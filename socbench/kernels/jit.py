@@ -14,7 +14,10 @@ editing a shared helper would leave stale machine code behind. Here every compil
 directory named after a SHA-256 of *all* the compiled sources (the files listed in :data:`SOURCES`) and the numba
 version: any edit to any of them starts a fresh cache. The directory is
 ``$SOCBENCH_NUMBA_CACHE`` if set, else ``$NUMBA_CACHE_DIR/socbench`` if that is set, else
-``~/.cache/socbench/numba`` (``$XDG_CACHE_HOME`` respected), followed by the fingerprint.
+``~/.cache/socbench/numba`` (``$XDG_CACHE_HOME`` respected), followed by the fingerprint. Inside it a function is
+found by its file's path within the package and stamped with the fingerprint (:func:`_locator_class`), not by the
+file's absolute path and modification time as numba's own locators do: a fresh checkout, a reinstall or a copy of the
+same sources loads what was compiled before.
 """
 
 from __future__ import annotations
@@ -78,7 +81,52 @@ def cache_dir() -> Path:
 
 
 @cache
+def _locator_class():
+    """numba's cache locator for socbench's compiled functions (see :func:`_configured`)."""
+    from numba.core.caching import _CacheLocator
+
+    package = Path(__file__).resolve().parents[1]
+
+    class FingerprintLocator(_CacheLocator):
+        """A function of a socbench source file is cached in :func:`cache_dir` (named by the fingerprint of every
+        compiled source), in a folder per source file named by its path inside the package, and stamped with the
+        fingerprint. numba's own locators key a cache on the file's absolute path and stamp it with its modification
+        time: a fresh checkout or a reinstall of the very same sources compiled every kernel again (minutes)."""
+
+        def __init__(self, py_func, relative: str):
+            self._lineno = py_func.__code__.co_firstlineno
+            self._path = str(cache_dir() / relative.replace("/", "_").removesuffix(".py"))
+
+        def get_cache_path(self):
+            return self._path
+
+        def get_source_stamp(self):
+            return fingerprint()
+
+        def get_disambiguator(self):
+            return str(self._lineno)
+
+        @classmethod
+        def from_function(cls, py_func, py_file):
+            try:
+                relative = Path(py_file).resolve().relative_to(package).as_posix()
+            except (OSError, ValueError):  # not a socbench file: numba's own locators take it
+                return None
+            locator = cls(py_func, relative)
+            try:
+                locator.ensure_cache_path()
+            except OSError:
+                return None
+            return locator
+
+    return FingerprintLocator
+
+
+@cache
 def _configured() -> bool:
+    """Point numba's cache for socbench's functions at :func:`cache_dir`: by :func:`_locator_class`, first among
+    numba's locators (it takes socbench's files only), or, with a numba that has no such hook, by
+    ``numba.config.CACHE_DIR`` (keyed on path and modification time again)."""
     import numba
 
     path = cache_dir()
@@ -86,7 +134,16 @@ def _configured() -> bool:
         path.mkdir(parents=True, exist_ok=True)
     except OSError:  # a read-only home: numba falls back to its own locations
         return False
-    numba.config.CACHE_DIR = str(path)  # read when a dispatcher enables caching, i.e. at decoration below
+    try:
+        from numba.core.caching import CacheImpl
+
+        locators = CacheImpl._locator_classes
+        locator = _locator_class()
+    except (ImportError, AttributeError):
+        numba.config.CACHE_DIR = str(path)  # read when a dispatcher enables caching, i.e. at decoration below
+        return True
+    if locator not in locators:
+        locators.insert(0, locator)
     return True
 
 
