@@ -39,6 +39,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # o
 import numpy as np  # noqa: E402
 
 from socbench.diagnose.randomized import TARGETS, case_kind, draw_case, markdown, oracle_accepted, rates, run_case  # noqa: E402
+from socbench.kernels.engine import share_cores  # noqa: E402
 
 #: ``--refine-ocv`` → the diagnosis' ``refine_ocv`` (socbench.diagnose.core.fit_base)
 REFINE_OCV = {"coarse": "coarse", "always": True, "never": False}
@@ -111,8 +112,7 @@ def main(argv=None) -> int:
     results = dict(done)
     with log.open("a") as f:
         if args.jobs > 1:
-            # the workers share the cores: the compiled kernels' batches run on one thread each (engine.n_threads)
-            os.environ.setdefault("SOCBENCH_THREADS", str(max(1, (os.cpu_count() or 1) // args.jobs)))
+            share_cores(args.jobs)  # the compiled kernels' batches: cores // jobs threads per worker
             with ProcessPoolExecutor(args.jobs) as pool:
                 futures = {pool.submit(one, k, args.seed, args.oracle, args.refine_ocv): k for k in todo}
                 for fut in as_completed(futures):

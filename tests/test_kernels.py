@@ -723,8 +723,7 @@ def test_a_copy_of_the_same_sources_loads_the_kernels_compiled_before(tmp_path):
         done = subprocess.run([sys.executable, "-c", _CACHE_PROBE, str(root)], capture_output=True, text=True,
                               timeout=600, env={**env, "PYTHONPATH": str(root)}, cwd=tmp_path)
         assert done.returncode == 0, done.stderr[-2000:]
-        hits, misses = map(int, done.stdout.split()[-2:])
-        return hits, misses
+        return tuple(map(int, done.stdout.split()[-2:]))  # (cache hits, cache misses)
 
     assert run("first") == (0, 1)  # compiled (and cached)
     time.sleep(1.1)  # the copy's files are newer than the first's

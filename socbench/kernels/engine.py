@@ -24,6 +24,12 @@ def n_threads() -> int:
     return max(1, int(env)) if env else max(1, os.cpu_count() or 1)
 
 
+def share_cores(workers: int) -> None:
+    """``workers`` processes share the machine's cores: each runs its batches on ``cores // workers`` threads (set in
+    ``$SOCBENCH_THREADS`` unless the user set it; a forked or spawned worker inherits it)."""
+    os.environ.setdefault("SOCBENCH_THREADS", str(max(1, (os.cpu_count() or 1) // max(1, workers))))
+
+
 #: slices of a batch per thread (parallel_runs)
 SLICES_PER_THREAD = 4
 

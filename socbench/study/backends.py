@@ -56,14 +56,15 @@ class SerialBackend:
         pass
 
 
-def _worker_signals(threads: int = 0) -> None:
+def _worker_signals(jobs: int = 0) -> None:
     # Workers leave Ctrl-C to the runner, which stops them itself after the store is consistent; SIGTERM (how the
     # runner stops them) must kill them outright, whatever handler a forked worker inherited from its parent.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    if threads and "SOCBENCH_THREADS" not in os.environ:
-        # the compiled filters split a batch over threads (socbench.kernels.engine): the workers share the cores
-        os.environ["SOCBENCH_THREADS"] = str(threads)
+    if jobs:  # the compiled filters split a batch over threads (socbench.kernels.engine): the workers share the cores
+        from ..kernels.engine import share_cores
+
+        share_cores(jobs)
 
 
 class ProcessBackend:
@@ -73,8 +74,7 @@ class ProcessBackend:
 
     def __init__(self, jobs: int | None = None):
         self.jobs = int(jobs or os.cpu_count() or 1)
-        threads = max(1, (os.cpu_count() or 1) // self.jobs)
-        self.pool = cf.ProcessPoolExecutor(max_workers=self.jobs, initializer=_worker_signals, initargs=(threads,))
+        self.pool = cf.ProcessPoolExecutor(max_workers=self.jobs, initializer=_worker_signals, initargs=(self.jobs,))
 
     def submit(self, fn, *args):
         return self.pool.submit(fn, *args)
