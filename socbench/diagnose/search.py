@@ -233,24 +233,41 @@ def robust_sd(x) -> float:
     return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else 0.0
 
 
+def interpolation_deviation(t, e) -> np.ndarray:
+    """Each inner sample's deviation from the straight line through its two neighbours, scaled to the sd of white
+    noise in ``e``, on any spacing (a logger's time stamps jitter):
+
+        d_k = e_k − (h₂·e_{k−1} + h₁·e_{k+1}) / (h₁ + h₂),   h₁ = t_k − t_{k−1},  h₂ = t_{k+1} − t_k
+        var d_k = σ²·(1 + (h₁² + h₂²)/(h₁ + h₂)²)             (white noise of sd σ)
+
+    returned as ``d_k / √(1 + (h₁² + h₂²)/(h₁ + h₂)²)``; on a uniform grid that is ``−Δ²e/√6``, the second difference
+    over √6. A signal that is linear over the three samples leaves nothing."""
+    t, e = np.asarray(t, dtype=float), np.asarray(e, dtype=float)
+    h1, h2 = t[1:-1] - t[:-2], t[2:] - t[1:-1]
+    span = h1 + h2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = e[1:-1] - (h2 * e[:-2] + h1 * e[2:]) / span
+        d = d / np.sqrt(1.0 + (h1 * h1 + h2 * h2) / (span * span))
+    return d[np.isfinite(d) & (span > 0)]
+
+
 def residual_noise(model, profiles, soc0s=None) -> float:
-    """Voltage noise sd in the data: the robust sd of the second difference of ``model``'s open-loop residual over
-    uniformly spaced triples, ``/√6`` (white noise ``σ`` gives a second difference of sd ``√6·σ``).
+    """Voltage noise sd in the data: the robust sd of ``model``'s open-loop residual's deviation from the line through
+    each sample's neighbours (:func:`interpolation_deviation`: the second difference over √6 on a uniform grid, any
+    spacing allowed; before, only exactly uniform triples counted, and a logger whose time stamps jitter by 0.01 %
+    left almost none: 3 % of the Panasonic US06 samples, none on a record jittered by ±2 %).
 
     A model error is smooth at the sample scale except at current edges, a minority the median ignores; what the
-    second difference keeps is the sensor's white noise (and the current sensor's, through the model's ``R0``). Run on
-    the records as measured, before any averaging."""
-    d2 = []
+    deviation keeps is the sensor's white noise (and the current sensor's, through the model's ``R0``). Run on the
+    records as measured, before any averaging."""
+    d = []
     for r, p in enumerate(profiles):
         if p.n < 3:
             continue
         z0 = soc0s[r] if soc0s is not None else initial_soc(model, p)
-        e = p.voltage_v - model.simulate(p, soc0=z0).voltage_v
-        dt = np.diff(p.time_s)
-        uniform = np.abs(dt[1:] - dt[:-1]) <= 1e-6 * dt[1:]
-        d2.append((e[2:] - 2 * e[1:-1] + e[:-2])[uniform & np.isfinite(e[2:] + e[1:-1] + e[:-2])])
-    d2 = np.concatenate(d2) if d2 else np.zeros(0)
-    return robust_sd(d2) / np.sqrt(6.0) if d2.size >= 50 else 0.0
+        d.append(interpolation_deviation(p.time_s, p.voltage_v - model.simulate(p, soc0=z0).voltage_v))
+    d = np.concatenate(d) if d else np.zeros(0)
+    return robust_sd(d) if d.size >= 50 else 0.0
 
 
 def rest_current(profiles, capacity_ah: float, quiet_a: float | None = None, min_s: float = REST_MIN_S):
