@@ -61,6 +61,8 @@ class Layout:
 
     pulses_c: tuple = (1.0, -0.75)
     pulse_s: float = 10.0
+    #: the charge pulses' length [s] (None: ``pulse_s``, as the discharge pulses)
+    charge_pulse_s: float | None = None
     inner_rest_s: float = 40.0
     rest_s: float = 3600.0
     step: float = 0.1
@@ -135,6 +137,11 @@ def _solve(cell: Cell, seg_i: np.ndarray, seg_t0: np.ndarray, t: np.ndarray, soc
     return cur, soc, pol, v
 
 
+def _pulse_s(lay: Layout, c: float) -> float:
+    """The length [s] of a pulse of ``c`` C in ``lay``."""
+    return lay.charge_pulse_s if c < 0 and lay.charge_pulse_s is not None else lay.pulse_s
+
+
 def _schedule(cell: Cell, lay: Layout):
     """Segments ``[(current A, seconds, kind), ...]`` of the HPPC and the number of pulse sets. As in the USABC
     protocol, pulse set ``j`` is at ``z = 1 − j·step`` and the step after it discharges to the next level (the pulses'
@@ -151,8 +158,8 @@ def _schedule(cell: Cell, lay: Layout):
     z = 1.0
     for j in range(n_levels):
         for m, c in enumerate(lay.pulses_c):
-            segs.append((c * q, lay.pulse_s, "pulse"))
-            z -= c * lay.pulse_s / 3600.0  # C·h = fraction of Q
+            segs.append((c * q, _pulse_s(lay, c), "pulse"))
+            z -= c * _pulse_s(lay, c) / 3600.0  # C·h = fraction of Q
             if not (m == len(lay.pulses_c) - 1 and lay.straight_into_step):
                 segs.append((0.0, lay.inner_rest_s, "inner"))
         z_next = 1.0 - (j + 1) * lay.step if j < n_levels - 1 else 0.0
@@ -178,8 +185,8 @@ def _ascending_schedule(cell: Cell, lay: Layout):
     z = ASCENDING_FROM
     for j in range(n_levels):
         for m, c in enumerate(lay.pulses_c):
-            segs.append((c * q, lay.pulse_s, "pulse"))
-            z -= c * lay.pulse_s / 3600.0
+            segs.append((c * q, _pulse_s(lay, c), "pulse"))
+            z -= c * _pulse_s(lay, c) / 3600.0
             if not (m == len(lay.pulses_c) - 1 and lay.straight_into_step):
                 segs.append((0.0, lay.inner_rest_s, "inner"))
         z_next = ASCENDING_FROM + (j + 1) * lay.step if j < n_levels - 1 else 1.0

@@ -294,6 +294,16 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
     analysis_error = None
     try:
         analysis = analyze_hppc(profile, capacity_ah=capacity_ah)
+        if soc0 is not None and abs(soc0 - float(analysis.soc[0])) > 1e-9:
+            # the record starts at soc0, not where a test from full would put it: its rest points lie that much lower
+            top = 1.0 + soc0 - float(analysis.soc[0])
+            if top > 1.0 + 1e-6:
+                raise ConfigError(f"soc0 = {soc0:g} puts the record's most charged point at SOC {top:.4g} > 1 "
+                                  f"(it moves {(1.0 - float(analysis.soc[0])) * analysis.capacity_ah:.4g} Ah more "
+                                  "after its start than before)")
+            analysis = analyze_hppc(profile, capacity_ah=capacity_ah, soc_top=top)
+            notes.append(f"the record starts at SOC {soc0:g} (given): its most charged point at {top:.4g}, the HPPC "
+                         "rest points on that axis")
     except DataError as exc:
         analysis, analysis_error = None, exc
         notes.append(f"no HPPC structure ({exc.message}); scales from current steps")
@@ -330,7 +340,8 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
         if ocv is None:
             if analysis_error is not None and analysis_error.column:  # a bad column, not a missing structure: say so
                 raise analysis_error
-            raise DataError("the record has no HPPC rest points to build an OCV curve from; pass an OCV curve",
+            why = f" ({analysis_error.message})" if analysis_error is not None else ""
+            raise DataError(f"the record has no HPPC rest points to build an OCV curve from{why}; pass an OCV curve",
                             file=src)
         q = capacity_ah or profile.meta.capacity_ah
         if not q:

@@ -503,14 +503,94 @@ def _recovery_tau(t: np.ndarray, v: np.ndarray, level: float = 1.0 - np.exp(-1.0
     return float(t[k - 1] + w * (t[k] - t[k - 1]) - t[0])
 
 
+#: the longest pulse tried when the one read from the record's phase durations finds no HPPC, or one with fewer
+#: than :data:`FEW_OCV_POINTS` OCV points (:func:`analyze_hppc`): the upper end of each group of the record's held
+#: phases (from a rest) whose lengths lie within this ratio of the next, up to :data:`LADDER_MAX_S`
+LADDER_RATIO = 1.15
+LADDER_MAX_S = 600.0
+#: an analysis with fewer OCV points than this (a straight line through the first and last rest) has the ladder tried
+FEW_OCV_POINTS = 3
+
+
 def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: float | None = None,
-                 max_pulse_s: float | None = None, min_rest_s: float = MIN_OCV_REST_S) -> HPPCAnalysis:
+                 max_pulse_s: float | None = None, min_rest_s: float = MIN_OCV_REST_S,
+                 soc_top: float = 1.0) -> HPPCAnalysis:
     """Analyse an HPPC record (see the module docstring). Raises :class:`DataError` (one line) when the record is not
     an HPPC test: no pulse, fewer than two OCV rest points, or rests before fewer than half of its pulse sets.
 
     ``i_rest`` fixes the rest threshold [A] (default: from the sensor noise); ``max_pulse_s`` the longest pulse
-    (default: from the record's phase durations); ``min_rest_s`` the shortest rest that gives an OCV point.
+    (default: from the record's phase durations); ``min_rest_s`` the shortest rest that gives an OCV point;
+    ``soc_top`` the SOC of the record's most charged point (default 1: a test that starts full; a test started part
+    charged, at a SOC the user knows, puts its rest points that much lower: :func:`socbench.identify.fit.setup_fit`
+    with ``soc0``).
+
+    Where the longest pulse read from the record's phase durations finds no HPPC, or one with fewer than
+    :data:`FEW_OCV_POINTS` OCV points, every bound of :func:`pulse_bound_ladder` is tried and the one that finds the
+    most OCV points (then the most pulses) is kept when it finds more. The durations mislead in two layouts: charge
+    and discharge pulses of lengths four times apart (a 55 s discharge beside a 10 s charge pulse: the gap between
+    them looks like the one between pulses and SOC steps), and SOC steps shorter than :data:`MAX_PULSE_S` and less
+    than :data:`DURATION_GAP` times longer than the pulses (2–5 % at 1–2 C: 40–180 s), taken for pulses, so that no
+    charge moves between the "pulses" and every set merges into one level (an "HPPC" of two OCV points, the first
+    rest and the last). A record whose own bound finds three OCV points or more is analysed as before.
     """
+    durations = []
+    try:
+        first = _analyze_hppc(profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_top, durations)
+        if max_pulse_s is not None or first.ocv_soc.size >= FEW_OCV_POINTS:
+            return first
+        why = f"{first.ocv_soc.size} OCV points"
+    except DataError as exc:
+        if max_pulse_s is not None or exc.column is not None:  # a bound asked for, or a bad column: say so
+            raise
+        first, why = exc, exc.message
+    found = []
+    for bound in pulse_bound_ladder(durations):
+        try:
+            found.append(_analyze_hppc(profile, capacity_ah, i_rest, bound, min_rest_s, soc_top))
+        except DataError as exc:
+            if exc.column is not None:
+                raise
+    # what the ladder finds counts only with FEW_OCV_POINTS points or more, and pulse sets that repeat (their first
+    # pulses' lengths within DURATION_GAP of each other, as a protocol repeats its set at every level): a day of
+    # drives and flights between rests makes "pulse sets" of a minute, ten seconds and ten minutes
+    found = [a for a in found if _sets_repeat(a)]
+    best = max(found, key=lambda a: (a.ocv_soc.size, len(a.pulses)), default=None)
+    if best is None or best.ocv_soc.size < FEW_OCV_POINTS or (
+            isinstance(first, HPPCAnalysis) and best.ocv_soc.size <= first.ocv_soc.size):
+        if isinstance(first, DataError):
+            raise first
+        return first
+    note = (f"the longest pulse read from the record's phase durations found no HPPC with {FEW_OCV_POINTS} OCV "
+            f"points or more ({why}); pulses of at most {best.max_pulse_s:.3g} s find {best.ocv_soc.size} (of the "
+            "bounds between the lengths of its held phases, the one that finds the most)")
+    return replace(best, notes=tuple(n for n in best.notes if not n.startswith("pulses: held phases")) + (note,))
+
+
+def pulse_bound_ladder(durations) -> list[float]:
+    """The longest pulses :func:`analyze_hppc` tries: the upper end of each group of ``durations`` (sorted; a group
+    ends where the next is more than :data:`LADDER_RATIO` longer), up to :data:`LADDER_MAX_S`. Every bound between
+    two groups gives the same analysis, so one per group is enough."""
+    d = np.sort(np.asarray(durations, dtype=float))
+    d = d[(d > 0) & (d <= LADDER_MAX_S)]
+    if d.size == 0:
+        return []
+    ends = np.flatnonzero(d[1:] > LADDER_RATIO * d[:-1])
+    return [float(x) for x in np.append(d[ends], d[-1])]
+
+
+def _sets_repeat(a: HPPCAnalysis) -> bool:
+    """Whether the first pulses of ``a``'s sets last within :data:`DURATION_GAP` of each other."""
+    firsts = {}
+    for p in a.pulses:
+        firsts.setdefault(p.level, p.duration_s)
+    d = np.array(list(firsts.values()))
+    return d.size > 0 and float(np.max(d)) <= DURATION_GAP * max(float(np.min(d)), 1e-9)
+
+
+def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_top=1.0,
+                  durations: list | None = None) -> HPPCAnalysis:
+    """:func:`analyze_hppc` with a given (or the record-read, for None) longest pulse; the lengths of the held
+    phases from a rest (the pulse candidates, before the bound) are appended to ``durations`` when it is a list."""
     if profile.batched:
         raise DataError("analyze_hppc needs a plain profile", file=profile.meta.source or profile.name)
     profile.require("voltage_v")
@@ -542,7 +622,7 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     q = float(capacity_ah) if capacity_ah else float(np.max(ah[k_full:]) - ah_full)
     if not q > 0:
         raise DataError("the record discharges no charge: cannot place it on the SOC axis", file=src)
-    soc = 1.0 - (ah - ah_full) / q
+    soc = soc_top - (ah - ah_full) / q
 
     rests = []
     for a, b in _intervals(~active):
@@ -581,10 +661,12 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
                      "on the charge branch of any hysteresis")
         if not capacity_ah:  # the charge from the most discharged point up to full, not what follows full
             q = float(np.max(ah) - ah_full)
-            soc = 1.0 - (ah - ah_full) / q
+            soc = soc_top - (ah - ah_full) / q
             rests = [replace(r, soc_end=float(soc[r.stop - 1])) for r in rests]
             rest_by_start = {r.start: r for r in rests}
             rest_by_stop = {r.stop: r for r in rests}
+    if durations is not None:
+        durations.extend(c[2] for c in candidates)
     if max_pulse_s is None:
         max_pulse_s = _pulse_bound(np.array([c[2] for c in candidates])) if candidates else MAX_PULSE_S
         notes.append(f"pulses: held phases from a rest of at most {max_pulse_s:.3g} s (read from the record)")
