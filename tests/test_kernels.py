@@ -711,9 +711,8 @@ def test_a_copy_of_the_same_sources_loads_the_kernels_compiled_before(tmp_path):
     import subprocess
     import sys
     import time
-    from pathlib import Path
 
-    package = Path(jit.__file__).resolve().parents[1]
+    package = jit.PACKAGE
     env = {**os.environ, "SOCBENCH_NUMBA_CACHE": str(tmp_path / "cache")}
 
     def run(copy):

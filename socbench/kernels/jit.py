@@ -55,15 +55,18 @@ def available() -> bool:
     return importlib.util.find_spec("numba") is not None
 
 
+#: the socbench package folder: :data:`SOURCES` and the cache's per-file folders are named relative to it
+PACKAGE = Path(__file__).resolve().parents[1]
+
+
 @cache
 def fingerprint() -> str:
     """SHA-256 (16 hex digits) of the compiled sources and the numba version."""
     import numba
 
-    root = Path(__file__).resolve().parents[1]
     h = hashlib.sha256(numba.__version__.encode())
     for rel in SOURCES:
-        path = root / rel
+        path = PACKAGE / rel
         h.update(rel.encode())
         h.update(path.read_bytes() if path.exists() else b"")
     return h.hexdigest()[:16]
@@ -84,8 +87,6 @@ def cache_dir() -> Path:
 def _locator_class():
     """numba's cache locator for socbench's compiled functions (see :func:`_configured`)."""
     from numba.core.caching import _CacheLocator
-
-    package = Path(__file__).resolve().parents[1]
 
     class FingerprintLocator(_CacheLocator):
         """A function of a socbench source file is cached in :func:`cache_dir` (named by the fingerprint of every
@@ -109,7 +110,7 @@ def _locator_class():
         @classmethod
         def from_function(cls, py_func, py_file):
             try:
-                relative = Path(py_file).resolve().relative_to(package).as_posix()
+                relative = Path(py_file).resolve().relative_to(PACKAGE).as_posix()
             except (OSError, ValueError):  # not a socbench file: numba's own locators take it
                 return None
             locator = cls(py_func, relative)
