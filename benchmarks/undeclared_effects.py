@@ -38,7 +38,16 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # o
 
 import numpy as np  # noqa: E402
 
-from socbench.diagnose.randomized import TARGETS, case_kind, draw_case, markdown, oracle_accepted, rates, run_case  # noqa: E402
+from socbench.diagnose.randomized import (  # noqa: E402
+    TARGETS,
+    case_kind,
+    draw_case,
+    markdown,
+    oracle_accepted,
+    pooled_markdown,
+    rates,
+    run_case,
+)
 from socbench.kernels.engine import share_cores  # noqa: E402
 
 #: ``--refine-ocv`` → the diagnosis' ``refine_ocv`` (socbench.diagnose.core.fit_base)
@@ -75,7 +84,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", type=int, default=200)
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument("--jobs", type=int, default=1)
-    ap.add_argument("--json", required=True, help="summary JSON (rates, rows, every case)")
+    ap.add_argument("--json", help="summary JSON (rates, rows, every case); required unless --pool")
     ap.add_argument("--md", help="Markdown table")
     ap.add_argument("--resume", action="store_true", help="keep the finished cases of OUT.json.cases.jsonl")
     ap.add_argument("--oracle", action="store_true",
@@ -86,7 +95,18 @@ def main(argv=None) -> int:
     ap.add_argument("--render-only", action="store_true",
                     help="recompute the rates from the cases stored in the JSON (--json), write them back, and rewrite "
                          "the Markdown (--md); no case is run again")
+    ap.add_argument("--pool", nargs="+", metavar="JSON",
+                    help="print the rates over the cases of these runs' JSONs together (and write them to --md); "
+                         "no case is run")
     args = ap.parse_args(argv)
+    if args.pool:
+        text = pooled_markdown([json.loads(Path(p).read_text()) for p in args.pool])
+        if args.md:
+            Path(args.md).write_text(text)
+        print(text)
+        return 0
+    if not args.json:
+        ap.error("--json is required (unless --pool)")
     if args.render_only:
         summary = json.loads(Path(args.json).read_text())
         summary["rates"] = rates(summary["results"])

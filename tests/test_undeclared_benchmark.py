@@ -95,10 +95,8 @@ def test_oracle_is_an_upper_bound_on_naming_first():
     assert "Only the hidden effect offered" in markdown(summary)
 
 
-def test_benchmark_script_passes_its_refine_ocv_option_to_the_diagnosis(monkeypatch):
-    """``benchmarks/undeclared_effects.py --refine-ocv`` reaches the diagnosis: each word of the option arrives at
-    ``run_case`` (hence ``diagnose``) as the diagnosis' own value (what the refinement then does is
-    tests/test_diagnose_coarse_ocv.py's and tests/test_pseudo_ocv.py's)."""
+def _script():
+    """benchmarks/undeclared_effects.py, loaded as a module."""
     import importlib.util
     from pathlib import Path
 
@@ -106,6 +104,14 @@ def test_benchmark_script_passes_its_refine_ocv_option_to_the_diagnosis(monkeypa
     spec = importlib.util.spec_from_file_location("undeclared_effects_script", path)
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
+    return script
+
+
+def test_benchmark_script_passes_its_refine_ocv_option_to_the_diagnosis(monkeypatch):
+    """``benchmarks/undeclared_effects.py --refine-ocv`` reaches the diagnosis: each word of the option arrives at
+    ``run_case`` (hence ``diagnose``) as the diagnosis' own value (what the refinement then does is
+    tests/test_diagnose_coarse_ocv.py's and tests/test_pseudo_ocv.py's)."""
+    script = _script()
     seen = {}
 
     def run_case(case, **options):
@@ -118,3 +124,45 @@ def test_benchmark_script_passes_its_refine_ocv_option_to_the_diagnosis(monkeypa
         script.one(0, 31, refine_ocv=opt)
         got[opt] = seen[0]["refine_ocv"]
     assert got == {"always": True, "coarse": "coarse", "never": False}, got
+
+
+def _scored(kind, effects, added, beyond, before=0.01, after=0.005):
+    """A case result as run_case writes it (only the fields the rates read)."""
+    return {"kind": kind, "effects": effects, "added": added, "first": added[0] if added else None,
+            "rmse_before": before, "rmse_after": after, "footprint": max(beyond.values(), default=0.0),
+            "footprints": dict(beyond), "footprints_beyond_base": dict(beyond),
+            "soc_before": {"ekf": 0.01}, "soc_after": {"ekf": 0.01}}
+
+
+def test_pooled_rates_count_every_run_and_split_by_what_the_records_show(tmp_path, capsys):
+    """``benchmarks/undeclared_effects.py --pool`` counts the cases of every JSON given once, and splits named-first
+    and both-named by the hidden effects' footprints beyond the base."""
+    import json
+
+    from socbench.diagnose.randomized import pooled_markdown
+
+    run_a = {"seed": 1, "cases": 3, "results": [
+        _scored("single", ["hysteresis"], ["hysteresis"], {"hysteresis": 5.0}),
+        _scored("single", ["extra_rc"], [], {"extra_rc": 0.5}, after=0.01),
+        _scored("null", [], [], {})]}
+    run_b = {"seed": 2, "cases": 3, "results": [
+        _scored("single", ["capacity"], ["self_discharge"], {"capacity": 2.0}),
+        _scored("pair", ["capacity", "temperature"], ["temperature", "capacity"],
+                {"capacity": 4.0, "temperature": 9.0}),
+        _scored("pair", ["hysteresis", "extra_rc"], ["extra_rc"], {"hysteresis": 0.2, "extra_rc": 3.0})]}
+    text = pooled_markdown([run_a, run_b])
+    assert "6 cases" in text
+    assert "| hidden effect named first (single-effect cases) | 1/3 = 33 % |" in text
+    assert "| both effects named (two-effect cases) | 1/2 = 50 % |" in text
+    # beyond the base: < 1 holds the extra_rc single (missed), 1–3 the capacity single (missed), ≥ 3 the hysteresis
+    assert "| < 1 (within the noise) | 1 | 0 % | 0 % | 1 | 0 % |" in text
+    assert "| 1–3 | 1 | 0 % | 100 % | 0 | – |" in text
+    assert "both named in 1/1 = 100 %" in text  # the pair with one effect under 1 is left out
+
+    script = _script()
+    files = []
+    for k, run in enumerate((run_a, run_b)):
+        files.append(tmp_path / f"{k}.json")
+        files[-1].write_text(json.dumps(run))
+    assert script.main(["--pool", *map(str, files), "--md", str(tmp_path / "pool.md")]) == 0
+    assert (tmp_path / "pool.md").read_text() == text

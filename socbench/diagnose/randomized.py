@@ -750,6 +750,61 @@ def _num(x):
     return "–" if x is None else f"{x:.1f}"
 
 
+def strata_tables(R: dict) -> list:
+    """The Markdown lines of the rates by detectability and by what no refit of the base takes (``rates(…)``'s
+    ``by_footprint`` and ``by_footprint_beyond_base``)."""
+    L = []
+    tables = (("by_footprint", "By detectability (the hidden effect's own footprint over the voltage noise; the "
+                               "headline rates above are over all cases):", "footprint / noise"),
+              ("by_footprint_beyond_base", "By what no refit of the base takes (the hidden effect's footprint beyond "
+                                           "the base: the RMS voltage it adds that the truth's own base structure, "
+                                           "each parameter rescaled ×0.25–4 and one voltage offset per record, "
+                                           "fitted to the noise-free evaluation voltage from the truth's own "
+                                           "parameters, cannot reproduce, over the voltage noise; below 1 the "
+                                           "evaluation voltage alone cannot tell the effect from base-fit error: "
+                                           "where it is named the evidence is the fit test, which fixed the base's "
+                                           "parameters, or rests that measured the current sensor):",
+               "beyond the base / noise"))
+    for key, caption, head in tables:
+        if not R.get(key) or not any(b["named_first_single"]["n"] or b["named_in_pair"]["n"] for b in R[key]):
+            continue
+        L += ["", caption, "",
+              f"| {head} | single cases | named first | RMSE cut ≥ 30 % | effects in pairs | named in pair |",
+              "|---|---|---|---|---|---|"]
+        for b in R[key]:
+            s1, c1, p1 = b["named_first_single"], b["cut_30_single"], b["named_in_pair"]
+            L.append(f"| {b['footprint']} | {s1['n']} | {_pct(s1['rate'])} | {_pct(c1['rate'])} | {p1['n']} | "
+                     f"{_pct(p1['rate'])} |")
+    return L
+
+
+def both_named_where_shown(results) -> dict:
+    """Two-effect cases whose effects both stand at least the voltage noise beyond the base: how many have both
+    named (``_share``: n, hits, rate)."""
+    shown = [r for r in results if r["kind"] == "pair"
+             and all((own_footprint(r, e, BEYOND_BASE) or 0.0) >= 1.0 for e in r["effects"])]
+    return _share(set(r["effects"]) <= set(r["added"]) for r in shown)
+
+
+def pooled_markdown(summaries) -> str:
+    """The rates over the cases of several runs of the benchmark together (``--pool``): every seed's cases in one
+    set, the headline rates and the tables by detectability. Where the headline misses its target, these say how much
+    of the miss lies in effects the records cannot show."""
+    results = [r for s in summaries for r in s["results"]]
+    R = rates(results)
+    seeds = ", ".join(f"{s['seed']} ({s['cases']} cases)" for s in summaries)
+    L = [f"Pooled over {len(summaries)} runs: seeds {seeds}; {len(results)} cases.", "",
+         "| rate | measured | target |", "|---|---|---|"]
+    for key, target in TARGETS.items():
+        v = R[key]
+        L.append(f"| {LABELS[key]} | {v['hits']}/{v['n']} = {_pct(v['rate'])} | ≥ {100 * target:.0f} % |")
+    L += strata_tables(R)
+    both = both_named_where_shown(results)
+    L += ["", f"Two-effect cases whose effects both stand at least the noise beyond the base: both named in "
+              f"{both['hits']}/{both['n']} = {_pct(both['rate'])}."]
+    return "\n".join(L) + "\n"
+
+
 def markdown(summary: dict) -> str:
     """The benchmark's table (Markdown) from the summary ``benchmarks/undeclared_effects.py`` writes."""
     R = summary["rates"]
@@ -783,27 +838,7 @@ def markdown(summary: dict) -> str:
         L.append(f"| {row['effect']} | {row['single']} | {_pct(row['named_first'])} | {_pct(row['cut_30'])} | "
                  f"{_pct(row['soc_not_worse'])} | {fp} | {beyond} | {row['pairs']} | "
                  f"{_pct(row['named_in_pair'])} | {row['wrongly_first']} |")
-    tables = (("by_footprint", "By detectability (the hidden effect's own footprint over the voltage noise; the "
-                               "headline rates above are over all cases):", "footprint / noise"),
-              ("by_footprint_beyond_base", "By what no refit of the base takes (the hidden effect's footprint beyond "
-                                           "the base: the RMS voltage it adds that the truth's own base structure, "
-                                           "each parameter rescaled ×0.25–4 and one voltage offset per record, "
-                                           "fitted to the noise-free evaluation voltage from the truth's own "
-                                           "parameters, cannot reproduce, over the voltage noise; below 1 the "
-                                           "evaluation voltage alone cannot tell the effect from base-fit error: "
-                                           "where it is named the evidence is the fit test, which fixed the base's "
-                                           "parameters, or rests that measured the current sensor):",
-               "beyond the base / noise"))
-    for key, caption, head in tables:
-        if not R.get(key) or not any(b["named_first_single"]["n"] or b["named_in_pair"]["n"] for b in R[key]):
-            continue
-        L += ["", caption, "",
-              f"| {head} | single cases | named first | RMSE cut ≥ 30 % | effects in pairs | named in pair |",
-              "|---|---|---|---|---|---|"]
-        for b in R[key]:
-            s1, c1, p1 = b["named_first_single"], b["cut_30_single"], b["named_in_pair"]
-            L.append(f"| {b['footprint']} | {s1['n']} | {_pct(s1['rate'])} | {_pct(c1['rate'])} | {p1['n']} | "
-                     f"{_pct(p1['rate'])} |")
+    L += strata_tables(R)
     if "oracle_accepted_single" in R:
         o, n = R["oracle_accepted_single"], R["named_first_where_oracle_accepted"]
         L += ["", "Only the hidden effect offered (`--oracle`: each single-effect case diagnosed again with the hidden "
