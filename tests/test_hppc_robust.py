@@ -205,6 +205,18 @@ def test_an_hppc_started_part_charged_at_a_given_soc(seed):
     assert np.median(counted.ocv_soc - given_points(part, q, z0)) == pytest.approx(1.0 - z0, abs=2e-3)
 
 
+def test_a_start_soc_that_puts_the_top_above_full_is_one_error_line(tmp_path, capsys):
+    """A record that charges to full after its start (ORNL-Leaf style, from 20 %): a soc0 of 0.5 puts its most charged
+    point at 1.3. ``socbench fit --soc0`` says so in one line, exit 2."""
+    rec = H.hppc_record(H.ISSUE_CELL, H.Layout(precharge_from=0.2), H.Instrument(dt=2.0, v_noise=1e-3), seed=3,
+                        with_soc_ref=False)
+    path = H.write_canonical(rec.profile, tmp_path / "precharged.csv")
+    code = main(["fit", "--data", str(path), "--model", "thevenin", "--mode", "constant", "--soc0", "0.5",
+                 "--out", str(tmp_path / "p.json")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "soc0 = 0.5 puts the record's most charged point at SOC" in err[0], err
+
+
 def given_points(profile, q, z0):
     """The OCV points' SOCs of ``profile`` analysed with its start at ``z0``."""
     plain = analyze_hppc(profile, capacity_ah=q)
