@@ -64,3 +64,16 @@ def test_noise_read_on_jittered_stamps(seed):
     # the deviations are white noise of sd σ: their plain and robust sd agree on the truth's residual
     d = interpolation_deviation(p.time_s, p.voltage_v - truth.simulate(p, soc0=0.8).voltage_v)
     assert robust_sd(d) == pytest.approx(sigma, rel=0.1) and np.std(d) == pytest.approx(sigma, rel=0.1)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_noise_read_on_a_voltage_in_adc_steps_larger_than_the_noise(seed):
+    """The same records read in ADC steps of 2–6 σ: the deviations lie on a lattice and their median deviation jumps
+    with it (0.6 q, or 0). The noise read is the reading's error: at least the rounding's q/√12, and the white noise
+    and the rounding together within 25 % (the plain sd of the bulk also takes up the misfitted model's error at the
+    current's steps: up to +18 % on these draws, where the truth's own residual gives 0.95–1.06 ×)."""
+    truth, misfit, p, sigma = jittered_record(100 + seed)
+    q = float(np.random.default_rng(seed).uniform(2.0, 6.0)) * sigma
+    read = Profile(p.time_s, p.current_a, voltage_v=q * np.round(p.voltage_v / q))
+    got = residual_noise(misfit, [read], soc0s=[0.8])
+    assert q / np.sqrt(12.0) * 0.999 <= got <= 1.25 * np.hypot(sigma, q / np.sqrt(12.0)), (got, sigma, q)

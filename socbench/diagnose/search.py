@@ -76,7 +76,7 @@ import numpy as np
 
 from ..identify.fit import branch_time_constants
 from ..identify.fit_test_effect import BOUND_TOL, bound_hit
-from ..identify.hppc import reading_level
+from ..identify.hppc import quantisation_step, reading_level
 from ..metrics import lag1_autocorrelation
 from ..models.effects import EFFECTS, augment, make_effect, n_cells
 from ..models.scaling import refittable_params, scaled_model
@@ -233,6 +233,10 @@ def robust_sd(x) -> float:
     return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else 0.0
 
 
+#: a voltage reading whose ADC step is at least this share of the noise read off it is quantised (residual_noise)
+QUANTISED = 0.5
+
+
 def interpolation_deviation(t, e) -> np.ndarray:
     """Each inner sample's deviation from the straight line through its two neighbours, scaled to the sd of white
     noise in ``e``, on any spacing (a logger's time stamps jitter):
@@ -259,15 +263,29 @@ def residual_noise(model, profiles, soc0s=None) -> float:
 
     A model error is smooth at the sample scale except at current edges, a minority the median ignores; what the
     deviation keeps is the sensor's white noise (and the current sensor's, through the model's ``R0``). Run on the
-    records as measured, before any averaging."""
-    d = []
+    records as measured, before any averaging. A voltage read in ADC steps ``q`` larger than its noise repeats its
+    values, most deviations are 0 or a lattice step and their median deviation jumps with the lattice: where the step
+    is at least :data:`QUANTISED` × the noise read, the noise is the plain sd of the deviations within 5 spreads of
+    their median, and at least the rounding's ``q/√12`` (``q`` the largest step among the records; an unquantised
+    reading's is negligible, and its noise is read as before)."""
+    d, q = [], 0.0
     for r, p in enumerate(profiles):
         if p.n < 3:
             continue
         z0 = soc0s[r] if soc0s is not None else initial_soc(model, p)
         d.append(interpolation_deviation(p.time_s, p.voltage_v - model.simulate(p, soc0=z0).voltage_v))
+        q = max(q, quantisation_step(p.voltage_v))
     d = np.concatenate(d) if d else np.zeros(0)
-    return robust_sd(d) if d.size >= 50 else 0.0
+    if d.size < 50:
+        return 0.0
+    sigma = robust_sd(d)
+    if q >= QUANTISED * sigma:
+        # the deviations of a quantised reading lie on a lattice of q/2 steps, and their median deviation jumps with
+        # the lattice (from 0 to 0.6 q): the plain sd of the bulk instead, within 5 spreads of its median
+        mid = float(np.median(d))
+        spread = max(sigma, q)
+        sigma = float(np.std(d[np.abs(d - mid) <= 5.0 * spread]))
+    return max(sigma, q / np.sqrt(12.0))
 
 
 def rest_current(profiles, capacity_ah: float, quiet_a: float | None = None, min_s: float = REST_MIN_S):
