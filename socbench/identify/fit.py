@@ -299,8 +299,8 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
             top = 1.0 + soc0 - float(analysis.soc[0])
             if top > 1.0 + 1e-6:
                 raise ConfigError(f"soc0 = {soc0:g} puts the record's most charged point at SOC {top:.4g} > 1 "
-                                  f"(it moves {(1.0 - float(analysis.soc[0])) * analysis.capacity_ah:.4g} Ah more "
-                                  "after its start than before)")
+                                  f"(the record charges {(1.0 - float(analysis.soc[0])) * analysis.capacity_ah:.4g} "
+                                  "Ah into the cell after its start)")
             analysis = analyze_hppc(profile, capacity_ah=capacity_ah, soc_top=top)
             notes.append(f"the record starts at SOC {soc0:g} (given): its most charged point at {top:.4g}, the HPPC "
                          "rest points on that axis")

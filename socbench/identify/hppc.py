@@ -547,9 +547,8 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     for bound in pulse_bound_ladder(durations):
         try:
             found.append(_analyze_hppc(profile, capacity_ah, i_rest, bound, min_rest_s, soc_top))
-        except DataError as exc:
-            if exc.column is not None:
-                raise
+        except DataError:  # a bound that finds nothing (or "pulses" read upside down) is not the record's
+            continue
     # what the ladder finds counts only with FEW_OCV_POINTS points or more, and pulse sets that repeat (their first
     # pulses' lengths within DURATION_GAP of each other, as a protocol repeats its set at every level): a day of
     # drives and flights between rests makes "pulse sets" of a minute, ten seconds and ten minutes
