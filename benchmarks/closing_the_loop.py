@@ -407,11 +407,7 @@ def render_pooled(pooled: dict | None) -> list:
     """The rates over every seed's cases together, split by what the records show beyond the base."""
     if not pooled:
         return []
-    R = pooled["rates"]
-
-    def share(v):
-        return f"{v['hits']}/{v['n']} = {100 * v['rate']:.0f} %"
-
+    R, share = pooled["rates"], randomized.fraction
     low, mid, high = R["by_footprint_beyond_base"]
     both = pooled["both_named_shown"]
     shown = mid["named_first_single"]["n"] + high["named_first_single"]["n"]
@@ -484,7 +480,7 @@ def render(results: dict) -> str:
                   "SOC not worse | command |", "|---|---|---|---|---|---|---|---|---|"]
             for d, role in dev:
                 r = d["rates"]
-                cells = [f"{r[k]['hits']}/{r[k]['n']} = {100 * r[k]['rate']:.0f} %" for k in
+                cells = [randomized.fraction(r[k]) for k in
                          ("named_first_single", "cut_30_single", "nothing_added_null", "both_named_pair",
                           "soc_not_worse")]
                 L.append(f"| {d['seed']} | {role} | {d['cases']} | " + " | ".join(cells)
@@ -543,10 +539,13 @@ def main(argv=None) -> int:
     report_dir.mkdir(parents=True, exist_ok=True)
     bench_path = Path(args.benchmark)
 
+    runs = [bench_path, Path(args.oracle), *map(Path, args.development), *map(Path, args.held_out)]
+    loaded = {path: json.loads(path.read_text()) for path in runs if path.exists()}  # each JSON read once
+
     def summary_of(path: Path):
-        if not path.exists():
+        if path not in loaded:
             return None
-        summary = json.loads(path.read_text())
+        summary = dict(loaded[path])
         summary["misses"] = misses_beyond_base(summary.pop("results", []))
         return summary
 
@@ -557,16 +556,16 @@ def main(argv=None) -> int:
                 res[key] = summary
         res["development"] = [d for d in map(summary_of, map(Path, args.development)) if d is not None]
         res["held_out"] = [d for d in map(summary_of, map(Path, args.held_out)) if d is not None]
-        runs = [path for path in [bench_path, *map(Path, args.development), *map(Path, args.held_out)]
-                if path.exists()]
-        if len(runs) > 1:
-            summaries = [json.loads(path.read_text()) for path in runs]
+        seeds = [path for path in [bench_path, *map(Path, args.development), *map(Path, args.held_out)]
+                 if path in loaded]
+        if len(seeds) > 1:
+            summaries = [loaded[path] for path in seeds]
             results = [r for summary in summaries for r in summary["results"]]
             res["pooled"] = {"rates": randomized.rates(results), "cases": len(results),
                              "seeds": [summary["seed"] for summary in summaries],
                              "both_named_shown": randomized.both_named_where_shown(results),
                              "command": "python benchmarks/undeclared_effects.py --pool "
-                                        + " ".join(map(str, runs)) + " --md docs/undeclared_effects_pooled.md"}
+                                        + " ".join(map(str, seeds)) + " --md docs/undeclared_effects_pooled.md"}
         return res
 
     if args.render_only:

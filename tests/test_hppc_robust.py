@@ -202,7 +202,8 @@ def test_an_hppc_started_part_charged_at_a_given_soc(seed):
     from_full = fit_model("thevenin", part, mode="constant", capacity_ah=q)
     assert given.rmse_v <= 1.1 * from_full.rmse_v, (given.rmse_v, from_full.rmse_v)
     counted = analyze_hppc(part, capacity_ah=q)  # from full: every point (1 − z0) higher
-    assert np.median(counted.ocv_soc - given_points(part, q, z0)) == pytest.approx(1.0 - z0, abs=2e-3)
+    given_points = analyze_hppc(part, capacity_ah=q, soc_start=z0).ocv_soc
+    assert np.median(counted.ocv_soc - given_points) == pytest.approx(1.0 - z0, abs=2e-3)
 
 
 def test_a_start_soc_that_puts_the_top_above_full_is_one_error_line(tmp_path, capsys):
@@ -215,12 +216,6 @@ def test_a_start_soc_that_puts_the_top_above_full_is_one_error_line(tmp_path, ca
                  "--out", str(tmp_path / "p.json")])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "soc0 = 0.5 puts the record's most charged point at SOC" in err[0], err
-
-
-def given_points(profile, q, z0):
-    """The OCV points' SOCs of ``profile`` analysed with its start at ``z0``."""
-    plain = analyze_hppc(profile, capacity_ah=q)
-    return analyze_hppc(profile, capacity_ah=q, soc_top=1.0 + z0 - float(plain.soc[0])).ocv_soc
 
 
 FIELD_DRAWS = 60

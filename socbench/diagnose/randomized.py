@@ -746,6 +746,11 @@ def _pct(x):
     return "–" if x is None else f"{100 * x:.0f} %"
 
 
+def fraction(share: dict) -> str:
+    """``hits/n = rate %`` of a :func:`_share` (``–`` for the rate of none)."""
+    return f"{share['hits']}/{share['n']} = {_pct(share['rate'])}"
+
+
 def _num(x):
     return "–" if x is None else f"{x:.1f}"
 
@@ -797,11 +802,11 @@ def pooled_markdown(summaries) -> str:
          "| rate | measured | target |", "|---|---|---|"]
     for key, target in TARGETS.items():
         v = R[key]
-        L.append(f"| {LABELS[key]} | {v['hits']}/{v['n']} = {_pct(v['rate'])} | ≥ {100 * target:.0f} % |")
+        L.append(f"| {LABELS[key]} | {fraction(v)} | ≥ {100 * target:.0f} % |")
     L += strata_tables(R)
     both = both_named_where_shown(results)
     L += ["", f"Two-effect cases whose effects both stand at least the noise beyond the base: both named in "
-              f"{both['hits']}/{both['n']} = {_pct(both['rate'])}."]
+              f"{fraction(both)}."]
     return "\n".join(L) + "\n"
 
 
@@ -816,11 +821,11 @@ def markdown(summary: dict) -> str:
     for key, target in TARGETS.items():
         v = R[key]
         met = "yes" if v["rate"] is not None and v["rate"] >= target else "**no**"
-        L.append(f"| {LABELS[key]} | {v['hits']}/{v['n']} = {_pct(v['rate'])} | ≥ {100 * target:.0f} % | {met} |")
+        L.append(f"| {LABELS[key]} | {fraction(v)} | ≥ {100 * target:.0f} % | {met} |")
     false = R.get("false_effect_hidden")
     if false:
         L.append(f"| cases with a hidden effect where an effect that is not there is named too (no target) | "
-                 f"{false['hits']}/{false['n']} = {_pct(false['rate'])} | – | – |")
+                 f"{fraction(false)} | – | – |")
     wall, slow = summary["wall_s"], summary["diagnosis_wall_max_s"]
     L.append(f"| wall time of the whole run ({summary['jobs']} workers) | {wall:.0f} s | ≤ {RUN_WALL_S:.0f} s | "
              f"{'yes' if wall <= RUN_WALL_S else '**no**'} |")
@@ -845,8 +850,7 @@ def markdown(summary: dict) -> str:
               "effect as the one candidate, the base refit beside it; an upper bound on what any ranking of the "
               "candidates can name first under the search's acceptance rules and base fit; the run's wall and CPU "
               "times above include these runs, the diagnosis times do not): added in "
-              f"{o['hits']}/{o['n']} = {_pct(o['rate'])}; of those, the full search named it first in "
-              f"{n['hits']}/{n['n']} = {_pct(n['rate'])}.", "",
+              f"{fraction(o)}; of those, the full search named it first in {fraction(n)}.", "",
               "| effect | single cases | added when offered alone | named first by the search |", "|---|---|---|---|"]
         for row in R["rows"]:
             L.append(f"| {row['effect']} | {row['single']} | {_pct(row.get('oracle_accepted'))} | "

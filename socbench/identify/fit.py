@@ -293,17 +293,11 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
     offset = 0.0
     analysis_error = None
     try:
-        analysis = analyze_hppc(profile, capacity_ah=capacity_ah)
-        if soc0 is not None and abs(soc0 - float(analysis.soc[0])) > 1e-9:
-            # the record starts at soc0, not where a test from full would put it: its rest points lie that much lower
-            top = 1.0 + soc0 - float(analysis.soc[0])
-            if top > 1.0 + 1e-6:
-                raise ConfigError(f"soc0 = {soc0:g} puts the record's most charged point at SOC {top:.4g} > 1 "
-                                  f"(the record charges {(1.0 - float(analysis.soc[0])) * analysis.capacity_ah:.4g} "
-                                  "Ah into the cell after its start)")
-            analysis = analyze_hppc(profile, capacity_ah=capacity_ah, soc_top=top)
-            notes.append(f"the record starts at SOC {soc0:g} (given): its most charged point at {top:.4g}, the HPPC "
-                         "rest points on that axis")
+        analysis = analyze_hppc(profile, capacity_ah=capacity_ah, soc_start=soc0)
+        top = float(np.max(analysis.soc))
+        if soc0 is not None and top > 1.0 + 1e-6:
+            raise ConfigError(f"soc0 = {soc0:g} puts the record's most charged point at SOC {top:.4g} > 1 (the record "
+                              f"charges {(top - soc0) * analysis.capacity_ah:.4g} Ah into the cell after its start)")
     except DataError as exc:
         analysis, analysis_error = None, exc
         notes.append(f"no HPPC structure ({exc.message}); scales from current steps")

@@ -514,15 +514,15 @@ FEW_OCV_POINTS = 3
 
 def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: float | None = None,
                  max_pulse_s: float | None = None, min_rest_s: float = MIN_OCV_REST_S,
-                 soc_top: float = 1.0) -> HPPCAnalysis:
+                 soc_start: float | None = None) -> HPPCAnalysis:
     """Analyse an HPPC record (see the module docstring). Raises :class:`DataError` (one line) when the record is not
     an HPPC test: no pulse, fewer than two OCV rest points, or rests before fewer than half of its pulse sets.
 
     ``i_rest`` fixes the rest threshold [A] (default: from the sensor noise); ``max_pulse_s`` the longest pulse
     (default: from the record's phase durations); ``min_rest_s`` the shortest rest that gives an OCV point;
-    ``soc_top`` the SOC of the record's most charged point (default 1: a test that starts full; a test started part
-    charged, at a SOC the user knows, puts its rest points that much lower: :func:`socbench.identify.fit.setup_fit`
-    with ``soc0``).
+    ``soc_start`` the SOC of the record's first sample, where the user knows it (a test started part charged: its
+    rest points lie that much lower; :func:`socbench.identify.fit.setup_fit` with ``soc0``); default: the record's
+    most charged point is full (SOC 1).
 
     Where the longest pulse read from the record's phase durations finds no HPPC, or one with fewer than
     :data:`FEW_OCV_POINTS` OCV points, every bound of :func:`pulse_bound_ladder` is tried and the one that finds the
@@ -535,7 +535,7 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     """
     durations = []
     try:
-        first = _analyze_hppc(profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_top, durations)
+        first = _analyze_hppc(profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_start, durations)
         if max_pulse_s is not None or first.ocv_soc.size >= FEW_OCV_POINTS:
             return first
         why = f"{first.ocv_soc.size} OCV points"
@@ -546,7 +546,7 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     found = []
     for bound in pulse_bound_ladder(durations):
         try:
-            found.append(_analyze_hppc(profile, capacity_ah, i_rest, bound, min_rest_s, soc_top))
+            found.append(_analyze_hppc(profile, capacity_ah, i_rest, bound, min_rest_s, soc_start))
         except DataError:  # a bound that finds nothing (or "pulses" read upside down) is not the record's
             continue
     # what the ladder finds counts only with FEW_OCV_POINTS points or more, and pulse sets that repeat (their first
@@ -577,6 +577,13 @@ def pulse_bound_ladder(durations) -> list[float]:
     return [float(x) for x in np.append(d[ends], d[-1])]
 
 
+def _soc_axis(ah: np.ndarray, ah_full: float, q: float, soc_start: float | None) -> np.ndarray:
+    """SOC per sample of the charge count ``ah`` [Ah discharged]: 1 at the most charged point ``ah_full``, or, given
+    ``soc_start``, that at the first sample."""
+    z = 1.0 - (ah - ah_full) / q
+    return z if soc_start is None else z + (soc_start - float(z[0]))
+
+
 def _sets_repeat(a: HPPCAnalysis) -> bool:
     """Whether the first pulses of ``a``'s sets last within :data:`DURATION_GAP` of each other."""
     firsts = {}
@@ -586,7 +593,7 @@ def _sets_repeat(a: HPPCAnalysis) -> bool:
     return d.size > 0 and float(np.max(d)) <= DURATION_GAP * max(float(np.min(d)), 1e-9)
 
 
-def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_top=1.0,
+def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_start=None,
                   durations: list | None = None) -> HPPCAnalysis:
     """:func:`analyze_hppc` with a given (or the record-read, for None) longest pulse; the lengths of the held
     phases from a rest (the pulse candidates, before the bound) are appended to ``durations`` when it is a list."""
@@ -621,7 +628,7 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
     q = float(capacity_ah) if capacity_ah else float(np.max(ah[k_full:]) - ah_full)
     if not q > 0:
         raise DataError("the record discharges no charge: cannot place it on the SOC axis", file=src)
-    soc = soc_top - (ah - ah_full) / q
+    soc = _soc_axis(ah, ah_full, q, soc_start)
 
     rests = []
     for a, b in _intervals(~active):
@@ -660,10 +667,14 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
                      "on the charge branch of any hysteresis")
         if not capacity_ah:  # the charge from the most discharged point up to full, not what follows full
             q = float(np.max(ah) - ah_full)
-            soc = soc_top - (ah - ah_full) / q
+            soc = _soc_axis(ah, ah_full, q, soc_start)
             rests = [replace(r, soc_end=float(soc[r.stop - 1])) for r in rests]
             rest_by_start = {r.start: r for r in rests}
             rest_by_stop = {r.stop: r for r in rests}
+    shift = float(soc[0]) - float(_soc_axis(ah[:1], ah_full, q, None)[0])
+    if abs(shift) > 1e-9:
+        notes.append(f"the record starts at SOC {soc_start:g} (given): its most charged point at {1.0 + shift:.4g}, "
+                     "the HPPC rest points on that axis")
     if durations is not None:
         durations.extend(c[2] for c in candidates)
     if max_pulse_s is None:
