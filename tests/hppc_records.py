@@ -80,6 +80,8 @@ class Layout:
     #: the test in the charge direction: from ``ASCENDING_FROM`` up, each level reached by a charge step at ``step_c``,
     #: the last one charging to full before a final rest
     ascending: bool = False
+    #: the SOC the last step discharges to (0: empty; many protocols stop at 10–30 %, or at a voltage limit above empty)
+    stop_soc: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -145,11 +147,12 @@ def _pulse_s(lay: Layout, c: float) -> float:
 def _schedule(cell: Cell, lay: Layout):
     """Segments ``[(current A, seconds, kind), ...]`` of the HPPC and the number of pulse sets. As in the USABC
     protocol, pulse set ``j`` is at ``z = 1 − j·step`` and the step after it discharges to the next level (the pulses'
-    net charge counts); the last set is at the lowest level ≥ ``step`` and the last step runs to empty (z = 0)."""
+    net charge counts); the last set is at the lowest level ≥ ``stop_soc + step`` and the last step runs to
+    ``stop_soc`` (default empty, z = 0)."""
     q = cell.capacity_ah
     if lay.ascending:
         return _ascending_schedule(cell, lay)
-    n_levels = int(np.floor(1.0 / lay.step + 1e-9))
+    n_levels = int(np.floor((1.0 - lay.stop_soc) / lay.step + 1e-9))
     segs = []
     if lay.precharge_from is not None:  # the stored charge: the current the SOC sees (the loss is added when measured)
         segs += [(0.0, 600.0, "pre"), (-lay.precharge_c * q, 3600.0 * (1.0 - lay.precharge_from) / lay.precharge_c,
@@ -162,7 +165,7 @@ def _schedule(cell: Cell, lay: Layout):
             z -= c * _pulse_s(lay, c) / 3600.0  # C·h = fraction of Q
             if not (m == len(lay.pulses_c) - 1 and lay.straight_into_step):
                 segs.append((0.0, lay.inner_rest_s, "inner"))
-        z_next = 1.0 - (j + 1) * lay.step if j < n_levels - 1 else 0.0
+        z_next = 1.0 - (j + 1) * lay.step if j < n_levels - 1 else lay.stop_soc
         segs.append((lay.step_c * q, 3600.0 * (z - z_next) / lay.step_c, "step"))
         segs.append((0.0, lay.rest_s, "rest"))
         z = z_next

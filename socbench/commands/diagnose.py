@@ -8,12 +8,15 @@ record) falls by ≥ 10 %. Writes ``diagnosis.json`` (DESIGN.md keys), ``diagnos
 
 from __future__ import annotations
 
+import warnings
+
 from ..datasets import load
 from ..diagnose import diagnose
 from ..diagnose.core import COARSE_OCV_GAP
 from ..diagnose.report import write_report
 from ..domain import warn_outside
-from ..errors import ConfigError
+from ..errors import ConfigError, SocbenchWarning
+from ..identify.hppc import NO_KNEE
 from ..io import output_dir
 from ..models import model_names
 from ..models.effects import effect_names
@@ -41,6 +44,13 @@ def add_arguments(parser) -> None:
                         help="refine an HPPC's rest-point OCV between its points from its discharge segments (kept "
                              "when the evaluation data validate it): where two points lie more than "
                              f"{100 * COARSE_OCV_GAP:g} %% of SOC apart (coarse), always (default), or never")
+    parser.add_argument("--capacity", type=float, default=None,
+                        help="capacity [Ah] of the dynamic fit record's SOC axis (default: the slow OCV test's, else "
+                             "the record's declared one, else the HPPC's own: the charge it moves from full to its "
+                             "most discharged point, or over its reference SOC's span where that is less)")
+    parser.add_argument("--soc0", type=float, default=None,
+                        help="SOC of the dynamic fit record's first sample (default: counted back from the HPPC's "
+                             "full point, or where its own reference SOC puts it)")
     parser.add_argument("--no-soc", action="store_true", help="skip the EKF SOC comparison")
     parser.add_argument("--no-figures", action="store_true", help="skip the figures")
 
@@ -58,12 +68,17 @@ def run(args) -> int:
         raise ConfigError(f"--folds must be in [2, 20], got {args.folds}")
     if not args.dt > 0:
         raise ConfigError(f"--dt must be > 0, got {args.dt}")
+    if args.capacity is not None and not args.capacity > 0:
+        raise ConfigError(f"--capacity must be positive, got {args.capacity}")
+    if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
+        raise ConfigError(f"--soc0 must be a fraction in [0, 1], got {args.soc0}")
     output_dir(args.out, "--out")
     fit = [load(p, args.format) for p in args.fit]
     evals = [load(p, args.format) for p in args.eval]
     diag = diagnose(args.model, fit, evals, mode=args.mode, dt=args.dt, folds=args.folds, candidates=candidates,
                     slow_ocv=args.slow_ocv, soc=not args.no_soc, base_refit=not args.no_base_refit,
-                    refine_ocv={"coarse": "coarse", "always": True, "never": False}[args.refine_ocv])
+                    refine_ocv={"coarse": "coarse", "always": True, "never": False}[args.refine_ocv],
+                    capacity_ah=args.capacity, soc0=args.soc0)
     write_report(diag, args.out, with_figures=not args.no_figures)
     b, a = diag.before, diag.after
     print(f"{args.model}: effects added: {', '.join(diag.effects_added) or 'none'}")
@@ -74,6 +89,10 @@ def run(args) -> int:
     for s in diag.steps:
         print(f"  + {s.effect}: {s.evidence}")
     print(f"  wrote {args.out}/diagnosis.json, diagnosis.md ({diag.seconds['total']:.1f} s)")
+    if diag.fit.get("capacity_note"):
+        print(f"  note: {diag.fit['capacity_note']}")
+    for note in (n for n in diag.base_model.params.notes if n.startswith(NO_KNEE)):
+        warnings.warn(f"{diag.fit.get('fitted_on', 'fit record')}: {note}", SocbenchWarning, stacklevel=2)
     for when, model in (("before", args.model), ("after", "+".join([args.model, *diag.effects_added]))):
         report = diag.domain.get(when)
         if report:

@@ -38,16 +38,17 @@ filter, run on those records with the recipe and ``socbench estimate``'s default
 from __future__ import annotations
 
 import json
+import warnings as _warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..datasets import load
 from ..domain import warn_outside
-from ..errors import ConfigError, DataError
+from ..errors import ConfigError, DataError, SocbenchWarning
 from ..estimators import DEFAULT_NOISE, model_error, nis_calibration
 from ..identify import FIT_SETTINGS, MODES, fit_model, select_fit, select_temperature_fit
-from ..identify.hppc import analyze_hppc
+from ..identify.hppc import NO_KNEE, analyze_hppc, declared_capacity
 from ..identify.pseudo_ocv import refit_on_refined_ocv
 from ..identify.temperature import fit_temperatures
 from ..io import output_file
@@ -70,12 +71,15 @@ def add_arguments(parser) -> None:
                              "--validation records best (SOC form, sample weighting; over several records also a "
                              "setting per temperature and the charge-transfer term)")
     parser.add_argument("--capacity", type=float, default=None,
-                        help="capacity [Ah] of the SOC axis (default: the charge the HPPC moves between full and its "
-                             "most discharged point, down from full or, run in the charge direction, up to it; with "
-                             "several records the largest of them)")
+                        help="capacity [Ah] of the SOC axis (default: the one a canonical CSV's sidecar declares, "
+                             "where the HPPC stops above empty; else the charge the HPPC moves between full and its "
+                             "most discharged point, down from full or, run in the charge direction, up to it, or, "
+                             "where the record's own reference SOC (soc_ref column) says the test spans less, that "
+                             "charge over the reference's span; with several records the largest of them)")
     parser.add_argument("--soc0", type=float, default=None,
                         help="initial SOC of the record (default: counted back from the HPPC's full point: 1 for "
-                             "one that starts full)")
+                             "one that starts full; where the record's own reference SOC says its top lies below "
+                             "full, there)")
     parser.add_argument("--ocv", default=None,
                         help="OCV curve JSON ({soc, voltage}) or a PARAMS.json whose curve to use "
                              "(default: the record's HPPC rest points)")
@@ -170,7 +174,14 @@ def run(args) -> int:
         warnings = res.warnings
     else:
         profile = records[0]
-        kw = {"ocv": ocv, "capacity_ah": args.capacity, "soc0": args.soc0,
+        capacity = args.capacity
+        if capacity is None and profile.meta.extra.get("format") == "canonical":  # the user's sidecar declares it
+            capacity, why_not = declared_capacity(profile, profile.meta.capacity_ah, full_to_empty="count")
+            if capacity is not None:
+                print(f"capacity {capacity:.4g} Ah as the record's sidecar declares it (--capacity overrides)")
+            elif why_not:
+                print(f"note: {why_not}")
+        kw = {"ocv": ocv, "capacity_ah": capacity, "soc0": args.soc0,
               "segments": False if args.no_segments else None}
         if auto:
             sel = select_fit(args.model, profile, validation, candidates=FIT_SETTINGS, **kw)
@@ -181,8 +192,10 @@ def run(args) -> int:
         params, summary = res.params, res.fit_summary()
         print(f"{args.model} fitted on {profile.name} ({res.mode} mode): RMS {1000 * res.rmse_v:.1f} mV over "
               f"{res.n_samples} samples in {res.seconds:.1f} s")
-        for note in _left_out(res):
+        for note in _left_out(res) + _axis_notes(res):
             print(f"  note: {note}")
+        for note in (n for n in res.params.notes if n.startswith(NO_KNEE)):
+            _warnings.warn(f"{profile.name}: {note}", SocbenchWarning, stacklevel=2)
         if args.refine_ocv:
             res = _refine(res, profile, validation, mode=args.mode, soc0=args.soc0,
                           segments=False if args.no_segments else None)
@@ -250,6 +263,12 @@ def _refine(res, profile, validation, **fit_kwargs):
 
 def _mv(values) -> str:
     return "/".join(f"{1000 * v:.1f}" for v in values)
+
+
+def _axis_notes(fit) -> list[str]:
+    """The notes of a fit that say where its record's reference SOC placed the HPPC on the SOC axis
+    (:func:`socbench.identify.hppc.reference_placement`)."""
+    return [n for n in fit.params.notes if "reference SOC places the test" in n]
 
 
 def _left_out(fit) -> list[str]:

@@ -64,7 +64,7 @@ from ..identify import (
 )
 from ..identify.fit import branches_identified
 from ..identify.fit_test_effect import FIT_TEST_EFFECTS, effect_on_fit_test
-from ..identify.hppc import quantisation_step
+from ..identify.hppc import declared_capacity, quantisation_step
 from ..models import make_model
 from ..models.base import T_REF_C
 from ..models.effects import EFFECTS
@@ -207,8 +207,13 @@ def slow_test_branches(profile: Profile, info: dict | None = None):
 
 
 def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean", validation=None,
-             refine_ocv: bool = False, relax_ocv: bool = RELAX_OCV):
-    """``(model, info)``: the base model fitted on the fit data (see the module docstring).
+             refine_ocv: bool = False, relax_ocv: bool = RELAX_OCV, capacity_ah: float | None = None,
+             soc0: float | None = None):
+    """``(model, info)``: the base model fitted on the fit data (see the module docstring). ``capacity_ah`` and
+    ``soc0``: the SOC axis of the dynamic fit record where the user knows it (its capacity, its first sample's SOC;
+    :func:`socbench.identify.fit.setup_fit`); default the slow test's capacity, else the record's declared one, else
+    the HPPC's own (:func:`socbench.identify.hppc.analyze_hppc`). ``info["axis"]`` keeps the start SOC for every
+    later fit on that record.
 
     ``mode="auto"`` chooses the fit by validation on ``validation`` (the evaluation records): every setting of
     :data:`~socbench.identify.FIT_CANDIDATES` in constant mode (:func:`~socbench.identify.select_fit`), then the
@@ -277,10 +282,16 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
         info["ocv_from_rest_points"] = True
         info["ocv_branch"] = 1.0 if steps == "charge" else -1.0
     prof = dynamic[0]
-    capacity = capacity or _capacity(prof)
+    if not (capacity_ah or capacity):  # the record's declared capacity, unless its HPPC moves more than that
+        capacity, why_not = declared_capacity(prof, _capacity(prof))
+        if why_not:
+            info["capacity_note"] = why_not
+    capacity = capacity_ah or capacity
+    axis = {} if soc0 is None else {"soc0": float(soc0)}
+    info["axis"] = axis
     validation = list(validation or [])
     if mode == "auto" and validation:
-        sel = select_fit(name, prof, validation, mode="constant", ocv=ocv, capacity_ah=capacity)
+        sel = select_fit(name, prof, validation, mode="constant", ocv=ocv, capacity_ah=capacity, **axis)
         fits, scores = dict(sel.fits), {k: float(np.mean(v)) for k, v in sel.scores.items()}
         # a fit with a branch slower than its record is not chosen while another has none: that branch is an OCV or
         # capacity error in disguise (identify.fit.branches_identified)
@@ -288,7 +299,7 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
         best_setting = min(identified or scores, key=scores.get)
         lookup = f"lookup, {best_setting}"
         fits[lookup] = fit_model(name, prof, mode="lookup", ocv=ocv, capacity_ah=capacity, knots=LOOKUP_KNOTS,
-                                 **FIT_CANDIDATES[best_setting])
+                                 **FIT_CANDIDATES[best_setting], **axis)
         scores[lookup] = float(np.mean([validation_rmse(fits[lookup], r) for r in validation]))
         if branches_identified(fits[lookup].params, prof.duration_s):
             identified.add(lookup)
@@ -296,8 +307,8 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
         slower_than_record = [k for k in fits if k not in identified]
 
         def setting(label):  # the fit arguments of a candidate label of this selection
-            return {"mode": "lookup", "knots": LOOKUP_KNOTS, **FIT_CANDIDATES[best_setting]} if label == lookup \
-                else {"mode": "constant", **FIT_CANDIDATES[label]}
+            return {"mode": "lookup", "knots": LOOKUP_KNOTS, **FIT_CANDIDATES[best_setting], **axis} \
+                if label == lookup else {"mode": "constant", **FIT_CANDIDATES[label], **axis}
 
         if relax_ocv and ocv is None:  # the HPPC's rest points, moved by what the fit holds at each rest's end
             refit, report = relaxed_ocv.refit_on_relaxed_ocv(fits[chosen], prof, validation, **setting(chosen))
@@ -329,7 +340,7 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
                                      "record is not chosen while another has none"}
     else:
         mode = "constant" if mode == "auto" else mode
-        res = fit_model(name, prof, mode=mode, ocv=ocv, capacity_ah=capacity)
+        res = fit_model(name, prof, mode=mode, ocv=ocv, capacity_ah=capacity, **axis)
     info.update({"fitted_on": prof.name, "mode": res.mode, "rmse_v": res.rmse_v, "seconds": res.seconds,
                  "capacity_ah": res.params.capacity_ah, "values": res.values, "warnings": list(res.warnings)})
     t_fit = prof.temperature_c
@@ -351,7 +362,8 @@ def effect_on_fit_test_record(model_name: str, base, fit_profiles, evals, info: 
     prof = next(p for p in fit_profiles if not is_slow_test(p))
     lookup = {"mode": "lookup", "knots": LOOKUP_KNOTS} if sel["form"] == "lookup" else None
     refit, reports, deferred = effect_on_fit_test(
-        model_name, base, prof, evals, effects, setting=FIT_CANDIDATES[sel["setting"]], lookup=lookup,
+        model_name, base, prof, evals, effects, setting={**FIT_CANDIDATES[sel["setting"]], **info.get("axis", {})},
+        lookup=lookup,
         settings={"hysteresis": {"h_ref": info["ocv_branch"]}}, twin=TWIN_TAU)
     info["fit_test_effect"] = {"reports": reports, "kept": None, "deferred": None}
     for key, found in (("kept", refit), ("deferred", deferred)):
@@ -564,10 +576,12 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
              candidates=None, min_gain: float = 0.10, max_steps: int = 3, max_nfev: int = 15, max_fits: int = 3,
              max_samples: int = 4000, slow_ocv: str = "mean", soc: bool = True,
              base_refit: bool = True, resistance_growth: bool = False, refine_ocv: bool | str = REFINE_OCV,
-             relax_ocv: bool = RELAX_OCV, fit_test: bool = True) -> Diagnosis:
+             relax_ocv: bool = RELAX_OCV, fit_test: bool = True, capacity_ah: float | None = None,
+             soc0: float | None = None) -> Diagnosis:
     """Run the whole diagnosis (module docstring). Profiles are :class:`~socbench.profile.Profile` objects.
     ``fit_test``: the cell's properties are first looked for on the fit test itself
-    (:func:`effect_on_fit_test_record`).
+    (:func:`effect_on_fit_test_record`). ``capacity_ah``, ``soc0``: the dynamic fit record's SOC axis where the user
+    knows it (:func:`fit_base`).
     ``resistance_growth``: the capacity effect is fitted with the resistance growth of ageing beside its fade
     (:data:`socbench.diagnose.search.RESISTANCE_GROWTH`). ``refine_ocv``: the base fit also tries the HPPC's OCV
     refined between its rest points (:func:`fit_base`)."""
@@ -576,7 +590,7 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
     for p in evals:
         p.require("voltage_v")
     base, fit_info = fit_base(model_name, fit_profiles, mode, slow_ocv, validation=evals, refine_ocv=refine_ocv,
-                              relax_ocv=relax_ocv)
+                              relax_ocv=relax_ocv, capacity_ah=capacity_ah, soc0=soc0)
     t_fit = _time.perf_counter()
     cv = make_folds(evals, folds)
     # the voltage noise of the averaged records: the sensor's (measured on the records as recorded) over √(samples

@@ -43,7 +43,7 @@ from ..models.registry import model_class, model_names
 from ..models.scaling import branch_index
 from ..ocv import OCVCurve
 from ..profile import Profile
-from .hppc import analyze_hppc, edge_resistance, unrecorded_charge
+from .hppc import FULL_TOL, analyze_hppc, edge_resistance, unrecorded_charge
 from .lsq import LsqResult, fit_parameters
 from .specs import ConstantForm, Guess, LookupForm, ParamSpec, PolyForm, param_spec
 
@@ -295,7 +295,8 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
     try:
         analysis = analyze_hppc(profile, capacity_ah=capacity_ah, soc_start=soc0)
         top = float(np.max(analysis.soc))
-        if soc0 is not None and top > 1.0 + 1e-6:
+        # within FULL_TOL of full the count's own noise (a start at full whose first seconds read a charge) is no error
+        if soc0 is not None and top > 1.0 + FULL_TOL:
             raise ConfigError(f"soc0 = {soc0:g} puts the record's most charged point at SOC {top:.4g} > 1 (the record "
                               f"charges {(top - soc0) * analysis.capacity_ah:.4g} Ah into the cell after its start)")
     except DataError as exc:

@@ -35,7 +35,9 @@ or a fixed duration where the record can tell. The analysis
    *charge direction* (its levels reached by charge steps, up to full: the SOC of its held phases rises over the
    record) is the whole record up to full (``steps = "charge"``: its rest points lie on the charge branch). ``Q`` is the
    capacity (default: the charge discharged from full to the most discharged point — ECM_SPEC §2 recommends the
-   HPPC's own Ah);
+   HPPC's own Ah). Where the record's own reference SOC says the test spans less than full to empty (it stops at
+   20 %, or starts part charged), the reference places it: ``Q`` is the charge moved over the reference's span and
+   the most charged point sits where the reference puts it (:func:`reference_placement`);
 4. **tells pulses from steps**: a *pulse* is a phase that
 
    * starts from a rest at least half as long as itself (an HPPC rests before every pulse; a drive cycle only
@@ -128,6 +130,16 @@ MAX_PULSE_S = 120.0
 #: edge resistances need this many samples in the pulse and an edge carrying EDGE_FRACTION of the pulse current
 MIN_EDGE_SAMPLES = 3
 EDGE_FRACTION = 0.5
+#: a record's own reference SOC places the test on the SOC axis (:func:`reference_placement`) when it spans at least
+#: this much between the test's most charged and most discharged points: over a shorter span a reference read to a
+#: point (a BMS in whole percent) gives the capacity no better than the count from full does
+REFERENCE_MIN_SPAN = 0.2
+#: a test that reaches empty ends in the OCV's end-of-discharge knee: its lowest OCV step is at least this many times
+#: steeper than the median of its others, and at least this steep per cell [V per unit SOC] (:func:`end_knee`)
+KNEE_RATIO = 2.0
+KNEE_SLOPE_V = 1.0
+#: the note (and the fit command's warning) for a test whose lowest step shows no knee starts with this
+NO_KNEE = "no end-of-discharge knee"
 #: shortest rest before a pulse set that gives an OCV point [s]: HPPC protocols rest 5 min to 2 h (4 min leaves room
 #: for a coarse sampling of a 5 min rest); after a shorter rest most of the polarisation is still there, and drive
 #: cycles stop for a minute or two
@@ -577,6 +589,117 @@ def pulse_bound_ladder(durations) -> list[float]:
     return [float(x) for x in np.append(d[ends], d[-1])]
 
 
+def reference_placement(profile: Profile, ah: np.ndarray, k_full: int, k_empty: int,
+                        capacity_ah: float | None = None) -> tuple | None:
+    """``(capacity [Ah], SOC of the most charged point, note)`` where the record's own reference SOC says the test
+    does not run from full to empty; None where it does (within its counting error), where the record has no reference
+    of its own, or where the reference cannot place it.
+
+    Without a capacity, the count from full takes the charge from the most charged point (sample ``k_full``) to the
+    most discharged (``k_empty``) as the capacity: an HPPC that stops at 20 % (many protocols end at 10–30 %, or at a
+    voltage limit above empty) or starts part charged gets a capacity short by that much, and an SOC axis that runs a
+    fifth too fast — every SOC a filter reports on it is off by up to that fifth. The record's reference SOC says where
+    the test ran. Over the test's samples (between those two points) with the reference inside (0, 1), least squares
+
+        z_ref ≈ c₀ − Ah/Q_ref + d·(t − t₀)
+
+    gives the capacity ``Q_ref`` the reference counts with and its drift ``d``: a reference a cycler counts from its
+    own current sensor carries that sensor's offset, which ``Ah`` (the offset measured on the rests removed) does not —
+    read as a place on the axis, that drift would move the test's end by the offset times the test's hours. The test
+    then spans ``ΔAh/Q_ref`` (``ΔAh`` the charge counted between the two points), and its most charged point sits at
+    the reference's drift-free value there, ``c₀ − Ah_full/Q_ref``. A span within :data:`FULL_TOL` of 1 or more (a
+    reference counted with a smaller capacity, or one that runs past full or empty) is a test from full to empty: the
+    count decides, as without a reference. The span is placed inside [0, 1], nearest the reference; a top within
+    :data:`FULL_TOL` of full is full. With a capacity given (``capacity_ah``: the user's, the record's declared one,
+    or a refit's on the axis placed before) the reference places the test's top alone, the span being ``ΔAh`` over
+    that capacity: a refit that passes the capacity of a placed axis gets the same axis.
+
+    Only a reference that is the record's own statement of SOC: a loader that counts the reference from full with a
+    capacity of its own (``meta.extra["soc_ref_capacity_ah"]``, Panasonic, CALCE) declares a different axis, which
+    :mod:`socbench.socaxis` converts; and a reference spanning less than :data:`REFERENCE_MIN_SPAN` is not used."""
+    from ..socaxis import reference_capacity
+
+    soc_ref = profile.get("soc_ref")
+    if soc_ref is None or reference_capacity(profile) is not None:
+        return None
+    lo, hi = sorted((k_full, k_empty))
+    test = slice(lo, hi + 1)
+    z, a, t = soc_ref[test], ah[test], profile.time_s[test] - profile.time_s[lo]
+    inside = (z > 0.0) & (z < 1.0)
+    moved = float(ah[k_empty] - ah[k_full])
+    if np.count_nonzero(inside) < 10 or not moved > 0:
+        return None
+    design = np.column_stack([np.ones(a.size), a, t])[inside]
+    (c0, slope, _), *_ = np.linalg.lstsq(design, z[inside], rcond=None)
+    if not slope < 0:
+        return None  # a reference that does not fall as charge leaves: not a count of this record's charge
+    q_ref = -1.0 / float(slope)
+    if not moved / q_ref >= REFERENCE_MIN_SPAN or moved / q_ref >= 1.0 - FULL_TOL:
+        return None  # a reference from full to empty within its counting error: the count decides, as without it
+    q = float(capacity_ah) if capacity_ah else q_ref
+    span = min(moved / q, 1.0)
+    top = float(c0 + slope * ah[k_full])
+    # a top within the count's tolerance of full is full (a reference read to a point or two, not a part charge)
+    z_top = 1.0 if top >= 1.0 - FULL_TOL else float(np.clip(top, span, 1.0))
+    note = (f"the record's reference SOC places the test: its most charged point at z = {z_top:.3f}, its most "
+            f"discharged at {z_top - span:.3f} (the reference counts with {q_ref:.4g} Ah; at the most charged point "
+            f"it reads {top:.3f} without its drift)")
+    if not capacity_ah:
+        note += f"; capacity {q_ref:.4g} Ah, where a count from full to empty would take the {moved:.4g} Ah moved"
+    return q, z_top, note
+
+
+def declared_capacity(profile: Profile, declared: float | None,
+                      full_to_empty: str = "declared") -> tuple[float | None, str | None]:
+    """``(capacity for the SOC axis or None, note or None)`` of an HPPC record whose metadata declare ``declared`` Ah
+    (a canonical CSV's sidecar, a loader's table). None means: the HPPC's own charge (the count from full to its most
+    discharged point).
+
+    * A test that moves less charge between its most charged and most discharged points than the declared capacity,
+      by more than :data:`FULL_TOL`, stops above empty (10–30 % is common): the declared capacity places it where it
+      ran.
+    * One that moves more, by more than :data:`FULL_TOL`, would run the axis below empty (a nominal capacity of a cell
+      that holds more, or a wrong sidecar): None, and a note says so.
+    * One that moves the declared charge within :data:`FULL_TOL` ran from full to empty: ``full_to_empty`` says which
+      the caller keeps, ``"declared"`` (``socbench diagnose``, as it always has) or ``"count"`` (``socbench fit``,
+      as it always has: exact for its own record, where a rounded declaration may end a little past empty).
+
+    None, without a note, where nothing is declared or the record is not an HPPC (the fit says why)."""
+    if not declared:
+        return None, None
+    try:
+        a = analyze_hppc(profile, capacity_ah=declared)
+    except DataError:
+        return None, None
+    test = a.soc[a.start_index:a.end_index]
+    span = float(np.max(test) - np.min(test))  # the charge the test moves, in units of the declared capacity
+    if span > 1.0 + FULL_TOL:
+        return None, (f"the HPPC moves {span * declared:.4g} Ah between its most charged and most discharged points, "
+                      f"more than the {declared:.4g} Ah its metadata declare: the capacity is the charge it moves")
+    if span < 1.0 - FULL_TOL or full_to_empty == "declared":
+        return float(declared), None
+    return None, None
+
+
+def end_knee(ocv_z, ocv_v, n_series: int = 1) -> tuple | None:
+    """``(ratio, slope)`` of the lowest step between OCV points (by SOC): how many times steeper it is than the median
+    of the others, and its slope per cell [V per unit SOC]. Every Li-ion chemistry ends in a knee (the anode's last
+    stage, the cathode's end of lithiation): its last 5–10 % above empty falls several times steeper than the middle
+    of the curve and by a volt per unit SOC or more (NMC/NCA 2–5 V; LFP, after a plateau of 0.05–0.1 V, tens of
+    volts), so a test that reaches empty shows it (Panasonic 18650PF at 25 °C: 2.3 ×, 2.1 V; ORNL Leaf cell: 3.3–4 ×,
+    1.7–2 V) and one that stops at 10–40 % does not. None with fewer than four points."""
+    z, v = np.asarray(ocv_z, dtype=float), np.asarray(ocv_v, dtype=float)
+    if z.size < 4:
+        return None
+    order = np.argsort(z)
+    dz, dv = np.diff(z[order]), np.diff(v[order])
+    if np.any(dz <= 0):
+        return None
+    slopes = dv / dz
+    rest = float(np.median(slopes[1:]))
+    return (float(slopes[0] / rest) if rest > 0 else float("inf")), float(slopes[0]) / max(int(n_series), 1)
+
+
 def _soc_axis(ah: np.ndarray, ah_full: float, q: float, soc_start: float | None) -> np.ndarray:
     """SOC per sample of the charge count ``ah`` [Ah discharged]: 1 at the most charged point ``ah_full``, or, given
     ``soc_start``, that at the first sample."""
@@ -671,8 +794,17 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
             rests = [replace(r, soc_end=float(soc[r.stop - 1])) for r in rests]
             rest_by_start = {r.start: r for r in rests}
             rest_by_stop = {r.stop: r for r in rests}
+    placed = None if soc_start is not None else reference_placement(
+        profile, ah, k_full, int(np.argmax(ah)) if ascending else k_full + int(np.argmax(ah[k_full:])), capacity_ah)
+    if placed is not None:
+        q, z_top, note = placed
+        soc = _soc_axis(ah, ah_full, q, None) - (1.0 - z_top)
+        rests = [replace(r, soc_end=float(soc[r.stop - 1])) for r in rests]
+        rest_by_start = {r.start: r for r in rests}
+        rest_by_stop = {r.stop: r for r in rests}
+        notes.append(note)
     shift = float(soc[0]) - float(_soc_axis(ah[:1], ah_full, q, None)[0])
-    if abs(shift) > 1e-9:
+    if abs(shift) > 1e-9 and placed is None:
         notes.append(f"the record starts at SOC {soc_start:g} (given): its most charged point at {1.0 + shift:.4g}, "
                      "the HPPC rest points on that axis")
     if durations is not None:
@@ -753,6 +885,14 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
         raise DataError(f"not an HPPC test: {n_rested} of {n_sets} pulse set(s) follow a rest of {min_rest_s:g} s or "
                         f"more, {len(ocv_z)} OCV rest point(s) in all (an HPPC rests before most of its pulse sets; "
                         "an OCV curve needs 2 points)", file=src)
+    knee = end_knee(ocv_z, ocv_v, profile.meta.n_series or 1)
+    if knee is not None and not (knee[0] >= KNEE_RATIO and knee[1] >= KNEE_SLOPE_V) and not capacity_ah \
+            and placed is None and soc_start is None:
+        notes.append(f"{NO_KNEE}: the lowest OCV step falls {knee[1]:.2g} V per unit SOC per cell, {knee[0]:.2g} × "
+                     f"the median step (a test that reaches empty ends in a step {KNEE_RATIO:g} × steeper or more, "
+                     f"and {KNEE_SLOPE_V:g} V or more): the test may stop above empty, and the capacity counted from "
+                     f"full to its most discharged point ({q:.4g} Ah) is then short of the cell's, its SOC axis too "
+                     "fast; give the capacity, the start SOC, or a reference SOC column")
     level_soc = np.array([p.soc for p in firsts.values()])
     r_inst = _finite_median([p.r_inst for p in pulses])
     start_ocv = float(v[0] + r_inst * di[0]) if k_full == 0 and r_inst > 0 else float("nan")

@@ -52,7 +52,7 @@ def rest_overpotential(fit: FitResult, profile: Profile, soc0: float | None = No
     them, and the over-potential ``η_k`` the fitted model still holds there (module docstring); None when the record
     has no HPPC rest points."""
     prob = setup_fit(fit.name, profile, "constant", fit.params.ocv, fit.params.capacity_ah, soc0)
-    a = analyze_hppc(profile, capacity_ah=fit.params.capacity_ah)
+    a = analyze_hppc(profile, capacity_ah=fit.params.capacity_ah, soc_start=soc0)
     at_rest_end = {(r.soc_end, r.v_end): r.stop - 1 for r in a.rests}
     idx = [at_rest_end.get((z, v)) for z, v in zip(a.ocv_soc, a.ocv_voltage)]
     if a.ocv_soc.size < 2 or any(k is None for k in idx):
