@@ -18,7 +18,12 @@ The generator here is numpy only, no socbench code, and deliberately unlike the 
   of 5–30 min after 5 % of them, down to 15 % SOC, with its reference SOC;
 * **instrument** (the same on both records) — samples every 0.1–10 s (HPPC) and 1–5 s (field) at a random phase,
   time stamps from 0 or from a Unix epoch, voltage noise 0.5–5 mV and an ADC step of 0, 1 or 5 mV, current noise
-  0–1 % of 1C, an ADC step of 0, 0.1 or 1 % of 1C and an offset of ±0.5 % of 1C.
+  0–1 % of 1C, an ADC step of 0, 0.1 or 1 % of 1C and an offset of ±0.5 % of 1C;
+* **what the HPPC file says of its SOC axis** (one of :data:`METADATA`, a third each, from a stream of its own): a
+  JSON sidecar declaring the capacity; no capacity but a reference SOC column, the cycler's count of the charge (its
+  own sensor's offset ±0.05 % of 1C) from a start read to ±1 point with a nominal capacity within ±3 %; or neither. The
+  HPPC stops 5, 10 or 20 % above empty (its last level is one step up), so without either the count from full takes
+  80–95 % of the capacity.
 
 Each case runs `socbench fit` on the HPPC and `socbench diagnose --fit HPPC --eval FIELD` with the base model
 alternating between Thevenin (the truth has a branch more: an extra RC is missing) and DP (the structure is right),
@@ -62,6 +67,9 @@ def ocv_shape(kind: str):
 #: ORNL Leaf files); a charge back to full after the test's final rest (a cycler's script); the test in the charge
 #: direction, its levels reached by charge steps from near empty up to full
 PROTOCOLS = ("from full", "charge first", "charge back after", "charge direction")
+#: what the HPPC file says of its SOC axis (drawn from a stream of its own): its sidecar declares the capacity; its
+#: reference SOC column, the cycler's count, without a capacity; neither
+METADATA = ("sidecar capacity", "reference SOC", "neither")
 
 
 def hppc_segments(r, q: float, protocol: str = "from full") -> tuple[list, float]:
@@ -133,13 +141,21 @@ def measure(segs, cell: dict, dt: float, z0: float, r, inst: dict):
     return t + inst["t0"], i_meas, v_meas, zs
 
 
-def write(path: Path, t, i, v, soc=None, capacity_ah: float = 1.0):
+def write(path: Path, t, i, v, soc=None, capacity_ah: float | None = 1.0):
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["time_s", "current_a", "voltage_v"] + (["soc_ref"] if soc is not None else []))
         for k in range(t.size):
             w.writerow([f"{t[k]:.3f}", f"{i[k]:.6g}", f"{v[k]:.6g}"] + ([f"{soc[k]:.6f}"] if soc is not None else []))
-    path.with_suffix(".json").write_text(json.dumps({"capacity_ah": capacity_ah, "n_series": 1, "name": path.stem}))
+    side = {"n_series": 1, "name": path.stem, **({"capacity_ah": capacity_ah} if capacity_ah else {})}
+    path.with_suffix(".json").write_text(json.dumps(side))
+
+
+def cycler_reference(t, z_true, q: float, r) -> np.ndarray:
+    """The reference SOC a cycler writes: its count of the charge (its own current sensor, an offset of ±0.05 % of
+    1C) from a start read to ±1 point, with a nominal capacity within ±3 % of the cell's."""
+    counted = (z_true[0] - z_true) * q + r.uniform(-5e-4, 5e-4) * q * (t - t[0]) / 3600.0
+    return z_true[0] + r.uniform(-0.01, 0.01) - counted / (q * r.uniform(0.97, 1.03))
 
 
 def draw(seed: int, folder: Path) -> dict:
@@ -158,9 +174,14 @@ def draw(seed: int, folder: Path) -> dict:
     hppc = measure(segs, cell, dt_hppc, z0, r, inst)
     rf = np.random.default_rng([seed, 2])  # the field record's own stream: it does not depend on the HPPC's layout
     field = measure(field_segments(rf, q), cell, dt_field, 0.95, rf, inst)
-    write(folder / f"case{seed}_hppc.csv", *hppc[:3], capacity_ah=q)
+    rm = np.random.default_rng([seed, 3])  # what the HPPC file says of its axis: a stream of its own too
+    metadata = METADATA[int(rm.integers(len(METADATA)))]
+    reference = cycler_reference(hppc[0], hppc[3], q, rm) if metadata == "reference SOC" else None
+    write(folder / f"case{seed}_hppc.csv", *hppc[:3], soc=reference,
+          capacity_ah=q if metadata == "sidecar capacity" else None)
     write(folder / f"case{seed}_field.csv", *field, capacity_ah=q)
-    return {"seed": seed, "capacity_ah": q, "ocv": cell["ocv"], "protocol": protocol, "dt_hppc_s": dt_hppc,
+    return {"seed": seed, "capacity_ah": q, "ocv": cell["ocv"], "protocol": protocol, "metadata": metadata,
+            "hppc_soc_range": [float(np.min(hppc[3])), float(np.max(hppc[3]))], "dt_hppc_s": dt_hppc,
             "dt_field_s": dt_field,
             "offset_c": inst["i_offset"] / q, "i_step_c": inst["i_step"] / q, "i_sd_c": inst["i_sd"] / q,
             "v_sd_mv": 1000 * inst["v_sd"], "v_step_mv": 1000 * inst["v_step"], "epoch": inst["t0"] > 0,
@@ -179,6 +200,8 @@ def _leaks(stderr: str) -> list:
 
 
 def run_case(seed: int, folder: str, refine_ocv: str = "always") -> dict:
+    from socbench.identify.hppc import NO_KNEE  # the warning's marker (the generator above stays numpy-only)
+
     folder = Path(folder)
     out = draw(seed, folder)
     model = "thevenin" if seed % 2 == 0 else "dp"
@@ -188,16 +211,21 @@ def run_case(seed: int, folder: str, refine_ocv: str = "always") -> dict:
     rc_diag, err_diag, s_diag = _cli(["diagnose", "--fit", str(hppc), "--eval", str(field), "--model", model,
                                       "--out", str(folder / f"case{seed}_diag"), "--no-figures",
                                       "--refine-ocv", refine_ocv], folder)
-    added, branch, left, soc_after = None, None, None, None
+    added, branch, left, soc_before, soc_after, capacity_fit = None, None, None, None, None, None
+    if rc_fit == 0:
+        capacity_fit = json.loads((folder / f"case{seed}.json").read_text())["capacity_ah"]
     if rc_diag == 0:
         diagnosis = json.loads((folder / f"case{seed}_diag" / "diagnosis.json").read_text())
         added, left = diagnosis["effects_added"], diagnosis.get("left")
+        soc_before = diagnosis["before"].get("soc", {}).get("ekf", {}).get("soc_rmse")
         soc_after = diagnosis["after"].get("soc", {}).get("ekf", {}).get("soc_rmse")
         if model == "thevenin":
             branch = branch_verdict(diagnosis)
     out.update({"model": model, "fit_exit": rc_fit, "diagnose_exit": rc_diag, "fit_s": s_fit, "diagnose_s": s_diag,
                 "traceback": "Traceback" in err_fit + err_diag, "leaks": _leaks(err_fit) + _leaks(err_diag),
-                "added": added, "branch": branch, "left": left, "soc_rmse_after_ekf": soc_after})
+                "added": added, "branch": branch, "left": left, "soc_rmse_before_ekf": soc_before,
+                "soc_rmse_after_ekf": soc_after, "capacity_fit_ah": capacity_fit,
+                "knee_warned": NO_KNEE in err_fit + err_diag})
     return out
 
 
@@ -266,10 +294,30 @@ def summary(cases: list) -> dict:
             "branch_verdicts": {v: n for v in VERDICTS
                                 if (n := sum((c.get("branch") or {}).get("verdict") == v for c in thev))},
             "spurious": spurious,
+            "by_metadata": {m: _axis_summary([c for c in cases if c.get("metadata") == m]) for m in METADATA},
             "by_protocol": {p: {"cases": sum(c.get("protocol") == p for c in cases),
                                 "fit_ok": sum(c.get("protocol") == p and c["fit_exit"] == 0 for c in cases),
                                 "diagnose_ok": sum(c.get("protocol") == p and c["diagnose_exit"] == 0 for c in cases)}
                             for p in PROTOCOLS}}
+
+
+def _median(values):
+    values = [v for v in values if v is not None]
+    return float(np.median(values)) if values else None
+
+
+def _axis_summary(cases: list) -> dict:
+    """Per kind of HPPC metadata: how far the fitted capacity lies from the cell's (median and worst |ratio − 1|), the
+    diagnosis' held-out EKF SOC RMSE before and after its search (median and worst), and how many fits or diagnoses
+    warned that the HPPC shows no end-of-discharge knee."""
+    cap = [abs(c["capacity_fit_ah"] / c["capacity_ah"] - 1.0) for c in cases if c.get("capacity_fit_ah")]
+    before = [c.get("soc_rmse_before_ekf") for c in cases]
+    after = [c.get("soc_rmse_after_ekf") for c in cases]
+    return {"cases": len(cases), "capacity_error_median": _median(cap), "capacity_error_max": max(cap, default=None),
+            "soc_before_median": _median(before), "soc_before_max": max((v for v in before if v is not None),
+                                                                        default=None),
+            "soc_after_median": _median(after), "soc_after_max": max((v for v in after if v is not None), default=None),
+            "knee_warned": sum(bool(c.get("knee_warned")) for c in cases)}
 
 
 def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
@@ -305,6 +353,17 @@ def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
          "| fit / diagnose exit 0 per HPPC protocol | " + "; ".join(
              f"{p}: {v['fit_ok']}/{v['cases']} / {v['diagnose_ok']}/{v['cases']}" for p, v in s["by_protocol"].items())
          + " |", "",
+         "The SOC axis, by what the HPPC file says of it (the HPPC stops 5–20 % above empty; `socbench fit`'s "
+         "capacity against the cell's; the diagnosis' held-out EKF SOC RMSE on the field record, before and after its "
+         "search; warnings that the HPPC shows no end-of-discharge knee, from either command):", "",
+         "| HPPC file | cases | fit capacity error, median / worst | SOC RMSE before, median / worst | after, "
+         "median / worst | no-knee warnings |", "|---|---|---|---|---|---|"]
+    for m, v in s["by_metadata"].items():
+        w.append(f"| {m} | {v['cases']} | {_pct_cell(v['capacity_error_median'])} / "
+                 f"{_pct_cell(v['capacity_error_max'])} % | {_pct_cell(v['soc_before_median'])} / "
+                 f"{_pct_cell(v['soc_before_max'])} % | {_pct_cell(v['soc_after_median'])} / "
+                 f"{_pct_cell(v['soc_after_max'])} % | {v['knee_warned']} |")
+    w += ["",
          "Where the missing branch was not named, the `branch` column says where it stood in the last round the "
          "search fitted it, read from `diagnosis.json` with the search's own rules (`socbench.diagnose.search`): "
          "*held at the noise floor* — it cut the held-out RMSE by at least `min_gain`, but the model was already "
@@ -319,17 +378,20 @@ def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
          "that follows the SOC and the current, and, with an OCV read from rest points, how many and the widest SOC "
          "gap between them.", "",
          "Per case:", "",
-         "| case | base | OCV | HPPC protocol | capacity Ah | HPPC / field dt s | offset % of 1C | current step % of "
-         "1C | current noise % of 1C | voltage noise mV | fit s | diagnose s | named | held-out SOC RMSE after, EKF % "
-         "| branch (Thevenin) | left: structure mV (follows SOC / current %; OCV points, widest gap %) |",
-         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+         "| case | base | OCV | HPPC protocol | HPPC file | HPPC SOC range % | capacity Ah (fit) | HPPC / field dt s | "
+         "offset % of 1C | current step % of 1C | current noise % of 1C | voltage noise mV | fit s | diagnose s | "
+         "named | held-out SOC RMSE before → after, EKF % | branch (Thevenin) | left: structure mV (follows SOC / "
+         "current %; OCV points, widest gap %) |",
+         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in cases:
-        w.append(f"| {c['seed']} | {c['model']} | {c['ocv']} | {c['protocol']} | {c['capacity_ah']:.1f} | "
-                 f"{c['dt_hppc_s']:g} / "
+        lo, hi = c["hppc_soc_range"]
+        fitted = f" ({c['capacity_fit_ah']:.1f})" if c.get("capacity_fit_ah") else ""
+        w.append(f"| {c['seed']} | {c['model']} | {c['ocv']} | {c['protocol']} | {c['metadata']} | "
+                 f"{100 * lo:.0f}–{100 * hi:.0f} | {c['capacity_ah']:.1f}{fitted} | {c['dt_hppc_s']:g} / "
                  f"{c['dt_field_s']:g} | {100 * c['offset_c']:+.2f} | {100 * c['i_step_c']:.1f} | "
                  f"{100 * c['i_sd_c']:.2f} | {c['v_sd_mv']:.1f} | {c['fit_s']:.1f} | {c['diagnose_s']:.1f} | "
                  f"{', '.join(c['added']) if c['added'] is not None else 'failed'} | "
-                 f"{_pct_cell(c.get('soc_rmse_after_ekf'))} | "
+                 f"{_pct_cell(c.get('soc_rmse_before_ekf'))} → {_pct_cell(c.get('soc_rmse_after_ekf'))} | "
                  f"{_branch_cell(c.get('branch'))} | "
                  f"{_left_cell(c.get('left'))} |")
     path.write_text("\n".join(w) + "\n")

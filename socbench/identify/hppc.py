@@ -134,6 +134,8 @@ EDGE_FRACTION = 0.5
 #: this much between the test's most charged and most discharged points: over a shorter span a reference read to a
 #: point (a BMS in whole percent) gives the capacity no better than the count from full does
 REFERENCE_MIN_SPAN = 0.2
+#: the rests whose slope of the reference SOC measures the reference's drift are at least this long [s]
+REFERENCE_REST_S = 60.0
 #: a test that reaches empty ends in the OCV's end-of-discharge knee: its lowest OCV step is at least this many times
 #: steeper than the median of its others, and at least this steep per cell [V per unit SOC] (:func:`end_knee`)
 KNEE_RATIO = 2.0
@@ -590,7 +592,7 @@ def pulse_bound_ladder(durations) -> list[float]:
 
 
 def reference_placement(profile: Profile, ah: np.ndarray, k_full: int, k_empty: int,
-                        capacity_ah: float | None = None) -> tuple | None:
+                        capacity_ah: float | None = None, rests=()) -> tuple | None:
     """``(capacity [Ah], SOC of the most charged point, note)`` where the record's own reference SOC says the test
     does not run from full to empty; None where it does (within its counting error), where the record has no reference
     of its own, or where the reference cannot place it.
@@ -599,15 +601,19 @@ def reference_placement(profile: Profile, ah: np.ndarray, k_full: int, k_empty: 
     most discharged (``k_empty``) as the capacity: an HPPC that stops at 20 % (many protocols end at 10–30 %, or at a
     voltage limit above empty) or starts part charged gets a capacity short by that much, and an SOC axis that runs a
     fifth too fast — every SOC a filter reports on it is off by up to that fifth. The record's reference SOC says where
-    the test ran. Over the test's samples (between those two points) with the reference inside (0, 1), least squares
+    the test ran. Its drift ``d`` first: a reference a cycler counts from its own current sensor carries that
+    sensor's offset, which ``Ah`` (the offset measured on the rests removed) does not — read as a place on the axis,
+    it would move the test's end by the offset times the test's hours. On a rest no charge moves, so the reference's
+    slope there *is* its drift: ``d`` is the median slope over the test's ``rests`` (:class:`Rest`, at least
+    :data:`REFERENCE_REST_S` and three samples each), weighted by their durations (0 without such rests). Then, over
+    the test's samples (between the two points) with the reference inside (0, 1), least squares
 
-        z_ref ≈ c₀ − Ah/Q_ref + d·(t − t₀)
+        z_ref − d·(t − t₀) ≈ c₀ − Ah/Q_ref
 
-    gives the capacity ``Q_ref`` the reference counts with and its drift ``d``: a reference a cycler counts from its
-    own current sensor carries that sensor's offset, which ``Ah`` (the offset measured on the rests removed) does not —
-    read as a place on the axis, that drift would move the test's end by the offset times the test's hours. The test
-    then spans ``ΔAh/Q_ref`` (``ΔAh`` the charge counted between the two points), and its most charged point sits at
-    the reference's drift-free value there, ``c₀ − Ah_full/Q_ref``. A span within :data:`FULL_TOL` of 1 or more (a
+    gives the capacity ``Q_ref`` the reference counts with (a joint fit of ``d`` beside it is ill-conditioned: in an
+    HPPC the charge moves almost in step with time). The test then spans ``ΔAh/Q_ref`` (``ΔAh`` the charge counted
+    between the two points), and its most charged point sits at the reference's drift-free value there,
+    ``c₀ − Ah_full/Q_ref``. A span within :data:`FULL_TOL` of 1 or more (a
     reference counted with a smaller capacity, or one that runs past full or empty) is a test from full to empty: the
     count decides, as without a reference. The span is placed inside [0, 1], nearest the reference; a top within
     :data:`FULL_TOL` of full is full. With a capacity given (``capacity_ah``: the user's, the record's declared one,
@@ -624,13 +630,20 @@ def reference_placement(profile: Profile, ah: np.ndarray, k_full: int, k_empty: 
         return None
     lo, hi = sorted((k_full, k_empty))
     test = slice(lo, hi + 1)
-    z, a, t = soc_ref[test], ah[test], profile.time_s[test] - profile.time_s[lo]
+    time = profile.time_s - profile.time_s[lo]
+    z, a, t = soc_ref[test], ah[test], time[test]
     inside = (z > 0.0) & (z < 1.0)
     moved = float(ah[k_empty] - ah[k_full])
     if np.count_nonzero(inside) < 10 or not moved > 0:
         return None
-    design = np.column_stack([np.ones(a.size), a, t])[inside]
-    (c0, slope, _), *_ = np.linalg.lstsq(design, z[inside], rcond=None)
+    slopes, weights = [], []
+    for r in rests:
+        if r.start >= lo and r.stop <= hi + 1 and r.duration_s >= REFERENCE_REST_S and r.stop - r.start >= 3:
+            slopes.append(float(np.polyfit(time[r.start:r.stop], soc_ref[r.start:r.stop], 1)[0]))
+            weights.append(r.duration_s)
+    drift = _weighted_median(slopes, weights) if slopes else 0.0
+    design = np.column_stack([np.ones(a.size), a])[inside]
+    (c0, slope), *_ = np.linalg.lstsq(design, (z - drift * t)[inside], rcond=None)
     if not slope < 0:
         return None  # a reference that does not fall as charge leaves: not a count of this record's charge
     q_ref = -1.0 / float(slope)
@@ -698,6 +711,13 @@ def end_knee(ocv_z, ocv_v, n_series: int = 1) -> tuple | None:
     slopes = dv / dz
     rest = float(np.median(slopes[1:]))
     return (float(slopes[0] / rest) if rest > 0 else float("inf")), float(slopes[0]) / max(int(n_series), 1)
+
+
+def _weighted_median(values, weights) -> float:
+    """The value below and above which half the weight lies."""
+    order = np.argsort(values)
+    v, w = np.asarray(values, dtype=float)[order], np.asarray(weights, dtype=float)[order]
+    return float(v[np.searchsorted(np.cumsum(w), 0.5 * np.sum(w))])
 
 
 def _soc_axis(ah: np.ndarray, ah_full: float, q: float, soc_start: float | None) -> np.ndarray:
@@ -795,7 +815,8 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
             rest_by_start = {r.start: r for r in rests}
             rest_by_stop = {r.stop: r for r in rests}
     placed = None if soc_start is not None else reference_placement(
-        profile, ah, k_full, int(np.argmax(ah)) if ascending else k_full + int(np.argmax(ah[k_full:])), capacity_ah)
+        profile, ah, k_full, int(np.argmax(ah)) if ascending else k_full + int(np.argmax(ah[k_full:])), capacity_ah,
+        rests)
     if placed is not None:
         q, z_top, note = placed
         soc = _soc_axis(ah, ah_full, q, None) - (1.0 - z_top)
