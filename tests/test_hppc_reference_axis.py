@@ -162,17 +162,23 @@ def test_a_test_that_stops_above_empty_without_a_reference_is_flagged():
 
 def test_cli_fit_warns_of_a_test_without_the_knee(tmp_path, capsys):
     """``socbench fit`` on an HPPC stopped at 30 % without a reference or a capacity: one warning line saying the test
-    may stop above empty; with the capacity given, none."""
+    may stop above empty, and ``socbench estimate`` with that parameter set says it again (the SOC it reports rides
+    on that axis); with the capacity given, neither."""
     rng, cell, lay, ins = H.random_setup(42_003)
     rec = H.hppc_record(cell, dataclasses.replace(lay, gaps=False, stop_soc=0.3), ins, seed=3, with_soc_ref=False)
     path = tmp_path / "stopped.csv"
     rec.profile.to_frame().to_csv(path, index=False)
-    args = ["fit", "--data", str(path), "--model", "thevenin", "--mode", "constant", "--out", str(tmp_path / "p.json")]
-    assert main(args) == 0
-    err = [ln for ln in capsys.readouterr().err.splitlines() if NO_KNEE in ln]
-    assert len(err) == 1 and "may stop above empty" in err[0], err
-    assert main(args + ["--capacity", f"{cell.capacity_ah:.6g}"]) == 0
-    assert not [ln for ln in capsys.readouterr().err.splitlines() if NO_KNEE in ln]
+    drive = H.write_canonical(H.drive_record(cell, dataclasses.replace(ins, dt=1.0), seed=3, duration_s=3600.0,
+                                             soc0=0.9).profile, tmp_path / "drive.csv")
+    params = tmp_path / "p.json"
+    args = ["fit", "--data", str(path), "--model", "thevenin", "--mode", "constant", "--out", str(params)]
+    estimate = ["estimate", "--data", str(drive), "--params", str(params), "--estimator", "ekf",
+                "--out", str(tmp_path / "E")]
+    for extra, warned in (([], 1), (["--capacity", f"{cell.capacity_ah:.6g}"], 0)):
+        for argv in (args + extra, estimate):
+            assert main(argv) == 0
+            err = [ln for ln in capsys.readouterr().err.splitlines() if NO_KNEE in ln]
+            assert len(err) == warned and all("may stop above empty" in ln for ln in err), (argv[0], err)
 
 
 def _part_charged_stopped(k: int):

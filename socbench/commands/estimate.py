@@ -39,6 +39,7 @@ from ..errors import ConfigError, DataError, SocbenchWarning
 from ..estimators import SensorNoise, estimator_class, estimator_names, make_estimator
 from ..estimators import model_error as recipe
 from ..estimators.scoring import LOST_MIN_S, LOST_SIGMA, error_state_excess, score
+from ..identify.hppc import NO_KNEE
 from ..io import atomic_write_frame, atomic_write_text, output_dir
 from ..models import make_model
 from ..socaxis import run_on_data_axis, soc_axis
@@ -92,6 +93,8 @@ def run(args) -> int:
     temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set",
                                           fitted_at_c(args.params))
     capacity_ratio = check_capacity(profile, params, f"the '{args.params}' parameter set")
+    for note in (n for n in params.notes if n.startswith(NO_KNEE)):  # the SOC it reports rides on that axis
+        warnings.warn(f"{args.params}: fitted on an HPPC with {note}", SocbenchWarning, stacklevel=2)
     model = make_model(name, params)
     noise_mode = args.noise if args.estimator != "coulomb" else "sensor"
     stats = model_error_of(args.params) if noise_mode == "model" else None

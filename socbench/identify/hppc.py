@@ -613,12 +613,12 @@ def reference_placement(profile: Profile, ah: np.ndarray, k_full: int, k_empty: 
     gives the capacity ``Q_ref`` the reference counts with (a joint fit of ``d`` beside it is ill-conditioned: in an
     HPPC the charge moves almost in step with time). The test then spans ``ΔAh/Q_ref`` (``ΔAh`` the charge counted
     between the two points), and its most charged point sits at the reference's drift-free value there,
-    ``c₀ − Ah_full/Q_ref``. A span within :data:`FULL_TOL` of 1 or more (a
-    reference counted with a smaller capacity, or one that runs past full or empty) is a test from full to empty: the
-    count decides, as without a reference. The span is placed inside [0, 1], nearest the reference; a top within
-    :data:`FULL_TOL` of full is full. With a capacity given (``capacity_ah``: the user's, the record's declared one,
-    or a refit's on the axis placed before) the reference places the test's top alone, the span being ``ΔAh`` over
-    that capacity: a refit that passes the capacity of a placed axis gets the same axis.
+    ``c₀ − Ah_full/Q_ref``. A span within :data:`FULL_TOL` of 1 or more (a reference counted with a smaller capacity,
+    or one that runs past full or empty) is a test from full to empty: the count decides, as without a reference. The
+    span is placed inside [0, 1], nearest the reference; a top within :data:`FULL_TOL` of full is full. With a
+    capacity given (``capacity_ah``: the user's, the record's declared one, or a refit's on the axis placed before) the
+    reference places the test's top alone, the span being ``ΔAh`` over that capacity: a refit that passes the capacity
+    of a placed axis gets the same axis.
 
     Only a reference that is the record's own statement of SOC: a loader that counts the reference from full with a
     capacity of its own (``meta.extra["soc_ref_capacity_ah"]``, Panasonic, CALCE) declares a different axis, which
