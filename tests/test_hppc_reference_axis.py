@@ -28,6 +28,13 @@ pytestmark = pytest.mark.filterwarnings("ignore:.*reference SOC reaches")
 DRAWS = 24
 
 
+def part_charged_start(rec, rng) -> int:
+    """The first sample of a record put on test part charged: 1–4 min before the end of the rest before the record's
+    second to fourth pulse set."""
+    row = int(rec.ocv_rows[int(rng.integers(1, min(4, rec.ocv_rows.size - 2)))])
+    return int(np.searchsorted(rec.profile.time_s, rec.profile.time_s[row] - rng.uniform(60.0, 240.0)))
+
+
 def stopped_above_empty(k: int):
     """``(record, profile with the counter's reference, first sample kept)``: an HPPC down to 10–40 %, started part
     charged (inside the rest before its second to fourth set) in half the draws."""
@@ -36,8 +43,7 @@ def stopped_above_empty(k: int):
     rec = H.hppc_record(cell, lay, ins, seed=40_000 + k, with_soc_ref=False)
     first = 0
     if rng.random() < 0.5:
-        row = int(rec.ocv_rows[int(rng.integers(1, min(4, rec.ocv_rows.size - 2)))])
-        first = int(np.searchsorted(rec.profile.time_s, rec.profile.time_s[row] - rng.uniform(60.0, 240.0)))
+        first = part_charged_start(rec, rng)
     p = rec.profile
     t = p.time_s[first:]
     moved = np.concatenate([[0.0], np.cumsum(rec.current_true[first:-1] * np.diff(t))]) / 3600.0
@@ -187,9 +193,8 @@ def _part_charged_stopped(k: int):
     rng, cell, lay, ins = H.random_setup(43_000 + k)
     lay = dataclasses.replace(lay, gaps=False, stop_soc=float(rng.uniform(0.10, 0.40)))
     rec = H.hppc_record(cell, lay, ins, seed=k, with_soc_ref=False)
-    row = int(rec.ocv_rows[int(rng.integers(1, min(4, rec.ocv_rows.size - 2)))])
     p = rec.profile
-    first = int(np.searchsorted(p.time_s, p.time_s[row] - rng.uniform(60.0, 240.0)))
+    first = part_charged_start(rec, rng)
     fit = Profile(p.time_s[first:] - p.time_s[first], p.current_a[first:], voltage_v=p.voltage_v[first:],
                   meta=ProfileMeta(name="part-hppc", source="part-hppc"))
     z0 = float(rec.soc_true[first])
