@@ -91,6 +91,7 @@ from ..errors import DataError
 from ..metrics import lag1_autocorrelation
 from ..ocv import OCVCurve, monotone_points
 from ..profile import Profile
+from ..socaxis import reference_capacity
 
 #: relative disagreement between the integrated current and the reference SOC above which the reference is used
 #: (when jumps across the record's gaps explain it)
@@ -623,8 +624,6 @@ def reference_placement(profile: Profile, ah: np.ndarray, k_full: int, k_empty: 
     Only a reference that is the record's own statement of SOC: a loader that counts the reference from full with a
     capacity of its own (``meta.extra["soc_ref_capacity_ah"]``, Panasonic, CALCE) declares a different axis, which
     :mod:`socbench.socaxis` converts; and a reference spanning less than :data:`REFERENCE_MIN_SPAN` is not used."""
-    from ..socaxis import reference_capacity
-
     soc_ref = profile.get("soc_ref")
     if soc_ref is None or reference_capacity(profile) is not None:
         return None
