@@ -301,23 +301,23 @@ def summary(cases: list) -> dict:
                             for p in PROTOCOLS}}
 
 
-def _median(values):
+def _median_worst(values) -> tuple:
+    """``(median, largest)`` of the values that are not None (None, None without any)."""
     values = [v for v in values if v is not None]
-    return float(np.median(values)) if values else None
+    return (float(np.median(values)), float(max(values))) if values else (None, None)
 
 
 def _axis_summary(cases: list) -> dict:
     """Per kind of HPPC metadata: how far the fitted capacity lies from the cell's (median and worst |ratio − 1|), the
     diagnosis' held-out EKF SOC RMSE before and after its search (median and worst), and how many fits or diagnoses
     warned that the HPPC shows no end-of-discharge knee."""
-    cap = [abs(c["capacity_fit_ah"] / c["capacity_ah"] - 1.0) for c in cases if c.get("capacity_fit_ah")]
-    before = [c.get("soc_rmse_before_ekf") for c in cases]
-    after = [c.get("soc_rmse_after_ekf") for c in cases]
-    return {"cases": len(cases), "capacity_error_median": _median(cap), "capacity_error_max": max(cap, default=None),
-            "soc_before_median": _median(before), "soc_before_max": max((v for v in before if v is not None),
-                                                                        default=None),
-            "soc_after_median": _median(after), "soc_after_max": max((v for v in after if v is not None), default=None),
-            "knee_warned": sum(bool(c.get("knee_warned")) for c in cases)}
+    out = {"cases": len(cases), "knee_warned": sum(bool(c.get("knee_warned")) for c in cases)}
+    for key, values in (("capacity_error", [abs(c["capacity_fit_ah"] / c["capacity_ah"] - 1.0) for c in cases
+                                            if c.get("capacity_fit_ah")]),
+                        ("soc_before", [c.get("soc_rmse_before_ekf") for c in cases]),
+                        ("soc_after", [c.get("soc_rmse_after_ekf") for c in cases])):
+        out[f"{key}_median"], out[f"{key}_max"] = _median_worst(values)
+    return out
 
 
 def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):

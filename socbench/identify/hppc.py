@@ -776,8 +776,7 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
     for a, b in _intervals(~active):
         dur = float(t_after[b - 1] - t[a]) if b < n else float(t[b - 1] - t[a])
         rests.append(Rest(a, b, dur, float(soc[b - 1]), _rest_end_voltage(t, v, a, b, dur)))
-    rest_by_start = {r.start: r for r in rests}
-    rest_by_stop = {r.stop: r for r in rests}
+    rest_by_stop = {r.stop: r for r in rests}  # (their lengths: the SOC axis is final further down)
 
     # pulse candidates: held phases that start from a rest and end inside the record
     sign = np.sign(di)
@@ -810,19 +809,17 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
         if not capacity_ah:  # the charge from the most discharged point up to full, not what follows full
             q = float(np.max(ah) - ah_full)
             soc = _soc_axis(ah, ah_full, q, soc_start)
-            rests = [replace(r, soc_end=float(soc[r.stop - 1])) for r in rests]
-            rest_by_start = {r.start: r for r in rests}
-            rest_by_stop = {r.stop: r for r in rests}
     placed = None if soc_start is not None else reference_placement(
         profile, ah, k_full, int(np.argmax(ah)) if ascending else k_full + int(np.argmax(ah[k_full:])), capacity_ah,
         rests)
     if placed is not None:
         q, z_top, note = placed
         soc = _soc_axis(ah, ah_full, q, None) - (1.0 - z_top)
-        rests = [replace(r, soc_end=float(soc[r.stop - 1])) for r in rests]
-        rest_by_start = {r.start: r for r in rests}
-        rest_by_stop = {r.stop: r for r in rests}
         notes.append(note)
+    # the rests' SOC on the final axis (recounted in the charge direction, or placed by the reference)
+    rests = [replace(r, soc_end=float(soc[r.stop - 1])) for r in rests]
+    rest_by_start = {r.start: r for r in rests}
+    rest_by_stop = {r.stop: r for r in rests}
     shift = float(soc[0]) - float(_soc_axis(ah[:1], ah_full, q, None)[0])
     if abs(shift) > 1e-9 and placed is None:
         notes.append(f"the record starts at SOC {soc_start:g} (given): its most charged point at {1.0 + shift:.4g}, "
