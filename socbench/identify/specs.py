@@ -31,7 +31,9 @@ Forms (how a parameter depends on SOC in the fit):
                 SOC axis (a cold HPPC counted with the warm capacity: ``[1 − Q_T/Q_ref, 1]``) puts the nodes on that
                 *domain*; such a polynomial would blow up outside it, so it is stored clamped: a
                 :class:`~socbench.models.params.Lookup` sampled every 0.01 on the domain, which holds its end values;
-* ``lookup``    values at SOC knots, linear in between (:class:`~socbench.models.params.Lookup`).
+* ``lookup``    values at SOC knots, linear in between (:class:`~socbench.models.params.Lookup`), flat outside them.
+                On a partial domain the knots outside it move onto its edge
+                (:func:`socbench.identify.fit.knots_within`): a knot no sample reaches is not identified.
 """
 
 from __future__ import annotations
