@@ -54,7 +54,8 @@ PAPER_POLY_NUMBERS = range(1, 7)
 REL_STDERR_WARN = 1.0
 #: |correlation| above this flags a pair
 CORR_WARN = 0.99
-#: a record whose SOC reaches below this on the fit's axis counts as covering [0, 1] (polynomial nodes on [0, 1])
+#: a record whose SOC reaches below this (and above 1 − this) on the fit's axis counts as covering [0, 1] (polynomial
+#: nodes and lookup knots on [0, 1])
 DOMAIN_FULL_BELOW = 0.02
 #: samples whose SOC lies further than this beyond the OCV curve's rest points are left out of the fit: there the OCV
 #: is an extension, not a measurement, and the dynamic parameters would be bent to absorb its error. Within it: the last
@@ -339,9 +340,11 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
                          "current column added to SOC from the reference")
         level_knots = np.unique(np.clip(np.round(analysis.level_soc, 3), 0.0, 1.0))
         weights = _fitted_samples(analysis, ocv, profile, notes)
-        # the SOC range the record covers on this axis: a cold HPPC counted with a warmer capacity ends above 0
-        z_lo = float(np.clip(np.min(analysis.soc), 0.0, 1.0))
-        domain = (0.0 if z_lo < DOMAIN_FULL_BELOW else round(z_lo, 3), 1.0)
+        # the SOC range the record covers on this axis: a cold HPPC counted with a warmer capacity ends above 0, a
+        # test put on part charged starts below 1
+        z_lo, z_hi = (float(np.clip(f(analysis.soc), 0.0, 1.0)) for f in (np.min, np.max))
+        domain = (0.0 if z_lo < DOMAIN_FULL_BELOW else round(z_lo, 3),
+                  1.0 if z_hi > 1.0 - DOMAIN_FULL_BELOW else round(z_hi, 3))
     else:
         if ocv is None:
             if analysis_error is not None and analysis_error.column:  # a bad column, not a missing structure: say so
@@ -374,10 +377,11 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
         specs = [_started(s, _reference_value(start, s.name)) for s in specs]
     forms = _forms_for(name, mode, len(specs), knots, domain)
     if domain != (0.0, 1.0) and any(isinstance(f, PolyForm) for f in forms):
-        notes.append(f"SOC polynomials fitted on the record's SOC range [{domain[0]:.3f}, 1] and stored clamped to it")
-    if mode == "lookup" and np.min(knots) < domain[0]:
-        notes.append(f"SOC lookup knots below the record's SOC range moved to its lowest point z = {domain[0]:.3f} "
-                     "(the table holds that value below)")
+        notes.append("SOC polynomials fitted on the record's SOC range [{:.3f}, {:.3f}] and stored clamped to it"
+                     .format(*domain))
+    if mode == "lookup" and (np.min(knots) < domain[0] or np.max(knots) > domain[1]):
+        notes.append("SOC lookup knots outside the record's SOC range [{:.3f}, {:.3f}] moved onto its edges (the "
+                     "table holds their values beyond)".format(*domain))
     labels, slices, th0, lo, hi = [], [], [], [], []
     k = 0
     for s, f in zip(specs, forms):
