@@ -182,6 +182,7 @@ def fit_parameters(
     ftol: float = 1e-6,
     xtol: float = 1e-6,
     gtol: float = 1e-8,
+    penalty: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> LsqResult:
     """Fit θ so that ``build(θ).simulate(profile)`` matches the measured voltage (see the module docstring).
 
@@ -213,6 +214,10 @@ def fit_parameters(
         robust) and its residual scale [V].
     diff_step : float
         Forward-difference step, relative to ``max(1, |θ_j|)``.
+    penalty : callable, optional
+        ``θ (B, P) -> (B, K)`` residuals appended to the voltage residual (a constraint held softly, e.g.
+        :meth:`~socbench.identify.fit.FitProblem.positivity`); the RMSE, the residual, ``n_samples`` and the
+        covariance returned are the voltage's alone.
     """
     t_start = _time.perf_counter()
     if profile.batched:
@@ -263,6 +268,9 @@ def fit_parameters(
         r = np.where(np.isfinite(r), r, NONFINITE_RESIDUAL)
         r = r * w if w is not None else r
         return r if kept is None else r[kept]
+
+    def penalised(r, thetas):  # the voltage residual rows ``r (B, N)`` of ``thetas (B, P)`` with the penalty's
+        return r if penalty is None else np.hstack([r, np.atleast_2d(penalty(thetas))])
 
     def simulate_one(theta):
         try:
@@ -317,11 +325,11 @@ def fit_parameters(
         counts["nsim"] += 1
         if use_batch[0] or need_jac:
             h = steps_for(theta)
-            y = simulate_many(np.vstack([theta, theta + np.diag(h)]))
-            r = np.stack([residual_of(row) for row in y])
+            thetas = np.vstack([theta, theta + np.diag(h)])
+            r = penalised(np.stack([residual_of(row) for row in simulate_many(thetas)]), thetas)
             entry = (r[0], ((r[1:] - r[0]) / h[:, None]).T)
         else:
-            entry = (residual_of(simulate_one(theta)), None)
+            entry = (penalised(residual_of(simulate_one(theta))[None], theta[None])[0], None)
         cache.clear()
         cache[key] = entry
         return entry
@@ -333,19 +341,20 @@ def fit_parameters(
         counts["njev"] += 1
         return evaluate(theta, True)[1]
 
-    r0 = fun(theta0)
+    n_voltage = residual_of(np.zeros(t.size)).size  # the residual's voltage entries (the penalty's follow)
+    r0 = fun(theta0)[:n_voltage]
     rmse_start = float(np.sqrt(np.mean(r0 * r0))) if r0.size else float("nan")
     with one_blas_thread():
         if P == 0:
-            r = fun(theta0)
+            r = fun(theta0)[:n_voltage]
             J = np.zeros((r.size, 0))
             res_x, success, message, nfev = theta0, True, "no parameters", 1
         else:
             sol = least_squares(fun, theta0, jac=jac, bounds=(lower, upper), method="trf", x_scale="jac", loss=loss,
                                 f_scale=f_scale, ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev)
             res_x, success, message, nfev = sol.x, bool(sol.success), str(sol.message), int(sol.nfev)
-            r = fun(res_x)
-            J = jac(res_x)
+            r = fun(res_x)[:n_voltage]
+            J = jac(res_x)[:n_voltage]
         cov, stderr, corr = covariance(J, r, P)
     domain = _domain(build, res_x, t, cur, temp, start_state, jumps, restarts)
     domain["segments"] = 1 + len(restarts or ())

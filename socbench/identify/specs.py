@@ -221,6 +221,16 @@ class PolyForm(Form):
         vander = np.vander(self.nodes, self.size)  # columns z^d … z^0
         self._to_coeffs = np.linalg.inv(vander)  # coeffs = inv(V) @ values
 
+    #: points of the grid on which a positive parameter's polynomial is held above its floor (between the nodes)
+    GRID_POINTS = 201
+
+    @property
+    def grid_matrix(self) -> np.ndarray:
+        """``(size, G)``: node values ``(…, size)`` @ this = the polynomial on :data:`GRID_POINTS` SOC points spread
+        evenly over the domain (ends included)."""
+        grid = np.linspace(*self.domain, self.GRID_POINTS)
+        return (np.vander(grid, self.size) @ self._to_coeffs).T
+
     @property
     def partial(self) -> bool:
         """Whether the nodes cover less than [0, 1] (the stored function is then clamped to the domain)."""
