@@ -222,7 +222,7 @@ class PolyForm(Form):
         self._to_coeffs = np.linalg.inv(vander)  # coeffs = inv(V) @ values
 
     #: points of the grid on which a positive parameter's polynomial is held above its floor (between the nodes)
-    GRID_POINTS = 201
+    GRID_POINTS = 401
 
     @property
     def grid_matrix(self) -> np.ndarray:
