@@ -3,7 +3,8 @@
 ``fit_parameters(build, profile, theta0, lower, upper)`` minimises ``Σ_k (y_model,k(θ) − y_meas,k)²`` over the
 samples of ``profile`` with :func:`scipy.optimize.least_squares` (trust-region reflective, bounds on θ). ``build(θ)``
 returns a :class:`~socbench.models.base.Model`; positivity is the caller's choice of parametrisation (bounds, or
-``θ = log p``).
+``θ = log p``), and a constraint the parametrisation cannot hold is a ``penalty``: residuals appended to the voltage's
+(the RMSE and covariance returned are the voltage's alone).
 
 Speed. The Jacobian is a forward difference in every parameter, and all ``P + 1`` parameter variants run as **one
 batched simulation**: ``build`` is called once with a ``(P + 1, P)`` array and must return a model whose parameters
@@ -269,7 +270,7 @@ def fit_parameters(
         r = r * w if w is not None else r
         return r if kept is None else r[kept]
 
-    def penalised(r, thetas):  # the voltage residual rows ``r (B, N)`` of ``thetas (B, P)`` with the penalty's
+    def penalised(r, thetas):  # voltage residual rows r (B, N) of thetas (B, P), the penalty's rows appended
         return r if penalty is None else np.hstack([r, np.atleast_2d(penalty(thetas))])
 
     def simulate_one(theta):

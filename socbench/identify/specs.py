@@ -211,6 +211,8 @@ class PolyForm(Form):
     kind = "poly"
     #: SOC spacing of the lookup that stores a polynomial fitted on a partial domain (clamped outside it)
     CLAMP_STEP = 0.01
+    #: points of the grid on which a positive parameter's polynomial is held at or above zero between its nodes
+    GRID_POINTS = 401
 
     def __init__(self, degree: int = POLY_DEGREE, domain: tuple = (0.0, 1.0)):
         self.degree = degree
@@ -220,9 +222,6 @@ class PolyForm(Form):
         self.nodes = lo + (hi - lo) * chebyshev_nodes(self.size)
         vander = np.vander(self.nodes, self.size)  # columns z^d … z^0
         self._to_coeffs = np.linalg.inv(vander)  # coeffs = inv(V) @ values
-
-    #: points of the grid on which a positive parameter's polynomial is held above its floor (between the nodes)
-    GRID_POINTS = 401
 
     @property
     def grid_matrix(self) -> np.ndarray:
