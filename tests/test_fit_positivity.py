@@ -1,4 +1,4 @@
-"""Positive parameters fitted as SOC polynomials stay non-negative between their nodes (FitProblem.positivity).
+"""Positive parameters fitted as SOC polynomials stay positive between their nodes (FitProblem.positivity).
 
 The paper's 6th-degree polynomials are fitted through their values at 7 nodes, log-parametrised: positive at the
 nodes, not between them. On the tests' generator (tests/hppc_records.py: random cells, layouts and instruments),
@@ -35,7 +35,7 @@ def _lowest_share(params) -> float:
     return out
 
 
-def test_positivity_residual_is_zero_for_a_non_negative_curve_and_grows_below_zero():
+def test_positivity_residual_is_zero_above_the_floor_and_grows_below_it():
     prob = setup_fit("thevenin", H.issue_record().profile, "paper")
     spec, form, sl = next(p for p in prob.positive_polynomials if p[0].name == "R1")
     assert isinstance(form, PolyForm)
@@ -70,8 +70,8 @@ def test_paper_fits_stay_positive_and_predict_a_drive_no_worse(monkeypatch):
                 model = make_model(name, res.params)
                 y = simulate_voltage(model, drive.time_s, drive.current_a, drive.temperature_c, model.x0(0.95, (1,)))
                 drive_rmse[key].append(float(np.sqrt(np.mean((y[0] - drive.voltage_v) ** 2))))
-    # nothing below zero beyond what the soft term lets through (up to 0.4 % of the median in 24 fits)
-    assert min(lowest) > -0.01, lowest
+    # nothing below zero (the floor, 1 % of the median, is held softly: 0.9 % at the lowest on the Panasonic DP fit)
+    assert min(lowest) > 0.0, lowest
     # what holding them costs out of the fit: a drive record of the same cell predicted about as well (25 draws of
     # this generator: mean 21.0 mV held against 22.4 mV free; lower in 21 fits of 50, higher in 13)
     assert np.mean(drive_rmse["held"]) <= 1.1 * np.mean(drive_rmse["free"]), drive_rmse

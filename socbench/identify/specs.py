@@ -211,7 +211,7 @@ class PolyForm(Form):
     kind = "poly"
     #: SOC spacing of the lookup that stores a polynomial fitted on a partial domain (clamped outside it)
     CLAMP_STEP = 0.01
-    #: points of the grid on which a positive parameter's polynomial is held at or above zero between its nodes
+    #: points of the grid on which a positive parameter's polynomial is held above its floor between its nodes
     GRID_POINTS = 401
 
     def __init__(self, degree: int = POLY_DEGREE, domain: tuple = (0.0, 1.0)):
