@@ -222,13 +222,9 @@ class PolyForm(Form):
         self.nodes = lo + (hi - lo) * chebyshev_nodes(self.size)
         vander = np.vander(self.nodes, self.size)  # columns z^d … z^0
         self._to_coeffs = np.linalg.inv(vander)  # coeffs = inv(V) @ values
-
-    @property
-    def grid_matrix(self) -> np.ndarray:
-        """``(size, G)``: node values ``(…, size)`` @ this = the polynomial on :data:`GRID_POINTS` SOC points spread
-        evenly over the domain (ends included)."""
-        grid = np.linspace(*self.domain, self.GRID_POINTS)
-        return (np.vander(grid, self.size) @ self._to_coeffs).T
+        #: ``(size, G)``: node values ``(…, size)`` @ this = the polynomial on :data:`GRID_POINTS` SOC points spread
+        #: evenly over the domain, ends included (built once: the positivity residuals use it at every evaluation)
+        self.grid_matrix = (np.vander(np.linspace(lo, hi, self.GRID_POINTS), self.size) @ self._to_coeffs).T
 
     @property
     def partial(self) -> bool:
