@@ -1,4 +1,4 @@
-"""The OCV refined between an HPPC's rest points from its discharge segments (socbench.identify.pseudo_ocv).
+"""The OCV refined between an HPPC's rest points from its step segments (socbench.identify.pseudo_ocv).
 
 Records come from tests/hppc_records.py (a continuous-time truth with hand-drawn OCV shapes, random layouts and
 instruments), not from socbench's own generators; the refined curve is judged by what it is for: the voltage the
@@ -194,3 +194,28 @@ def test_a_refit_that_fits_its_own_real_record_better_but_predicts_the_cell_wors
     before, after = report["validation_rmse_v"]
     assert after > before  # the refined curve's shape between the rest points is the record's, not the cell's
     assert refit is None and report["kept"] is False and report["why_not"].startswith("validation")
+
+
+#: draws of an HPPC run in the charge direction (levels 12–20 % apart reached by charge steps)
+CHARGE_DIRECTION_DRAWS = 8
+
+
+@pytest.mark.parametrize("seed", range(CHARGE_DIRECTION_DRAWS))
+def test_an_hppc_in_the_charge_direction_is_refined_from_its_charge_steps(seed):
+    """Its rest points follow charge steps, and its discharges are only pulses: the curve between the points is read
+    from the charge steps. Judged against the truth's OCV over the points' range (before this, read from the
+    discharge pulses, the refinement was refused in 9 of 10 draws of this layout with another seed, and the error
+    stayed 7–26 mV; now 0.3–2.7 mV)."""
+    rng = np.random.default_rng([seed, 49])
+    cell = H.random_cell(rng)
+    lay = H.Layout(pulses_c=(1.0, -0.75), rest_s=float(rng.uniform(1800.0, 3600.0)),
+                   step=float(rng.uniform(0.12, 0.2)), step_c=float(rng.uniform(0.3, 1.0)), ascending=True)
+    rec = H.hppc_record(cell, lay, H.Instrument(dt=1.0, i_noise_c=0.002, v_noise=1e-3), seed=seed)
+    fit = fit_model("dp", rec.profile, mode="constant")
+    assert pseudo_ocv.step_direction(rec.profile) == "charge"
+    refit, report = pseudo_ocv.refit_on_refined_ocv(fit, rec.profile, mode="constant")
+    assert refit is not None, report
+    z = np.linspace(fit.params.ocv.soc[0] + 0.01, fit.params.ocv.soc[-1] - 0.01, 300)
+    before = np.sqrt(np.mean((fit.params.ocv.value(z) - cell.ocv.value(z)) ** 2))
+    after = np.sqrt(np.mean((refit.params.ocv.value(z) - cell.ocv.value(z)) ** 2))
+    assert after < 0.5 * before, (before, after)

@@ -41,7 +41,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--slow-ocv", default="mean", choices=("mean", "discharge"),
                         help="OCV from a slow test in the fit data: mean of both branches, or the discharge branch")
     parser.add_argument("--refine-ocv", default="always", choices=("coarse", "always", "never"),
-                        help="refine an HPPC's rest-point OCV between its points from its discharge segments (kept "
+                        help="refine an HPPC's rest-point OCV between its points from its step segments (kept "
                              "when the evaluation data validate it): where two points lie more than "
                              f"{100 * COARSE_OCV_GAP:g} %% of SOC apart (coarse), always (default), or never")
     parser.add_argument("--capacity", type=float, default=None,

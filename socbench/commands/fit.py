@@ -7,7 +7,8 @@ functions) with a ``"fit"`` block (mode, RMSE, standard errors, warnings, second
 ``socbench simulate --params`` reads back. Without ``--ocv`` the OCV curve comes from the record's HPPC rest points. A
 record of several discharges (battery swaps, recharges) is fitted segment by segment (:mod:`socbench.segments`;
 ``--no-segments`` fits it as one piece). ``--refine-ocv`` refines that curve between the rest points from the record's
-discharge segments and fits again (:func:`socbench.identify.pseudo_ocv.refit_on_refined_ocv`: the refit is kept when
+step segments (its charge steps in an HPPC run in the charge direction) and fits again
+(:func:`socbench.identify.pseudo_ocv.refit_on_refined_ocv`: the refit is kept when
 no RC branch is slower than the record, it fits the record 10 % better and, with ``--validation`` records, it predicts
 them 10 % better).
 
@@ -90,7 +91,8 @@ def add_arguments(parser) -> None:
                              "(an Arrhenius exchange current I0(T)) together with the model")
     parser.add_argument("--refine-ocv", action="store_true",
                         help="one HPPC record, OCV from its rest points: refine the curve between the points from "
-                             "its discharge segments and fit again; the refit is kept when no RC branch is slower "
+                             "its step segments (discharge, or charge in the charge direction) and fit again; the "
+                             "refit is kept when no RC branch is slower "
                              "than the record, it fits the record 10%% better and, with --validation records, it "
                              "predicts them 10%% better")
     parser.add_argument("--validation", nargs="+", default=(),

@@ -53,7 +53,6 @@ import numpy as np
 from ..errors import ConfigError, DataError
 from ..identify import (
     FIT_CANDIDATES,
-    analyze_hppc,
     fit_model,
     ocv_from_slow_test,
     pseudo_ocv,
@@ -65,6 +64,7 @@ from ..identify import (
 from ..identify.fit import branches_identified
 from ..identify.fit_test_effect import FIT_TEST_EFFECTS, effect_on_fit_test
 from ..identify.hppc import declared_capacity, quantisation_step
+from ..identify.pseudo_ocv import step_direction
 from ..models import make_model
 from ..models.base import T_REF_C
 from ..models.effects import EFFECTS
@@ -155,21 +155,14 @@ COARSE_OCV_GAP = 0.15
 #: whether the base fit also tries its HPPC rest points relaxed by its own over-potential at each rest's end
 #: (:mod:`socbench.identify.relaxed_ocv`), kept by validation. Off: see :func:`fit_base`
 RELAX_OCV = False
+#: an extra branch found on the fit test moves the HPPC's rest points by what it holds at each rest's end
+#: (:func:`socbench.identify.fit_test_effect.relax_rest_points`)
+RELAX_FOR_BRANCH = True
 
 #: whether a fit-test refit the evaluation records alone do not confirm is tried again beside the steps the search
 #: adds (:func:`search_beside`): where another effect dominates their error, the refit's share shows only once that
 #: one is in the model
 DEFER_FIT_TEST = True
-
-
-def hppc_steps(profile) -> str:
-    """How an HPPC record moves between its SOC levels: "discharge" or "charge"
-    (:attr:`~socbench.identify.hppc.HPPCAnalysis.steps`); "discharge" for a record that is not an HPPC (the fit then
-    says why)."""
-    try:
-        return analyze_hppc(profile).steps
-    except DataError:
-        return "discharge"
 
 
 def slow_test_branches(profile: Profile, info: dict | None = None):
@@ -265,6 +258,7 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
     if len(dynamic) > 1:
         raise DataError("give one dynamic fit record (and optionally one slow OCV test)")
     ocv = capacity = None
+    steps = "discharge"  # how the HPPC moves between its levels (read below where its rest points are the OCV)
     info = {"records": [p.name for p in fit_profiles]}
     if slow:
         s = slow_test_branches(slow[0], info)
@@ -277,7 +271,7 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
     else:
         # the hysteresis branch the rest points lie on: after discharge steps (−1), or after charge steps (+1) in an
         # HPPC run in the charge direction
-        steps = hppc_steps(dynamic[0])
+        steps = step_direction(dynamic[0])
         info["ocv"] = f"HPPC rest points (after {steps} steps)"
         info["ocv_from_rest_points"] = True
         info["ocv_branch"] = 1.0 if steps == "charge" else -1.0
@@ -328,7 +322,7 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
                 scores[name_r] = report["validation_rmse_v"][1]
                 if refit is not None:
                     fits[name_r], chosen = refit, name_r
-                    info["ocv"] += " refined between them from the discharge segments"
+                    info["ocv"] += f" refined between them from the {steps} segments"
         res = fits[chosen]
         label = {k: (k if k.startswith("lookup") else f"constant, {k}") for k in scores}
         info["selection"] = {"chosen": label[chosen], "setting": best_setting,
@@ -364,7 +358,8 @@ def effect_on_fit_test_record(model_name: str, base, fit_profiles, evals, info: 
     refit, reports, deferred = effect_on_fit_test(
         model_name, base, prof, evals, effects, setting={**FIT_CANDIDATES[sel["setting"]], **info.get("axis", {})},
         lookup=lookup,
-        settings={"hysteresis": {"h_ref": info["ocv_branch"]}}, twin=TWIN_TAU)
+        settings={"hysteresis": {"h_ref": info["ocv_branch"]}}, twin=TWIN_TAU,
+        relax_rests=RELAX_FOR_BRANCH and bool(info.get("ocv_from_rest_points")))
     info["fit_test_effect"] = {"reports": reports, "kept": None, "deferred": None}
     for key, found in (("kept", refit), ("deferred", deferred)):
         if found is None:

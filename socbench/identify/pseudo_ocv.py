@@ -1,4 +1,4 @@
-"""The OCV between an HPPC's rest points, read from its discharge segments through a fitted model.
+"""The OCV between an HPPC's rest points, read from its step segments through a fitted model.
 
 An HPPC measures the OCV only at its rest points, 5–10 % of SOC apart; between them the monotone interpolant
 (ECM_SPEC §3.3) guesses. Where the curve bends within a step — the top of charge, LFP's steps between plateaus — the
@@ -10,7 +10,9 @@ measured voltage plus the model's over-potential is the OCV there::
 
 so the curve's correction at SOC ``z`` is the residual there: ``c(z)`` = the median of ``e`` over the discharge
 samples in a bin of width ``bin_soc`` (discharge only: the rest points follow discharge steps, the same hysteresis
-branch; the median ignores the edges of the pulses, where the dynamics err most).
+branch; the median ignores the edges of the pulses, where the dynamics err most). An HPPC run in the charge
+direction (its levels reached by charge steps, :func:`step_direction`) reads the charge samples instead: its rest
+points follow charge steps, and its discharges are only pulses.
 
 The over-potential carries the model's own error (a resistance off by δR moves ``Û`` by δR·I along a whole
 discharge); the rest points carry none. So the correction is **anchored**: on each interval between two rest points
@@ -36,10 +38,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import DataError
 from ..models.registry import make_model
 from ..ocv import OCVCurve, monotone_points
 from ..profile import Profile
 from .fit import FitResult, branches_identified, fit_model, setup_fit
+from .hppc import analyze_hppc
 from .select import validation_rmse
 
 #: SOC bin of the correction (0.5 %: ten points in a 5 % HPPC step)
@@ -58,18 +62,31 @@ COMMON_GRID = 21
 REFIT_GAIN = 0.10
 
 
+def step_direction(profile: Profile, capacity_ah: float | None = None, soc0: float | None = None) -> str:
+    """How the HPPC ``profile`` moves between its SOC levels, "discharge" or "charge"
+    (:attr:`~socbench.identify.hppc.HPPCAnalysis.steps`); "discharge" for a record that is not an HPPC."""
+    try:
+        return analyze_hppc(profile, capacity_ah=capacity_ah, soc_start=soc0).steps
+    except DataError:
+        return "discharge"
+
+
 def refine_ocv(fit: FitResult, profile: Profile, bin_soc: float = BIN_SOC,
                soc0: float | None = None) -> OCVCurve | None:
-    """The OCV curve of ``fit`` refined between its points from the discharge segments of ``profile`` (the record it
-    was fitted on, from ``soc0`` as the fit was (None: the HPPC analysis' start); see the module docstring), or None
-    when the record holds no discharge between two of its points."""
+    """The OCV curve of ``fit`` refined between its points from the step segments of ``profile`` (discharge; charge
+    for an HPPC in the charge direction) (the record it was fitted on, from ``soc0`` as the fit was (None: the HPPC
+    analysis' start); see the module docstring), or None when the record holds no such segment between two of its
+    points."""
     ocv = fit.params.ocv
     prob = setup_fit(fit.name, profile, "constant", ocv, fit.params.capacity_ah, soc0)
     prof = prob.fit_profile(profile)
     model = make_model(fit.name, fit.params)
     with np.errstate(all="ignore"):
         xs, y = model.open_loop(model.x0(prob.soc0), prof.time_s, prof.current_a, prof.temperature_c, prob.soc_jumps)
-    z, e, i = xs[..., 0], prof.voltage_v - y, prof.current_a
+    # the segments in the direction of the HPPC's steps: its rest points follow them (one hysteresis branch)
+    direction = step_direction(profile, fit.params.capacity_ah, soc0)
+    i = prof.current_a * (-1.0 if direction == "charge" else 1.0)
+    z, e = xs[..., 0], prof.voltage_v - y
     moving = i[i > 0]
     if moving.size == 0:
         return None
@@ -109,7 +126,7 @@ def refine_ocv(fit: FitResult, profile: Profile, bin_soc: float = BIN_SOC,
         points_z.append(zi)
         points_v.append(vi)
     zs, vs = np.concatenate(points_z), np.concatenate(points_v)
-    return OCVCurve(zs, vs, source=f"{ocv.source}; refined between its points from the discharge segments of "
+    return OCVCurve(zs, vs, source=f"{ocv.source}; refined between its points from the {direction} segments of "
                                    f"{profile.meta.source or profile.name} (socbench.identify.pseudo_ocv)")
 
 

@@ -51,14 +51,20 @@ def rest_overpotential(fit: FitResult, profile: Profile, soc0: float | None = No
     """``(z, v, η)`` of each OCV rest point of ``profile``: its SOC and rest-end voltage as the HPPC analysis read
     them, and the over-potential ``η_k`` the fitted model still holds there (module docstring); None when the record
     has no HPPC rest points."""
-    prob = setup_fit(fit.name, profile, "constant", fit.params.ocv, fit.params.capacity_ah, soc0)
-    a = analyze_hppc(profile, capacity_ah=fit.params.capacity_ah, soc_start=soc0)
+    return overpotential_at_rest_ends(fit.name, fit.params, profile, soc0)
+
+
+def overpotential_at_rest_ends(name: str, params, profile: Profile, soc0: float | None = None):
+    """:func:`rest_overpotential` of model ``name`` with the parameter set ``params`` (any set on the record's SOC
+    axis, not only a fit's)."""
+    prob = setup_fit(name, profile, "constant", params.ocv, params.capacity_ah, soc0)
+    a = analyze_hppc(profile, capacity_ah=params.capacity_ah, soc_start=soc0)
     at_rest_end = {(r.soc_end, r.v_end): r.stop - 1 for r in a.rests}
     idx = [at_rest_end.get((z, v)) for z, v in zip(a.ocv_soc, a.ocv_voltage)]
     if a.ocv_soc.size < 2 or any(k is None for k in idx):
         return None
     idx = np.asarray(idx)
-    model = make_model(fit.name, fit.params)
+    model = make_model(name, params)
     rec = prob.fit_profile(profile)
     states, _ = model.open_loop(model.x0(float(np.clip(prob.soc0, 0.0, 1.0))), rec.time_s, rec.current_a,
                                rec.temperature_c, prob.soc_jumps)

@@ -238,8 +238,9 @@ def fit_rests(fit: FitResult, profile: Profile, extra: bool = False, windows=Non
 
 def rest_evidence(fit: FitResult, profile: Profile) -> dict | None:
     """The rests' verdict on one more branch beside ``fit``'s (module docstring): ``{"structure_v": [S_without,
-    S_with], "cut", "chi2", "rests", "longest_rest_s", "noise_sd_v", "R", "log10_tau", "taus_s"}`` (``taus_s``: the
-    base's branches as fitted beside the extra one), or None where the record has no rests to read."""
+    S_with], "cut", "chi2", "rests", "longest_rest_s", "noise_sd_v", "R", "log10_tau", "taus_s", "scales"}``
+    (``taus_s``: the base's branches as fitted beside the extra one; ``scales``: the factors on ``fit``'s branch
+    parameters that put them there), or None where the record has no rests to read."""
     rests = _read_rests(fit, profile)
     if rests is None:
         return None
@@ -257,4 +258,4 @@ def rest_evidence(fit: FitResult, profile: Profile) -> dict | None:
     longest = max(float(profile.time_s[b - 1] - profile.time_s[a - 1]) for a, b in rests.windows)
     return {"structure_v": [s0, s1], "cut": float(1.0 - s1 / s0) if s0 > 0 else 0.0, "chi2": float(chi2),
             "rests": without.n_rests, "longest_rest_s": longest, "noise_sd_v": sigma, **with_.extra,
-            "taus_s": with_.taus_s}
+            "taus_s": with_.taus_s, "scales": with_.scales}
