@@ -158,6 +158,8 @@ RELAX_OCV = False
 #: an extra branch found on the fit test moves the HPPC's rest points by what it holds at each rest's end
 #: (:func:`socbench.identify.fit_test_effect.relax_rest_points`)
 RELAX_FOR_BRANCH = True
+#: … and, where the base fit did not keep a refinement of that OCV, refines it again beside the branch
+REFINE_FOR_BRANCH = True
 
 #: whether a fit-test refit the evaluation records alone do not confirm is tried again beside the steps the search
 #: adds (:func:`search_beside`): where another effect dominates their error, the refit's share shows only once that
@@ -359,7 +361,8 @@ def effect_on_fit_test_record(model_name: str, base, fit_profiles, evals, info: 
         model_name, base, prof, evals, effects, setting={**FIT_CANDIDATES[sel["setting"]], **info.get("axis", {})},
         lookup=lookup,
         settings={"hysteresis": {"h_ref": info["ocv_branch"]}}, twin=TWIN_TAU,
-        relax_rests=RELAX_FOR_BRANCH and bool(info.get("ocv_from_rest_points")))
+        relax_rests=RELAX_FOR_BRANCH and bool(info.get("ocv_from_rest_points")),
+        refine_rests=REFINE_FOR_BRANCH and bool(info.get("ocv_from_rest_points")) and "refined" not in info["ocv"])
     info["fit_test_effect"] = {"reports": reports, "kept": None, "deferred": None}
     for key, found in (("kept", refit), ("deferred", deferred)):
         if found is None:
