@@ -387,7 +387,10 @@ class Search:
         if self.bias_rest is not None:
             mean, se, seconds = self.bias_rest
             lo, hi = self.bounds["current_bias"]["b0"]
-            half = 3.0 * se + base.capacity_ah / 500.0
+            # the rests' own uncertainty and the least offset they are taken to read (0.05 % of 1C): wider bounds
+            # (0.2 % of 1C until stop 47) let the offset take up another SOC drift of the base (a capacity a few per
+            # cent off), which the SOC filters then count (tests/test_rest_offset_bound.py)
+            half = 3.0 * se + base.capacity_ah * REST_OFFSET_C
             self.bounds["current_bias"] = {"b0": (max(lo, mean - half), min(hi, mean + half))}
             if seconds >= REST_EVIDENCE_S:
                 self.bias_measured = bool(abs(mean) > max(4.0 * se, base.capacity_ah * REST_OFFSET_C))
