@@ -362,7 +362,8 @@ def effect_on_fit_test_record(model_name: str, base, fit_profiles, evals, info: 
         lookup=lookup,
         settings={"hysteresis": {"h_ref": info["ocv_branch"]}}, twin=TWIN_TAU,
         relax_rests=RELAX_FOR_BRANCH and bool(info.get("ocv_from_rest_points")),
-        refine_rests=REFINE_FOR_BRANCH and bool(info.get("ocv_from_rest_points")) and "refined" not in info["ocv"])
+        refine_rests=REFINE_FOR_BRANCH and bool(info.get("ocv_from_rest_points"))
+        and not info.get("ocv_refinement", {}).get("kept"))
     info["fit_test_effect"] = {"reports": reports, "kept": None, "deferred": None}
     for key, found in (("kept", refit), ("deferred", deferred)):
         if found is None:

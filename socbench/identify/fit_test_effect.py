@@ -193,10 +193,10 @@ def relax_rest_points(name: str, profile: Profile, fit: FitResult, effect: str, 
                       held: bool, rests_model=None):
     """``(fit or its refit, report)``: ``fit`` (model ``name`` with an extra branch ``effect``, fitted on
     ``profile`` with the OCV of its rest points) fitted again on those points moved by the over-potential it holds at
-    each rest's end (:func:`~socbench.identify.relaxed_ocv.rest_overpotential`, interpolated between the points onto
-    the curve as fitted; :data:`~socbench.identify.relaxed_ocv.ITERATIONS` rounds; the branch ``held`` where the rests
-    read it, else refitted with the base). ``rests_model`` (the parameter set the rests read, :func:`rests_read`):
-    η is what that set holds, read once.
+    each rest's end (:func:`~socbench.identify.relaxed_ocv.overpotential_at_rest_ends`, interpolated between the
+    points onto the curve as fitted; :data:`~socbench.identify.relaxed_ocv.ITERATIONS` rounds; the branch ``held``
+    where the rests read it, else refitted with the base). ``rests_model`` (the parameter set the rests read,
+    :func:`rests_read`): η is what that set holds, read once.
 
     The rest points were read at each rest's end. A branch the structure lacked, slow enough to matter, had not
     relaxed there (τ = 1000 s holds 40 % of its drop after a 15-minute rest), and the base fitted without it read that
@@ -257,7 +257,8 @@ def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, 
     the effect's fitted values), ``why_not``, the first rule the refit failed (None: kept), and ``deferred``: True
     when the validation gain is the only rule it failed. ``relax_rests`` (the OCV is the record's rest points): an
     extra branch's refit is fitted again on the rest points relaxed by what it holds at each rest's end
-    (:func:`relax_rest_points`)."""
+    (:func:`relax_rest_points`); ``refine_rests``: and on its curve refined between them beside the branch
+    (:func:`~socbench.identify.pseudo_ocv.refit_on_refined_ocv`, kept by its rules)."""
     ocv, q = base.params.ocv, base.params.capacity_ah
     report = {"effect": effect}
     shown = False  # the rests show the branch, whatever the whole record gains: then no free fit is needed
