@@ -12,7 +12,9 @@ so the curve's correction at SOC ``z`` is the residual there: ``c(z)`` = the med
 samples in a bin of width ``bin_soc`` (discharge only: the rest points follow discharge steps, the same hysteresis
 branch; the median ignores the edges of the pulses, where the dynamics err most). An HPPC run in the charge
 direction (its levels reached by charge steps, :func:`step_direction`) reads the charge samples instead: its rest
-points follow charge steps, and its discharges are only pulses.
+points follow charge steps, and its discharges are only pulses (read from its discharge pulses, 10 draws of such
+an HPPC with levels 12–20 % apart kept the refinement once, the curve 7–26 mV off between the points; from its charge
+steps, 10 of 10, 0.3–2.7 mV: ``tests/test_pseudo_ocv.py``).
 
 The over-potential carries the model's own error (a resistance off by δR moves ``Û`` by δR·I along a whole
 discharge); the rest points carry none. So the correction is **anchored**: on each interval between two rest points
