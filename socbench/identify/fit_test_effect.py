@@ -84,8 +84,8 @@ from ..models.registry import make_model
 from ..models.scaling import scaled_model
 from ..ocv import OCVCurve, monotone_points
 from ..profile import Profile
-from .fit import FitResult, branch_time_constants, branches_identified, fit_model
-from .pseudo_ocv import refit_on_refined_ocv
+from .fit import FitResult, branch_time_constants, fit_model
+from .pseudo_ocv import keep_refit, refit_on_refined_ocv
 from .relaxed_ocv import ITERATIONS, MIN_SHIFT_V, overpotential_at_rest_ends
 from .rest_relaxation import rest_evidence
 from .select import validation_rmse
@@ -230,15 +230,9 @@ def relax_rest_points(name: str, profile: Profile, fit: FitResult, effect: str, 
                               **setting)
         except Exception as exc:  # reported, never fatal: the unrelaxed fit stands
             return fit, {**report, "why_not": f"refit failed: {exc}"}
-    report["fit_rmse_v"] = [fit.rmse_v, refit.rmse_v]
-    why = None if branches_identified(refit.params, profile.duration_s) else "an RC branch slower than the record"
-    if validation:
-        before, after = (float(np.mean([validation_rmse(f, r) for r in validation])) for f in (fit, refit))
-        report["validation_rmse_v"] = [before, after]
-        if why is None and after > before:
-            why = "validation worse"
-    report.update({"relaxed": why is None, "why_not": why})
-    return (refit if why is None else fit), report
+    kept, report = keep_refit(fit, refit, profile, validation, report, gain=0.0)
+    report["relaxed"] = kept is not None
+    return kept or fit, report
 
 
 def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, *, setting: dict,

@@ -167,12 +167,13 @@ def refit_on_refined_ocv(fit: FitResult, profile: Profile, validation=(), **fit_
 
 
 def keep_refit(fit: FitResult, refit: FitResult, profile: Profile, validation, report: dict,
-               own_record: bool = False):
-    """``(refit or None, report)``: the keep rule of a base refit on a corrected OCV curve (this module's and
-    :mod:`socbench.identify.relaxed_ocv`'s): every RC branch's time constant within the record's duration (a slower
-    branch only ramps with the charge moved and trades against the curve freely); with ``own_record`` the refit fits
-    ``profile`` :data:`REFIT_GAIN` better; with ``validation`` records their mean open-loop RMSE falls by as much.
-    ``report`` gains what was measured, ``kept`` and ``why_not`` (the first rule failed; None: kept)."""
+               own_record: bool = False, gain: float = REFIT_GAIN):
+    """``(refit or None, report)``: the keep rule of a base refit on a corrected OCV curve (this module's,
+    :mod:`socbench.identify.relaxed_ocv`'s and :func:`socbench.identify.fit_test_effect.relax_rest_points`'): every RC
+    branch's time constant within the record's duration (a slower branch only ramps with the charge moved and trades
+    against the curve freely); with ``own_record`` the refit fits ``profile`` :data:`REFIT_GAIN` better; with
+    ``validation`` records their mean open-loop RMSE falls by ``gain`` (0: no worse). ``report`` gains what was
+    measured, ``kept`` and ``why_not`` (the first rule failed; None: kept)."""
     identified = branches_identified(refit.params, profile.duration_s)
     report.update({"fit_rmse_v": [fit.rmse_v, refit.rmse_v], "branches_identified": identified})
     why = None if identified else "an RC branch slower than the record"
@@ -181,7 +182,7 @@ def keep_refit(fit: FitResult, refit: FitResult, profile: Profile, validation, r
     if validation:
         before, after = (float(np.mean([validation_rmse(f, r) for r in validation])) for f in (fit, refit))
         report["validation_rmse_v"] = [before, after]
-        if why is None and after > (1.0 - REFIT_GAIN) * before:
-            why = f"validation not {100 * REFIT_GAIN:.0f} % better"
+        if why is None and after > (1.0 - gain) * before:
+            why = f"validation not {100 * gain:.0f} % better" if gain > 0 else "validation worse"
     report.update({"kept": why is None, "why_not": why})
     return (refit if why is None else None), report
