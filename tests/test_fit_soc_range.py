@@ -42,6 +42,41 @@ def test_knots_outside_the_range_move_to_its_edge():
     assert knots_within(KNOTS).tolist() == list(KNOTS)
 
 
+def test_a_knot_next_to_the_moved_edge_gives_way():
+    # the edge lands 1.3 points below the knot at 0.1: the edge takes its place
+    assert knots_within(KNOTS, (0.087, 1.0)).tolist() == [0.087, 0.2, 0.4, 0.7, 1.0]
+    # 6 points below it (more than half the 10-point spacing above): both stay
+    assert knots_within(KNOTS, (0.04, 1.0)).tolist() == [0.04, 0.1, 0.2, 0.4, 0.7, 1.0]
+    # the top likewise: 0.8 is 0.1 above the knot at 0.7, whose spacing below is 0.3
+    assert knots_within(KNOTS, (0.0, 0.8)).tolist() == [0.0, 0.1, 0.2, 0.4, 0.8]
+    # a short range keeps its two edges
+    assert knots_within(KNOTS, (0.3, 0.75)).tolist() == [0.3, 0.75]
+
+
+EDGE_DRAWS = 12
+
+
+@pytest.mark.slow
+def test_hppc_stopped_just_below_a_knot_keeps_its_resistances_at_the_bottom():
+    """An HPPC that stops 1–4.5 points below a knot (0.1 or 0.2): the knot moved onto the record's edge lies next to
+    that one, and the short segment between them is set by the last few samples of the final step. Before the edge
+    knot took the inner one's place, a resistance at the record's bottom was more than 3 × the truth's (constant) in 4
+    of these 12 draws (up to × 324, a DP's R2), and a field record reaching that SOC read it."""
+    ratios = []
+    for k in range(EDGE_DRAWS):
+        rng, cell, lay, ins = H.random_setup(90_000 + k)
+        stop = float(rng.choice([rng.uniform(0.055, 0.09), rng.uniform(0.155, 0.19)]))
+        rec = H.hppc_record(cell, dataclasses.replace(lay, gaps=False, stop_soc=stop), ins, seed=k, with_soc_ref=False)
+        name = "dp" if len(cell.branches) == 2 else "thevenin"
+        res = fit_model(name, rec.profile, mode="lookup", capacity_ah=cell.capacity_ah, knots=KNOTS)
+        lo = float(rec.soc_true.min())
+        z = np.linspace(lo, lo + 0.05, 6)  # the record's own bottom: samples were taken there
+        truth = {"R0": cell.r0, **{f"R{j + 1}": b[0] for j, b in enumerate(cell.branches)}}
+        ratios.append(max(float(np.max(np.abs(np.log(res.params.values[p].value_and_deriv(z)[0] / v))))
+                          for p, v in truth.items()))
+    assert max(ratios) < np.log(3.0), np.round(np.exp(ratios), 2)
+
+
 @pytest.mark.slow
 def test_stopped_hppc_lookup_holds_r0_below_its_range():
     worst, below_rms = [], []
