@@ -59,7 +59,10 @@ def compress_profile(profile: Profile, max_step_s: float = 60.0, first_step_s: f
     ``i_tol`` defaults to 0.1 % of the largest |I| (plus 1 µA), well above a lab tester's current noise and far below
     any load step, or, for a noisier sensor, ``NOISE_TOL_K·√2·σ`` with ``σ`` the current noise measured on the
     record's rests (:func:`~socbench.identify.hppc.rest_level`): white noise alone then splits a step once in
-    ~10⁶ samples instead of at every sample. ``max_ah`` caps the charge moved by one merged step (SOC-dependent
+    ~10⁶ samples instead of at every sample. A quantised reading's error holds its ADC step ``q`` too,
+    ``σ² + q²/12``: dithered by noise under a step, it flips between two levels, and its robust σ reads 0 (a
+    600 000-sample HPPC whose current an ADC read in steps of 0.25 % of the peak kept every other sample: its fit took
+    75 s instead of 1.3 s, the diagnosis 72 s). ``max_ah`` caps the charge moved by one merged step (SOC-dependent
     parameters are frozen over a step, so a long discharge step is cut into pieces of at most ``max_ah`` Ah;
     ``fit_parameters`` uses 0.5 % of the model's capacity). The first and last samples are always kept. Works on
     plain (non-batched) profiles.
@@ -72,7 +75,9 @@ def compress_profile(profile: Profile, max_step_s: float = 60.0, first_step_s: f
     if n < 3:
         return Compression(profile, np.arange(n))
     if i_tol is None:
-        i_tol = max(1e-3 * float(np.max(np.abs(i))) + 1e-6, NOISE_TOL_K * np.sqrt(2.0) * rest_level(i).noise_a)
+        lev = rest_level(i)
+        i_tol = max(1e-3 * float(np.max(np.abs(i))) + 1e-6,
+                    NOISE_TOL_K * np.sqrt(2.0) * np.hypot(lev.noise_a, lev.step_a / np.sqrt(12.0)))
     di = np.abs(np.diff(i))
     new_run = np.ones(n, dtype=bool)
     new_run[1:] = di > i_tol
