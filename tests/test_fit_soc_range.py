@@ -29,12 +29,16 @@ KNOTS = (0.0, 0.1, 0.2, 0.4, 0.7, 1.0)
 DRAWS = 10
 
 
-def _stopped_fit(k: int):
-    rng, cell, lay, ins = H.random_setup(70_000 + k)
-    stop = float(rng.uniform(0.15, 0.40))
+def _stopped_fit(k: int, seed: int = 70_000, draw_stop=lambda rng: rng.uniform(0.15, 0.40),
+                 model: str | None = "thevenin"):
+    """``(cell, instrument, stop, record, lookup fit on KNOTS)`` of draw ``k`` of the tests' generator, its HPPC
+    stopped at the SOC ``draw_stop`` draws; ``model`` None: the truth's structure (Thevenin or DP)."""
+    rng, cell, lay, ins = H.random_setup(seed + k)
+    stop = float(draw_stop(rng))
     rec = H.hppc_record(cell, dataclasses.replace(lay, gaps=False, stop_soc=stop), ins, seed=k, with_soc_ref=False)
-    res = fit_model("thevenin", rec.profile, mode="lookup", capacity_ah=cell.capacity_ah, knots=KNOTS)
-    return cell, ins, stop, res
+    name = model or ("dp" if len(cell.branches) == 2 else "thevenin")
+    res = fit_model(name, rec.profile, mode="lookup", capacity_ah=cell.capacity_ah, knots=KNOTS)
+    return cell, ins, stop, rec, res
 
 
 def test_knots_outside_the_range_move_to_its_edge():
@@ -64,11 +68,8 @@ def test_hppc_stopped_just_below_a_knot_keeps_its_resistances_at_the_bottom():
     of these 12 draws (up to × 324, a DP's R2), and a field record reaching that SOC read it."""
     ratios = []
     for k in range(EDGE_DRAWS):
-        rng, cell, lay, ins = H.random_setup(90_000 + k)
-        stop = float(rng.choice([rng.uniform(0.055, 0.09), rng.uniform(0.155, 0.19)]))
-        rec = H.hppc_record(cell, dataclasses.replace(lay, gaps=False, stop_soc=stop), ins, seed=k, with_soc_ref=False)
-        name = "dp" if len(cell.branches) == 2 else "thevenin"
-        res = fit_model(name, rec.profile, mode="lookup", capacity_ah=cell.capacity_ah, knots=KNOTS)
+        cell, _, _, rec, res = _stopped_fit(
+            k, 90_000, lambda rng: rng.choice([rng.uniform(0.055, 0.09), rng.uniform(0.155, 0.19)]), model=None)
         lo = float(rec.soc_true.min())
         z = np.linspace(lo, lo + 0.05, 6)  # the record's own bottom: samples were taken there
         truth = {"R0": cell.r0, **{f"R{j + 1}": b[0] for j, b in enumerate(cell.branches)}}
@@ -81,7 +82,7 @@ def test_hppc_stopped_just_below_a_knot_keeps_its_resistances_at_the_bottom():
 def test_stopped_hppc_lookup_holds_r0_below_its_range():
     worst, below_rms = [], []
     for k in range(DRAWS):
-        cell, ins, stop, res = _stopped_fit(k)
+        cell, ins, stop, _, res = _stopped_fit(k)
         assert any("knots outside the record's SOC range" in n for n in res.params.notes)
         r0 = res.params.values["R0"]
         z = np.linspace(0.02, stop - 0.03, 8)
