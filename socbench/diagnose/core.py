@@ -69,6 +69,7 @@ from ..models import make_model
 from ..models.base import T_REF_C
 from ..models.effects import EFFECTS
 from ..profile import Profile
+from ..socaxis import soc_axis
 from .cv import cv_residual
 from .data import Folds, bin_average, make_folds
 from .leftover import leftover, ocv_gap
@@ -496,10 +497,18 @@ def soc_errors(model_for, folds: Folds, soc0s, voltage_sd, estimators=SOC_ESTIMA
 
     Two paths, the same numbers: where every fold's filter runs compiled (:func:`socbench.kernels.engine.plan`), one
     run per fold with its own model and noise (the compiled filters take one parameter set and the sensor-noise
-    form of R); else the numpy reference, one batched run of the ``k`` folds (a parameter batch, R per run)."""
+    form of R); else the numpy reference, one batched run of the ``k`` folds (a parameter batch, R per run).
+
+    The filters run on the model's SOC axis (charge counted with its capacity ``Q_ref``); a record whose reference SOC
+    is a count from full with a capacity of its own (Panasonic, CALCE: the charge delivered at the record's
+    temperature) is scored on that axis, ``z_data = 1 − (1 − z)·Q_ref/Q_data`` (:mod:`socbench.socaxis`), as
+    ``socbench estimate`` scores it. Scored on the model's axis instead, a cold record's reference, counted with the
+    smaller capacity the cold delivers, differs from an exact count by ``(1 − z)·(Q_ref/Q_data − 1)`` — on the
+    Panasonic −10 °C US06 7.5 points RMS, which a filter led off by a large voltage error could make up by chance."""
     if any(p.soc_ref is None for p in folds.records):
         return None
     vsd = np.maximum(np.asarray(voltage_sd, dtype=float), 1e-3)
+    axis_params = model_for(None, fold=0)[0].params  # the model's axis: every fold's model counts with its capacity
     out = {}
     for name in estimators:
         per_fold = _compiled_fold_filters(model_for, name, folds.k, vsd)
@@ -508,7 +517,7 @@ def soc_errors(model_for, folds: Folds, soc0s, voltage_sd, estimators=SOC_ESTIMA
         sq, n, failed = 0.0, 0, 0
         for r, (p, b, z0) in enumerate(zip(folds.records, folds.blocks, soc0s)):
             soc, f = run(p, b, z0, r)
-            e = soc - p.soc_ref
+            e = soc_axis(axis_params, p).to_data(soc) - p.soc_ref
             sq += float(e @ e)
             n += p.n
             failed += f
