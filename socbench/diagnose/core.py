@@ -517,7 +517,8 @@ def soc_errors(model_for, folds: Folds, soc0s, voltage_sd, estimators=SOC_ESTIMA
         sq, n, failed = 0.0, 0, 0
         for r, (p, b, z0) in enumerate(zip(folds.records, folds.blocks, soc0s)):
             soc, f = run(p, b, z0, r)
-            e = soc_axis(axis_params, p).to_data(soc) - p.soc_ref
+            axis = soc_axis(axis_params, p)
+            e = (soc if axis.identity else axis.to_data(soc)) - p.soc_ref
             sq += float(e @ e)
             n += p.n
             failed += f
