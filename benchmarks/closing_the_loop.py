@@ -38,7 +38,7 @@ import numpy as np
 
 from socbench.datasets import load
 from socbench.diagnose import diagnose, fit_base, randomized
-from socbench.diagnose.core import IGNORE_VOLTAGE, soc_attribution
+from socbench.diagnose.core import IGNORE_VOLTAGE, model_soc_errors, soc_attribution
 from socbench.diagnose.cv import cv_residual
 from socbench.diagnose.leftover import sentence
 from socbench.diagnose.report import figures, markdown_table, write_report
@@ -140,8 +140,9 @@ def temperature_pairs(data_dir: Path) -> list:
                      "params": {st.effect: st.params for st in diag.steps if st.effect in diag.effects_added},
                      "rests": rest_current(evals, diag.base_model.capacity_ah, min_s=FIELD_REST_MIN_S),
                      "before_v": diag.before["rmse_v"], "after_v": diag.after["rmse_v"],
-                     "oracle_v": oracle(case, data_dir, evals, diag)["rmse_v"], "soc": soc, "wall_s": wall,
-                     "cpu_s": cpu})
+                     "soc": soc, "wall_s": wall, "cpu_s": cpu})
+        o = oracle(case, data_dir, evals, diag, soc=True)
+        rows[-1].update({"oracle_v": o["rmse_v"], "oracle_soc": o.get("soc", {})})
         print(f"  {t_fit} -> {t_eval} C: {diag.effects_added} {1000 * rows[-1]['before_v']:.1f} -> "
               f"{1000 * rows[-1]['after_v']:.1f} mV (oracle {1000 * rows[-1]['oracle_v']:.1f})", flush=True)
     return rows
@@ -154,13 +155,15 @@ def render_pairs(rows) -> list:
          "The Panasonic case again on one US06 record at a time, the DP fitted on the HPPC of another ambient "
          "(the same files and citation as above; `benchmarks/closing_the_loop.py`, `temperature_pairs`). Oracle: the "
          "DP fitted the same way on the HPPC of the evaluation's ambient, scored on the same bins. SOC: held-out RMSE "
-         "of the EKF and the UKF on the record's own SOC axis (the charge the cell delivers at that ambient).", "",
+         "of the EKF and the UKF on the record's own SOC axis (the charge the cell delivers at that ambient); in "
+         "brackets the same filters with the oracle model, set up as the diagnosis sets up its base model's.", "",
          "| fit → US06 | effects named | held-out voltage RMSE before → after [mV] | oracle [mV] | after / oracle "
-         "| EKF SOC before → after [%] | UKF SOC before → after [%] | wall [s] |",
+         "| EKF SOC before → after (oracle) [%] | UKF SOC before → after (oracle) [%] | wall [s] |",
          "|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        soc = [f"{100 * r['soc']['before'][k]:.2f} → {100 * r['soc']['after'][k]:.2f}"
-               if k in r["soc"]["before"] else "–" for k in ("ekf", "ukf")]
+        soc = [f"{100 * r['soc']['before'][k]:.2f} → {100 * r['soc']['after'][k]:.2f} "
+               f"({100 * r['oracle_soc'][k]:.2f})" if k in r["soc"]["before"] and k in r.get("oracle_soc", {})
+               else "–" for k in ("ekf", "ukf")]
         L.append(f"| {r['fit_c']} → {r['eval_c']} °C | {', '.join(r['added']) or 'none'} | "
                  f"{_mv(r['before_v'])} → {_mv(r['after_v'])} | {_mv(r['oracle_v'])} | "
                  f"{r['after_v'] / r['oracle_v']:.2f} | {soc[0]} | {soc[1]} | {r['wall_s']:.0f} |")
@@ -168,7 +171,10 @@ def render_pairs(rows) -> list:
     within = sum(r["after_v"] <= 1.5 * r["oracle_v"] for r in cross)
     worse = [r for r in rows if any(r["soc"]["after"].get(k, 0.0) > r["soc"]["before"].get(k, 0.0) + 0.002
                                     for k in r["soc"]["before"])]
-    L += ["", f"Across temperatures, the closed loop is within 1.5 × of the oracle in {within} of {len(cross)} pairs; "
+    soc_within = sum(all(r["soc"]["after"][k] <= 1.5 * r["oracle_soc"][k] for k in r["oracle_soc"]) for r in cross
+                     if r.get("oracle_soc"))
+    L += ["", f"Across temperatures, the closed loop is within 1.5 × of the oracle in {within} of {len(cross)} pairs "
+          f"(voltage) and in {soc_within} of {len(cross)} (both filters' SOC); "
           "the held-out SOC error of a filter grows by more than 0.2 points in "
           + (", ".join(f"{r['fit_c']} → {r['eval_c']} °C" for r in worse) or "none") + "."]
     for r in rows:
@@ -186,9 +192,11 @@ def render_pairs(rows) -> list:
     return L + [""]
 
 
-def oracle(case, data_dir: Path, evals, diag) -> dict:
+def oracle(case, data_dir: Path, evals, diag, soc: bool = False) -> dict:
     """The same base model fitted the same way (validated fit setting) on the HPPC of the held-out condition, scored
-    on the same averaged samples of that condition's record as the closed loop's held-out error."""
+    on the same averaged samples of that condition's record as the closed loop's held-out error; with ``soc``, its
+    filters' held-out SOC errors on that record too, set up as the diagnosis sets up its base model's
+    (:func:`socbench.diagnose.core.model_soc_errors`)."""
     r = case["oracle"]["record"]
     fit = [load(data_dir / f) for f in case["oracle"]["fit"]]
     rec = diag.split.records[r]
@@ -197,7 +205,9 @@ def oracle(case, data_dir: Path, evals, diag) -> dict:
     return {"fit": [Path(f).name for f in case["oracle"]["fit"]], "record": rec.name,
             "rmse_v": float(np.sqrt(np.mean(e * e))), "fit_setting": info.get("selection", {}).get("chosen"),
             "fit_rmse_v": info["rmse_v"], "loop_rmse_v": diag.after["rmse_v_per_record"][rec.name],
-            "base_rmse_v": diag.before["rmse_v_per_record"][rec.name], "wall_s": wall, "cpu_s": cpu}
+            "base_rmse_v": diag.before["rmse_v_per_record"][rec.name], "wall_s": wall, "cpu_s": cpu,
+            **({"soc": {k: v["soc_rmse"] for k, v in (model_soc_errors(model, [evals[r]], diag.split.k) or {}).items()}}
+               if soc else {})}
 
 
 #: the end-of-discharge knee: the base model's SOC at or below this (where U'(z) is steep and an SOC error is amplified)

@@ -463,6 +463,36 @@ def filter_voltage_sd(residual, folds: Folds, j: int) -> float:
     return float(sigma * np.sqrt((1.0 + rho) / (1.0 - rho)))
 
 
+def fold_filter_sd(model_or_build, folds: Folds, soc0s, thetas=None) -> np.ndarray:
+    """Each fold's filter voltage noise (:func:`filter_voltage_sd`): of ``model_or_build`` (a model with no parameter
+    fitted on the records, or a builder with its rows per fold ``thetas``) on ``folds``."""
+    if FILTER_NOISE == "held_out" and thetas is not None:
+        r = cv_residual(model_or_build, folds, soc0s, thetas)[0]
+        return np.array([filter_voltage_sd(r, folds, j) for j in range(folds.k)])
+    out = np.zeros(folds.k)
+    for j in range(folds.k):
+        r = cv_residual(model_or_build, folds, soc0s, None if thetas is None
+                        else np.repeat(thetas[j:j + 1], folds.k, axis=0))[0]
+        out[j] = filter_voltage_sd(r, folds, j)
+    return out
+
+
+def soc_folds_of(eval_profiles, folds: int, dt: float = 1.0) -> Folds:
+    """The filters' records: the evaluation records on coarser bins than the fits (a filter's cost is per sample, the
+    SOC error is slow), cut into the same equal-duration blocks, so that fold j's filter is scored on block j."""
+    return make_folds([_coarse(p, dt, SOC_MAX_SAMPLES) for p in eval_profiles], folds)
+
+
+def model_soc_errors(model, eval_profiles, folds: int = 4, dt: float = 1.0) -> dict | None:
+    """Held-out SOC errors of the EKF and the UKF (:func:`soc_errors`) with ``model``, none of whose parameters was
+    fitted on ``eval_profiles``, set up as the diagnosis sets up its base model's (*before*): a base fitted elsewhere,
+    e.g. the oracle fitted at the evaluation records' temperature, scored as the closed loop is."""
+    soc_folds = soc_folds_of(eval_profiles, folds, dt)
+    soc0s = [initial_soc(model, p) for p in soc_folds.records]
+    return soc_errors(lambda layout, fold=None: (model, None), soc_folds, soc0s,
+                      fold_filter_sd(model, soc_folds, soc0s))
+
+
 def fold_spread_sd(step, base) -> dict:
     """``{effect: initial SD per state}`` for the filters: where a state's initial value is a fitted parameter
     (:attr:`~socbench.models.effects.Effect.initial_params`), the jackknife spread of its fold estimates
@@ -647,30 +677,15 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
     soc_info = {}
     before_d, after_d = {"rmse_v": before}, {"rmse_v": after}
     if soc:
-        # the filters run on coarser bins than the fits (their cost is per sample, the SOC error is slow): the same
-        # equal-duration blocks, so fold j's filter is scored on block j
-        soc_records = [_coarse(p, dt, SOC_MAX_SAMPLES) for p in eval_profiles]
-        soc_folds = make_folds(soc_records, folds)
-        soc0s = [initial_soc(base, p) for p in soc_records]
-
-        def train_rmse(model_or_build, thetas=None):
-            """Each fold's filter voltage noise (:func:`filter_voltage_sd`) on the filters' records."""
-            out = np.zeros(soc_folds.k)
-            if FILTER_NOISE == "held_out" and thetas is not None:
-                r = cv_residual(model_or_build, soc_folds, soc0s, thetas)[0]
-                return np.array([filter_voltage_sd(r, soc_folds, j) for j in range(soc_folds.k)])
-            for j in range(soc_folds.k):
-                r = cv_residual(model_or_build, soc_folds, soc0s, None if thetas is None
-                                else np.repeat(thetas[j:j + 1], soc_folds.k, axis=0))[0]
-                out[j] = filter_voltage_sd(r, soc_folds, j)
-            return out
-
-        vsd_b = train_rmse(base)
+        soc_folds = soc_folds_of(eval_profiles, folds, dt)
+        soc0s = [initial_soc(base, p) for p in soc_folds.records]
+        vsd_b = fold_filter_sd(base, soc_folds, soc0s)
         sb = soc_errors(lambda layout, fold=None: (base, None), soc_folds, soc0s, vsd_b)
         if steps:
             last = steps[-1]
             isd = fold_spread_sd(last, base)
-            vsd_a = train_rmse(search.builder([n for n, _ in last.layout])[0], last.fit.folds())
+            vsd_a = fold_filter_sd(search.builder([n for n, _ in last.layout])[0], soc_folds, soc0s,
+                                   last.fit.folds())
             sa = soc_errors(lambda layout, fold=None: search.fold_models(last, layout, isd, fold), soc_folds, soc0s,
                             vsd_a)
         else:
@@ -752,9 +767,8 @@ def soc_attribution(diag: Diagnosis, eval_profiles, dt: float = 1.0) -> dict | N
         return None
     search, last = diag.search, diag.steps[-1]
     base = diag.base_model  # the base as fitted without any effect (the search's may be refitted with one)
-    records = [_coarse(p, dt, SOC_MAX_SAMPLES) for p in eval_profiles]
-    folds = make_folds(records, diag.split.k)
-    soc0s = [initial_soc(base, p) for p in records]
+    folds = soc_folds_of(eval_profiles, diag.split.k, dt)
+    soc0s = [initial_soc(base, p) for p in folds.records]
     isd = fold_spread_sd(last, base)
     models = {"before": lambda layout, fold=None: (base, None),
               "after": lambda layout, fold=None: search.fold_models(last, layout, isd, fold)}
