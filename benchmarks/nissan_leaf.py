@@ -72,6 +72,26 @@ def cli_fit(files, model: str, mode: str, out: Path) -> dict:
             "stdout": [ln for ln in done.stdout.splitlines() if "left out of the fit" in ln]}
 
 
+#: the evaluation records of ``socbench diagnose --fit hppc_25degC.csv`` (section 4): the other ambients' HPPCs, which
+#: start empty (a record that runs below the 25 °C HPPC's lowest rest point), and the discharge files
+DIAGNOSE_EVALS = ("hppc_10degC.csv", "hppc_40degC.csv", *DISCHARGES.values())
+
+
+def cli_diagnose(fit_file: Path, eval_file: Path, out: Path) -> dict:
+    """``socbench diagnose --fit FIT --eval EVAL --model dp`` in a subprocess: what its ``diagnosis.json`` says."""
+    cmd = [sys.executable, "-m", "socbench.cli", "diagnose", "--fit", str(fit_file), "--eval", str(eval_file),
+           "--model", "dp", "--out", str(out)]
+    t0 = time.perf_counter()
+    done = subprocess.run(cmd, cwd=out.parent, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if done.returncode != 0:
+        return {"error": (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1], "wall_s": wall}
+    d = json.loads((out / "diagnosis.json").read_text())
+    return {"added": d["effects_added"], "before_v": d["before"]["rmse_v"], "after_v": d["after"]["rmse_v"],
+            "soc": {k: {"before": d["before"]["soc"][k]["soc_rmse"], "after": d["after"]["soc"][k]["soc_rmse"]}
+                    for k in d["before"].get("soc", {})}, "wall_s": wall}
+
+
 def discharges(profile):
     """Each discharge of a 1C/2C/3C file, from a few samples of the rest before it to its last sample."""
     on = profile.current_a > DISCHARGE_A
@@ -132,6 +152,10 @@ def run(folder: Path) -> dict:
                     res["held_out"][f"{model}/{mode}"] = held_out(out, segments)
                 print(key, res["fits"][key]["rmse_v"], res["held_out"].get(f"{model}/{mode}") if t == 25 else "",
                       flush=True)
+    res["diagnose"] = {}
+    for name in DIAGNOSE_EVALS:
+        res["diagnose"][name] = cli_diagnose(hppc[25], d / name, folder / f"diagnose_{Path(name).stem}")
+        print("diagnose", name, res["diagnose"][name], flush=True)
     r = cli_fit([hppc[t] for t in TEMPS], "dp", "paper", folder / "dp_3T.json")
     res["three_temperatures"] = ({"error": r["error"]} if "error" in r else
                                  {"by_temperature": {str(b["temperature_c"]): b["rmse_v"]
@@ -155,14 +179,22 @@ def write_doc(path: Path, res: dict, before: dict | None, before_label: str) -> 
          + ". Every fit runs through `socbench fit` in a subprocess.*", "",
          f"**Data.** {CITE}. A 33.1 Ah pouch cell; each HPPC file starts empty and charges to full at 10 A before the "
          "test, then 30 A discharge and 22.5 A charge pulses, 10 % steps at 10 A and 1 h rests; no temperature column "
-         "(the file's ambient is used). The change below was found on this data (the fits before it spent themselves "
-         "on the charge from empty); the Panasonic HPPCs, on which the HPPC analysis grew up, are unchanged by it.",
+         "(the file's ambient is used); each ends at 3.0 V during its last 10 A step, with no rest at the bottom. The "
+         "changes below were found on this data; the Panasonic HPPCs, on which the HPPC analysis grew up, start full "
+         "and rest at their bottom, and are unchanged by them.",
          "",
-         "**What changed.** A fit now leaves out the samples before the test reaches full (the charge from empty, "
-         "whose SOC is counted back from full through a charge of unknown coulombic efficiency: near empty a point of "
-         "SOC is tens of mV of OCV) and those further than 0.02 in SOC beyond the OCV's rest points "
-         "(`socbench.identify.fit.OCV_FIT_MARGIN`), with a note saying how much. The Panasonic HPPCs start full and "
-         "end within that margin: nothing of them is left out, and their fits are unchanged.", "",
+         "**What changed.** Earlier (68676ef), a fit learnt to leave out the samples before the test reaches full (the "
+         "charge from empty, whose SOC is counted back from full through a charge of unknown coulombic efficiency: "
+         "near empty a point of SOC is tens of mV of OCV) and those further than 0.02 in SOC beyond the OCV's rest "
+         "points (`socbench.identify.fit.OCV_FIT_MARGIN`), with a note saying how much. Now (stop 49; the numbers "
+         "before the arrows are the code before it) the OCV is continued below the lowest rest point, down to the "
+         "test's most discharged point, along its last step once the step's over-potential has settled (the voltage "
+         "plus the current times the lowest pulse set's pulse resistance, `socbench.identify.hppc.HPPCAnalysis."
+         "ocv_bottom_extension`), instead of along the line through the two lowest rest points (3.43 V at empty where "
+         "the cell reads 3.0 V under 10 A); the curve above the lowest rest point is held as the rest points give it, "
+         "and the samples below it stay out of the fit. What a record running there reads changes (section 4); the "
+         "fits above it change through the samples within 0.02 below the lowest rest point, which now see the "
+         "continued curve (sections 1–3).", "",
          "## 1. Fit RMSE over the samples fitted [mV]", "",
          "| model | mode | 10 °C | 25 °C | 40 °C |", "|---|---|---|---|---|"]
     for model in MODELS:
@@ -205,6 +237,34 @@ def write_doc(path: Path, res: dict, before: dict | None, before_label: str) -> 
         w[-1] += ("fit RMSE per temperature " + ", ".join(f"{float(t):g} °C {pair(v, old.get(t))} mV"
                                                          for t, v in tt["by_temperature"].items())
                   + f" ({tt['wall_s']:.0f} s).")
+    diag = res.get("diagnose", {})
+    if diag:
+        bd = b.get("diagnose", {})
+        w += ["", "## 4. The closed loop from the 25 °C HPPC", "",
+              "`socbench diagnose --fit hppc_25degC.csv --eval FILE --model dp` on each record below (the HPPCs at 10 "
+              "and 40 °C start empty, where their first minutes run below the 25 °C HPPC's lowest rest point; no "
+              "record has a temperature column, so no temperature effect can be named). Held-out voltage RMSE of the "
+              "base model (*before*) and after the search, and the EKF's held-out SOC RMSE.", "",
+              "| evaluation record | effects named | voltage before [mV] | voltage after [mV] | EKF SOC before [%] | "
+              "EKF SOC after [%] |", "|---|---|---|---|---|---|"]
+
+        def pct(x):
+            return "—" if x is None else f"{100 * x:.2f}"
+
+        def values(r):
+            ekf = r.get("soc", {}).get("ekf", {})
+            return {"added": ", ".join(r["added"]) or "none", "before_v": mv(r["before_v"]),
+                    "after_v": mv(r["after_v"]), "soc_before": pct(ekf.get("before")),
+                    "soc_after": pct(ekf.get("after"))}
+
+        for name, r in diag.items():
+            if "error" in r:
+                w.append(f"| {name} | failed: {r['error']} | | | | |")
+                continue
+            now = values(r)
+            old = values(bd[name]) if name in bd and "error" not in bd[name] else None
+            cells = [now[k] if old is None else f"{old[k]} → **{now[k]}**" for k in now]
+            w.append(f"| {name} | " + " | ".join(cells) + " |")
     w += ["", "## What this does not show", "",
           "- The temperature tables' interpolation on this cell: no record here has a known temperature between the "
           "HPPCs' (the C/15 cycling file does not say which cycle ran at which ambient).",

@@ -82,6 +82,9 @@ class Layout:
     ascending: bool = False
     #: the SOC the last step discharges to (0: empty; many protocols stop at 10–30 %, or at a voltage limit above empty)
     stop_soc: float = 0.0
+    #: the test stops where its last step reaches ``stop_soc``, under load, with no rest after it (the ORNL Leaf HPPC
+    #: ends at the cut-off voltage during its last step)
+    stop_under_load: bool = False
 
 
 @dataclass(frozen=True)
@@ -167,7 +170,8 @@ def _schedule(cell: Cell, lay: Layout):
                 segs.append((0.0, lay.inner_rest_s, "inner"))
         z_next = 1.0 - (j + 1) * lay.step if j < n_levels - 1 else lay.stop_soc
         segs.append((lay.step_c * q, 3600.0 * (z - z_next) / lay.step_c, "step"))
-        segs.append((0.0, lay.rest_s, "rest"))
+        if not (lay.stop_under_load and j == n_levels - 1):
+            segs.append((0.0, lay.rest_s, "rest"))
         z = z_next
     if lay.recharge_after:
         segs += [(-lay.precharge_c * q, 3600.0 / lay.precharge_c, "charge"), (0.0, lay.rest_s, "post")]

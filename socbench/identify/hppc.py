@@ -150,6 +150,17 @@ MIN_OCV_REST_S = 240.0
 #: a record that starts this far (SOC) above its highest rest point gets its OCV continued to its top
 #: (:attr:`HPPCAnalysis.ocv_top_extension`)
 TOP_EXTENSION_MIN = 0.01
+#: a test whose most discharged point, reached by a step (a held discharge longer than the pulses) rather than a
+#: rest, lies this far (SOC) below its lowest rest point gets its OCV continued down to it
+#: (:attr:`HPPCAnalysis.ocv_bottom_extension`)
+BOTTOM_EXTENSION_MIN = 0.01
+#: whether a test that stops under load below its lowest rest point gets the bottom extension (off: the line through
+#: its two lowest rest points, as before stop 49)
+BOTTOM_EXTENSION = True
+#: SOC bins of the bottom extension's trace
+BOTTOM_BIN = 0.005
+#: points of the rest points' curve kept inside its lowest interval when the bottom extension is added
+BOTTOM_HELD = 8
 #: an HPPC rests (≥ min_rest_s) before at least this share of its pulse sets; a drive cycle with stops does not
 REST_SHARE = 0.5
 #: OCV point: line through the voltage over the last min(OCV_WINDOW_S, OCV_WINDOW_FRAC × duration) of a rest
@@ -229,6 +240,10 @@ class HPPCAnalysis:
     #: one past the test's last sample: the record's length, or the end of the rest after a test's most discharged
     #: point when the record charges back to full after it (None: the record's length)
     end_index: int | None = None
+    #: ``(z, OCV)`` the test's most discharged point reads when a step (not a rest) ends there, below the lowest rest
+    #: point: its voltage plus its current times the pulse resistance of the lowest pulse set (``r_pulse``: what the
+    #: pulses there dropped by their end); None otherwise (:attr:`ocv_bottom_extension`)
+    bottom_point: tuple | None = None
 
     @property
     def current_offset_a(self) -> float:
@@ -237,8 +252,16 @@ class HPPCAnalysis:
 
     def ocv(self, source: str = "") -> OCVCurve:
         """Monotone PCHIP through the OCV points (made monotone by isotonic regression first), continued to the
-        record's top SOC when it starts above its highest rest point (:attr:`ocv_top_extension`)."""
+        record's top SOC when it starts above its highest rest point (:attr:`ocv_top_extension`) and down to the
+        test's most discharged point when a step ends there below its lowest one (:attr:`ocv_bottom_extension`)."""
         z, v = monotone_points(self.ocv_soc, self.ocv_voltage)
+        if self.ocv_bottom_extension is not None and z.size >= 2:
+            below = [(zb, vb) for zb, vb in self.bottom_point if zb < z[0] - BOTTOM_EXTENSION_MIN]
+            # above the lowest rest point the curve stays the one the rest points give: its values on a few points
+            # of the lowest interval hold the interpolant's slope there, which the steep trace below would bend
+            held = np.linspace(z[0], z[1], BOTTOM_HELD + 2)[1:-1]
+            z, v = monotone_points(np.r_[[p[0] for p in below], z[0], held, z[1:]],
+                                   np.r_[[p[1] for p in below], v[0], OCVCurve(z, v)(held), v[1:]])
         ext = self.ocv_top_extension
         if ext is not None and z.size >= 2:
             z_top = ext[1]
@@ -263,6 +286,21 @@ class HPPCAnalysis:
         z_hi = float(np.max(self.ocv_soc))
         z_top = float(min(1.0, np.max(self.soc)))
         return (z_hi, z_top) if z_top > z_hi + TOP_EXTENSION_MIN else None
+
+    @property
+    def ocv_bottom_extension(self) -> tuple[float, float] | None:
+        """``(z_bottom, z_lowest_rest_point)`` when the test's most discharged point, reached by a step, lies more
+        than :data:`BOTTOM_EXTENSION_MIN` below its lowest OCV point (the test stops at the cut-off under load,
+        without a rest at the bottom), else None. There the curve continues down to :attr:`bottom_point`: the knee
+        at empty lies far below any line from the points above it (the Nissan Leaf HPPC at 25 °C ends at 3.0 V under
+        C/3, its lowest rest point at z = 0.058 reads 3.53 V, the line through the two lowest 3.43 V at z = 0, the
+        bottom point 3.04 V), and a record that runs there (the same cell's 10 °C HPPC, which starts from empty)
+        read the line: 282 mV RMS below z = 0.1."""
+        if self.bottom_point is None or self.ocv_soc.size < 2:
+            return None
+        z_lo = float(np.min(self.ocv_soc))
+        z_bot = self.bottom_point[0][0]
+        return (z_bot, z_lo) if z_bot < z_lo - BOTTOM_EXTENSION_MIN else None
 
     def resistance_table(self) -> dict:
         """Per pulse set: SOC and the median pulse resistances ``{"soc", "r_inst", "r_pulse", "tau_s"}`` (arrays;
@@ -913,9 +951,39 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
     level_soc = np.array([p.soc for p in firsts.values()])
     r_inst = _finite_median([p.r_inst for p in pulses])
     start_ocv = float(v[0] + r_inst * di[0]) if k_full == 0 and r_inst > 0 else float("nan")
+    bottom = (None if ascending or not BOTTOM_EXTENSION
+              else _bottom_point(t, v, di, ah, soc, pulses, start, end, lev, max_pulse_s))
     return HPPCAnalysis(tuple(rests), tuple(pulses), np.asarray(ocv_z), np.asarray(ocv_v), q, soc, ah, ah_source,
                         level_soc, tuple(notes), lev, float(max_pulse_s), start_ocv, start,
-                        "charge" if ascending else "discharge", end)
+                        "charge" if ascending else "discharge", end, bottom)
+
+
+def _bottom_point(t, v, di, ah, soc, pulses, start: int, end: int, lev: RestLevel, max_pulse_s: float):
+    """``(z, OCV)`` at the most discharged sample of a test down from full when a discharge step ends there
+    (:attr:`HPPCAnalysis.bottom_point`), else None. ``di`` is the current with the sensor's offset removed."""
+    k = start + int(np.argmax(ah[start:end]))
+    if di[k] <= lev.hi_a:  # at rest there (a final rest is a rest point of its own) or not discharging
+        return None
+    a = k
+    while a > start and di[a - 1] > lev.hi_a:
+        a -= 1
+    if t[k] - t[a] <= max_pulse_s:  # a pulse took the test lowest: its rest point stands for the bottom
+        return None
+    lowest = max(p.level for p in pulses)
+    r = _finite_median([p.r_pulse for p in pulses if p.level == lowest])
+    if not (np.isfinite(r) and r > 0):
+        return None
+    # the trace of the step once its over-potential has settled (three of the slowest relaxation times the pulses'
+    # rests read, at least the pulse length): v + I·r, on SOC bins of BOTTOM_BIN
+    settle = max(3.0 * _finite_median([p.tau_slow_s for p in pulses]) if pulses else 0.0, max_pulse_s)
+    keep = np.arange(a, k + 1)[t[a:k + 1] >= t[a] + (settle if np.isfinite(settle) else max_pulse_s)]
+    if keep.size == 0:
+        keep = np.array([k])
+    zs, us = soc[keep], v[keep] + di[keep] * r
+    edges = np.arange(float(zs.min()), float(zs.max()) + BOTTOM_BIN, BOTTOM_BIN)
+    idx = np.clip(np.searchsorted(edges, zs, side="right") - 1, 0, max(edges.size - 1, 0))
+    pts = [(float(np.median(zs[idx == j])), float(np.median(us[idx == j]))) for j in np.unique(idx)]
+    return tuple(sorted(pts))
 
 
 def _first_approach(x: np.ndarray, extreme: float, ah: np.ndarray) -> int:
