@@ -265,6 +265,15 @@ def write_doc(path: Path, res: dict, before: dict | None, before_label: str) -> 
             old = values(bd[name]) if name in bd and "error" not in bd[name] else None
             cells = [now[k] if old is None else f"{old[k]} → **{now[k]}**" for k in now]
             w.append(f"| {name} | " + " | ".join(cells) + " |")
+        both = [(r, bd[n]) for n, r in diag.items() if "error" not in r and "error" not in bd.get(n, {"error": 1})]
+        if both:
+            def lower(key, sub=None):
+                get = (lambda x: x["soc"]["ekf"][sub]) if sub else (lambda x: x[key])
+                return sum(get(r) < get(o) for r, o in both)
+
+            w += ["", f"Against the code before: the base model's voltage error lower on {lower('before_v')} of "
+                  f"{len(both)} records, after the search on {lower('after_v')}; the EKF's SOC error after the search "
+                  f"lower on {lower(None, 'after')}."]
     w += ["", "## What this does not show", "",
           "- The temperature tables' interpolation on this cell: no record here has a known temperature between the "
           "HPPCs' (the C/15 cycling file does not say which cycle ran at which ambient).",
