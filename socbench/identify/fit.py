@@ -481,9 +481,9 @@ def _fitted_samples(analysis, ocv, profile: Profile, notes: list) -> np.ndarray 
     after = k >= (analysis.end_index if analysis.end_index is not None else analysis.soc.size)
     outside = ocv.excursion(analysis.soc, temp=profile.temperature_c) > OCV_FIT_MARGIN
     if analysis.ocv_bottom_extension is not None:
-        # the curve continued below the lowest rest point is one point read under load (HPPCAnalysis.bottom_point):
-        # good enough to simulate a record there, not to fit the resistances on (the ORNL Leaf fits trained on it
-        # predicted the cell's 1C discharges worse above 10 % SOC, median 30.7 → 33.0 mV)
+        # the curve continued below the lowest rest point is read under load (HPPCAnalysis.bottom_point): good enough
+        # to simulate a record there, not to fit the resistances on (fitted on such a point, the ORNL Leaf fits
+        # predicted the cell's 1C discharges above 10 % SOC worse, median 30.7 → 33.0 mV)
         outside |= analysis.soc < analysis.ocv_bottom_extension[1] - OCV_FIT_MARGIN
     left_out = before | after | outside
     if not left_out.any() or left_out.all():

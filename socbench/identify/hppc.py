@@ -240,9 +240,10 @@ class HPPCAnalysis:
     #: one past the test's last sample: the record's length, or the end of the rest after a test's most discharged
     #: point when the record charges back to full after it (None: the record's length)
     end_index: int | None = None
-    #: ``(z, OCV)`` the test's most discharged point reads when a step (not a rest) ends there, below the lowest rest
-    #: point: its voltage plus its current times the pulse resistance of the lowest pulse set (``r_pulse``: what the
-    #: pulses there dropped by their end); None otherwise (:attr:`ocv_bottom_extension`)
+    #: ``((z, OCV), ...)`` by rising SOC, read along the step that ends at the test's most discharged point when a step
+    #: (not a rest) ends there below the lowest rest point, once its over-potential has settled: the voltage plus the
+    #: current times the pulse resistance of the lowest pulse set (``r_pulse``: what the pulses there dropped by their
+    #: end), medians on SOC bins of :data:`BOTTOM_BIN`; None otherwise (:attr:`ocv_bottom_extension`)
     bottom_point: tuple | None = None
 
     @property
@@ -959,14 +960,13 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
 
 
 def _bottom_point(t, v, di, ah, soc, pulses, start: int, end: int, lev: RestLevel, max_pulse_s: float):
-    """``(z, OCV)`` at the most discharged sample of a test down from full when a discharge step ends there
-    (:attr:`HPPCAnalysis.bottom_point`), else None. ``di`` is the current with the sensor's offset removed."""
+    """The trace :attr:`HPPCAnalysis.bottom_point` of a test down from full whose most discharged sample ends a
+    discharge step, else None. ``di`` is the current with the sensor's offset removed."""
     k = start + int(np.argmax(ah[start:end]))
     if di[k] <= lev.hi_a:  # at rest there (a final rest is a rest point of its own) or not discharging
         return None
-    a = k
-    while a > start and di[a - 1] > lev.hi_a:
-        a -= 1
+    quiet = np.flatnonzero(di[start:k] <= lev.hi_a)  # the step began after the last sample at rest before it
+    a = start + int(quiet[-1]) + 1 if quiet.size else start
     if t[k] - t[a] <= max_pulse_s:  # a pulse took the test lowest: its rest point stands for the bottom
         return None
     lowest = max(p.level for p in pulses)
@@ -975,8 +975,9 @@ def _bottom_point(t, v, di, ah, soc, pulses, start: int, end: int, lev: RestLeve
         return None
     # the trace of the step once its over-potential has settled (three of the slowest relaxation times the pulses'
     # rests read, at least the pulse length): v + I·r, on SOC bins of BOTTOM_BIN
-    settle = max(3.0 * _finite_median([p.tau_slow_s for p in pulses]) if pulses else 0.0, max_pulse_s)
-    keep = np.arange(a, k + 1)[t[a:k + 1] >= t[a] + (settle if np.isfinite(settle) else max_pulse_s)]
+    tau = _finite_median([p.tau_slow_s for p in pulses])
+    settle = max(3.0 * tau, max_pulse_s) if np.isfinite(tau) else max_pulse_s
+    keep = np.arange(a, k + 1)[t[a:k + 1] >= t[a] + settle]
     if keep.size == 0:
         keep = np.array([k])
     zs, us = soc[keep], v[keep] + di[keep] * r
