@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from socbench.datasets import load
+from socbench.datasets.panasonic import find_panasonic
 from socbench.diagnose import diagnose, fit_base, randomized
 from socbench.diagnose.core import IGNORE_VOLTAGE, model_soc_errors, soc_attribution
 from socbench.diagnose.cv import cv_residual
@@ -81,17 +82,6 @@ REAL = {
     },
 }
 
-#: the Panasonic 18650PF's HPPC and US06 files by ambient temperature [°C] (the temperature-pair table)
-PANASONIC_HPPC = {25: "25degC/03-11-17_08.47_25degC_5Pulse_HPPC_Pan18650PF.mat",
-                  10: "10degC/03-27-17_09.06_10degC_5Pulse_HPPC_Pan18650PF.mat",
-                  0: "0degC/05-20-17_10.44_0degC_5pulse_HPPC_Pan18650PF.mat",
-                  -10: "n10degC/06-07-17_12.29_n10degC_5pulse_HPPC_Pan18650PF.mat",
-                  -20: "n20degC/06-15-17_11.31_n20degC_5Pulse_HPPC_Pan18650PF.mat"}
-PANASONIC_US06 = {25: "25degC/03-20-17_01.43_25degC_US06_Pan18650PF.mat",
-                  10: "10degC/03-27-17_09.06_10degC_US06_Pan18650PF.mat",
-                  0: "0degC/06-02-17_04.58_0degC_US06_Pan18650PF.mat",
-                  -10: "n10degC/06-07-17_08.39_n10degC_US06_Pan18650PF.mat",
-                  -20: "n20degC/06-25-17_10.31_n20degC_US06_Pan18650PF.mat"}
 #: (fit, evaluation) ambient temperatures: every colder pair, fits in the cold evaluated at 25 °C, and the 25 °C
 #: control (the same temperature: nothing is missing but what the base structure lacks)
 TEMPERATURE_PAIRS = [(25, 10), (25, 0), (25, -10), (25, -20), (10, 0), (10, -10), (10, -20), (0, -10), (0, -20),
@@ -131,10 +121,10 @@ def temperature_pairs(data_dir: Path) -> list:
     evaluation temperature's HPPC, scored on the same bins)."""
     rows = []
     for model, (t_fit, t_eval) in ((m, pair) for m in PAIR_MODELS for pair in TEMPERATURE_PAIRS):
-        case = {"model": model, "fit": [f"panasonic_18650pf/{PANASONIC_HPPC[t_fit]}"],
-                "oracle": {"fit": [f"panasonic_18650pf/{PANASONIC_HPPC[t_eval]}"], "record": 0}}
+        hppc = {t: find_panasonic(data_dir, f"{t}degC", "HPPC")[0] for t in (t_fit, t_eval)}
+        case = {"model": model, "fit": [hppc[t_fit]], "oracle": {"fit": [hppc[t_eval]], "record": 0}}
         fit = [load(data_dir / f) for f in case["fit"]]
-        evals = [load(data_dir / "panasonic_18650pf" / PANASONIC_US06[t_eval])]
+        evals = [load(find_panasonic(data_dir, f"{t_eval}degC", "US06")[0])]
         diag, wall, cpu = _timed(partial(diagnose, model, fit, evals))
         soc = {key: {k: v["soc_rmse"] for k, v in getattr(diag, key).get("soc", {}).items()}
                for key in ("before", "after")}

@@ -57,16 +57,21 @@ def data_dir() -> Path:
     return Path(d) / "nissan_leaf_ornl"
 
 
+def cli(args, out: Path):
+    """``socbench ARGS`` in a subprocess run from ``out``'s folder (a PYTHONPATH given — an older checkout, --before —
+    then decides which socbench runs): ``(completed process, wall time [s], error line or None)``."""
+    t0 = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "socbench.cli", *map(str, args)], cwd=out.parent,
+                          capture_output=True, text=True)
+    error = None if done.returncode == 0 else (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1]
+    return done, time.perf_counter() - t0, error
+
+
 def cli_fit(files, model: str, mode: str, out: Path) -> dict:
     """``socbench fit`` in a subprocess: its PARAMS.json's ``fit`` block, the printed notes, the wall time."""
-    cmd = [sys.executable, "-m", "socbench.cli", "fit", "--data", *map(str, files), "--model", model, "--mode", mode,
-           "--out", str(out)]
-    t0 = time.perf_counter()
-    # run from the output folder: a PYTHONPATH given (an older checkout, --before) then decides which socbench runs
-    done = subprocess.run(cmd, cwd=out.parent, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if done.returncode != 0:
-        return {"error": (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1], "wall_s": wall}
+    done, wall, error = cli(["fit", "--data", *files, "--model", model, "--mode", mode, "--out", out], out)
+    if error:
+        return {"error": error, "wall_s": wall}
     saved = json.loads(out.read_text())
     return {"fit": saved["fit"], "notes": saved.get("notes", []), "wall_s": wall,
             "stdout": [ln for ln in done.stdout.splitlines() if "left out of the fit" in ln]}
@@ -79,13 +84,9 @@ DIAGNOSE_EVALS = ("hppc_10degC.csv", "hppc_40degC.csv", *DISCHARGES.values())
 
 def cli_diagnose(fit_file: Path, eval_file: Path, out: Path) -> dict:
     """``socbench diagnose --fit FIT --eval EVAL --model dp`` in a subprocess: what its ``diagnosis.json`` says."""
-    cmd = [sys.executable, "-m", "socbench.cli", "diagnose", "--fit", str(fit_file), "--eval", str(eval_file),
-           "--model", "dp", "--out", str(out)]
-    t0 = time.perf_counter()
-    done = subprocess.run(cmd, cwd=out.parent, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if done.returncode != 0:
-        return {"error": (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1], "wall_s": wall}
+    _, wall, error = cli(["diagnose", "--fit", fit_file, "--eval", eval_file, "--model", "dp", "--out", out], out)
+    if error:
+        return {"error": error, "wall_s": wall}
     d = json.loads((out / "diagnosis.json").read_text())
     return {"added": d["effects_added"], "before_v": d["before"]["rmse_v"], "after_v": d["after"]["rmse_v"],
             "soc": {k: {"before": d["before"]["soc"][k]["soc_rmse"], "after": d["after"]["soc"][k]["soc_rmse"]}

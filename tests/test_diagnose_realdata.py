@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from socbench.datasets import load
+from socbench.datasets.panasonic import find_panasonic
 from socbench.diagnose import diagnose, fit_base
 from socbench.diagnose.search import initial_soc
 
@@ -42,18 +43,6 @@ def test_panasonic_cold_drive_cycles_need_temperature_and_match_the_oracle(data_
     assert d.after["rmse_v_per_record"][cold.name] <= 1.5 * float(np.sqrt(np.mean(e * e)))
 
 
-HPPC = {25: "25degC/03-11-17_08.47_25degC_5Pulse_HPPC_Pan18650PF.mat",
-        10: "10degC/03-27-17_09.06_10degC_5Pulse_HPPC_Pan18650PF.mat",
-        0: "0degC/05-20-17_10.44_0degC_5pulse_HPPC_Pan18650PF.mat",
-        -10: "n10degC/06-07-17_12.29_n10degC_5pulse_HPPC_Pan18650PF.mat",
-        -20: "n20degC/06-15-17_11.31_n20degC_5Pulse_HPPC_Pan18650PF.mat"}
-US06 = {25: "25degC/03-20-17_01.43_25degC_US06_Pan18650PF.mat",
-        10: "10degC/03-27-17_09.06_10degC_US06_Pan18650PF.mat",
-        0: "0degC/06-02-17_04.58_0degC_US06_Pan18650PF.mat",
-        -10: "n10degC/06-07-17_08.39_n10degC_US06_Pan18650PF.mat",
-        -20: "n20degC/06-25-17_10.31_n20degC_US06_Pan18650PF.mat"}
-
-
 #: every pair of docs/closing_the_loop.md's temperature-pair table (benchmarks/closing_the_loop.py TEMPERATURE_PAIRS)
 #: whose ambients lie 20 K or more apart. Fitted at −20 °C and driven at 25 °C, the loop stays 1.84 × the oracle: a
 #: known miss, asserted as one
@@ -64,12 +53,13 @@ PAIRS = [(25, 0), (25, -10), (25, -20), (10, -10), (10, -20), (0, -20), (0, 25),
 @pytest.mark.parametrize("t_fit,t_eval", PAIRS)
 def test_panasonic_other_temperature_pairs_name_temperature_match_the_oracle_and_keep_the_soc(data_dir, t_fit,
                                                                                                  t_eval):
-    fit = [load(data_dir / PAN / HPPC[t_fit])]
-    rec = load(data_dir / PAN / US06[t_eval])
+    fit = [load(find_panasonic(data_dir, f"{t_fit}degC", "HPPC")[0])]
+    rec = load(find_panasonic(data_dir, f"{t_eval}degC", "US06")[0])
     d = diagnose("dp", fit, [rec])
     assert d.effects_added and d.effects_added[0] == "temperature", d.effects_added
     scored = d.split.records[0]  # the bins the loop's held-out error is on
-    oracle, _ = fit_base("dp", [load(data_dir / PAN / HPPC[t_eval])], "auto", validation=[scored])
+    oracle, _ = fit_base("dp", [load(find_panasonic(data_dir, f"{t_eval}degC", "HPPC")[0])], "auto",
+                         validation=[scored])
     e = scored.voltage_v - oracle.simulate(scored, soc0=initial_soc(oracle, scored)).voltage_v
     assert d.after["rmse_v"] <= 1.5 * float(np.sqrt(np.mean(e * e)))
     for name in ("ekf", "ukf"):
