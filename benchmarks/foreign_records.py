@@ -240,11 +240,11 @@ def branch_verdict(diagnosis: dict) -> dict:
     :data:`VERDICTS` that applies, read from the report alone (scores, held-out RMSEs, evidence, the final measured
     noise) with the search's published rules: a round ends at the noise floor (held-out RMSE ≤ ``NOISE_FLOOR`` × the
     noise, ``NOISE_FLOOR_REFIT`` × once the base refit was added), an addition must cut the held-out RMSE by
-    ``min_gain``, the round's chosen candidate is added."""
+    ``min_gain``, at the floor by ``FLOOR_GAIN``, the round's chosen candidate is added."""
     import inspect
 
     from socbench.diagnose import diagnose
-    from socbench.diagnose.search import NOISE_FLOOR, NOISE_FLOOR_REFIT
+    from socbench.diagnose.search import FLOOR_GAIN, NOISE_FLOOR, NOISE_FLOOR_REFIT
 
     if "extra_rc" in diagnosis["effects_added"]:
         return {"verdict": "named"}
@@ -266,7 +266,7 @@ def branch_verdict(diagnosis: dict) -> dict:
         verdict = "no held-out gain"
     elif after > (1.0 - min_gain) * now:
         verdict = "cut below the search's min_gain"
-    elif now <= floor:
+    elif now <= floor and (FLOOR_GAIN is None or after > (1.0 - FLOOR_GAIN) * now):
         verdict = "held at the noise floor"
     else:
         verdict = "another candidate won"

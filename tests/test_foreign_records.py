@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from socbench.diagnose.search import NOISE_FLOOR, NOISE_FLOOR_REFIT
+from socbench.diagnose.search import FLOOR_GAIN, NOISE_FLOOR, NOISE_FLOOR_REFIT
 
 REPO = Path(__file__).resolve().parents[1]
 NOISE_V = 0.002
@@ -34,14 +34,18 @@ def _diagnosis(before_v, after_v, score, evidence="residual signature LP_τ(I)",
 
 
 @pytest.mark.parametrize("case, verdict", [
-    # a cut of a third from just under the floor: held there
-    (dict(before_v=0.99 * NOISE_FLOOR * NOISE_V, after_v=0.66 * NOISE_FLOOR * NOISE_V, score=0.5),
+    # a cut short of FLOOR_GAIN (above min_gain) from just under the floor: held there
+    (dict(before_v=0.99 * NOISE_FLOOR * NOISE_V, after_v=(1.0 - 0.8 * FLOOR_GAIN) * 0.99 * NOISE_FLOOR * NOISE_V,
+          score=0.1), "held at the noise floor"),
+    # a cut beyond FLOOR_GAIN there: the floor did not hold it
+    (dict(before_v=0.99 * NOISE_FLOOR * NOISE_V, after_v=(0.9 - FLOOR_GAIN) * 0.99 * NOISE_FLOOR * NOISE_V,
+          score=0.5), "another candidate won"),
+    # the first numbers after the base refit, whose floor is lower: the floor did not hold it
+    (dict(before_v=0.99 * NOISE_FLOOR * NOISE_V, after_v=(1.0 - 0.8 * FLOOR_GAIN) * 0.99 * NOISE_FLOOR * NOISE_V,
+          score=0.1, steps=("current_bias", "base_refit")), "another candidate won"),
+    (dict(before_v=0.99 * NOISE_FLOOR_REFIT * NOISE_V,
+          after_v=(1.0 - 0.8 * FLOOR_GAIN) * 0.99 * NOISE_FLOOR_REFIT * NOISE_V, score=0.1, steps=("base_refit",)),
      "held at the noise floor"),
-    # the same numbers after the base refit, whose floor is lower: the floor did not hold it
-    (dict(before_v=0.99 * NOISE_FLOOR * NOISE_V, after_v=0.66 * NOISE_FLOOR * NOISE_V, score=0.5,
-          steps=("current_bias", "base_refit")), "another candidate won"),
-    (dict(before_v=0.99 * NOISE_FLOOR_REFIT * NOISE_V, after_v=0.66 * NOISE_FLOOR_REFIT * NOISE_V, score=0.5,
-          steps=("base_refit",)), "held at the noise floor"),
     # far above the floor, a 5 % cut
     (dict(before_v=10 * NOISE_V, after_v=9.5 * NOISE_V, score=0.02), "cut below the search's min_gain"),
     (dict(before_v=10 * NOISE_V, after_v=10.2 * NOISE_V, score=-0.05), "no held-out gain"),

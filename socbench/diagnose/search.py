@@ -17,7 +17,9 @@ One round, on the current model ``m`` (the base model, then the base model with 
    least 100 — neighbouring residuals of a voltage fit are far from independent);
 4. add the chosen candidate (:meth:`Search._choose`) if it lowers the held-out RMSE by at least ``min_gain`` (10 %)
    and the model is not already at the noise floor (held-out RMSE ≤ ``NOISE_FLOOR`` × the voltage noise of the
-   averaged records, :func:`residual_noise`; ``NOISE_FLOOR_REFIT`` × once the base refit is in the model); else stop.
+   averaged records, :func:`residual_noise`; ``NOISE_FLOOR_REFIT`` × once the base refit is in the model) — at the
+   floor, only an effect that cuts it by ``FLOOR_GAIN`` (25 %, more than any effect cut in 99 % of null cases there)
+   and, fitted jointly with the base refit, the refit's error by as much; else stop.
    The noise is measured again on the residual of the model as it grows (:meth:`Search._remeasure_noise`: a base
    model far off, in the cold, reads its own error at the current's edges as noise). Where nothing passes in the
    first round, the best-scoring effects are fitted again jointly with the base refit, and one is added when so it
@@ -114,6 +116,19 @@ NOISE_FLOOR = 2.5
 #: evaluation data (every later candidate is fitted jointly with it), so what stands above the noise is structure a
 #: refit of the base cannot take. Half the noise's own level of headroom is left for the refit's bounded scaling.
 NOISE_FLOOR_REFIT = 1.5
+#: below its noise floor the search goes on only for an effect that cuts the held-out RMSE by this share (None: the
+#: floor stops it). The floor is set for the base model's own error, which a flexible effect can take part of near the
+#: noise; a cut this large is more than such an effect takes. The share is the 99th percentile, rounded up to 0.05, of
+#: the largest cut any effect made at the floor in 200 null cases of the randomised generator's seeds 9101–9105, which
+#: neither the tests nor the benchmark's reported runs use (``python benchmarks/floor_gain.py --seeds 9101 9102 9103
+#: 9104 9105``): 0.23; the largest 0.30, and 2 of the 200 reach 0.25. Never the base refit (below the floor the error
+#: it takes is the base fit's own); and the effect, fitted jointly with the base refit, must cut the refit's error by
+#: this share too, with no exemption for a measured temperature (:meth:`_beyond_refit`). With ``min_gain`` asked there
+#: instead, the randomised benchmark's seven runs named 5 more of 744 hidden effects first and one more pair, but a
+#: null record read 8–15 K warmer than its fit test with an OCV offset of 1.2–1.8 × the noise
+#: (``tests/test_diagnose_floor_gain.py``) got a hysteresis in 1 of 12 draws (its state, fitted fold by fold, took the
+#: offset), and with the temperature exempt too, an effect in 2 of the test's 6.
+FLOOR_GAIN = 0.25
 #: the effects that drift the SOC (one family of signatures)
 SOC_DRIFT = ("capacity", "current_bias", "coulombic_efficiency", "self_discharge")
 #: the pseudo-candidate "the base model's own parameters (scaled) and each record's voltage offset, refitted on the
@@ -612,6 +627,14 @@ class Search:
             # error another effect dominates (a cold cell) it cuts nothing until that effect is added beside it
             measured = best is not None and best.effect == "current_bias" and bool(self.bias_measured)
             at_floor = rmse_now <= self.floor(BASE_REFIT in names)
+            below_floor = at_floor and not measured and FLOOR_GAIN is not None
+            if below_floor:  # at the floor only an effect that cuts the error by FLOOR_GAIN goes on
+                strong = [c for c in cands if c.effect != BASE_REFIT and np.isfinite(c.score) and c.score > 0
+                          and c.rmse_after <= (1.0 - FLOOR_GAIN) * rmse_now]
+                if strong:
+                    best, at_floor = max(strong, key=lambda c: c.score), False
+                else:
+                    below_floor = False
             if best is None or not np.isfinite(best.score) or not measured and (
                     best.score <= 0 or best.rmse_after > (1.0 - self.min_gain) * rmse_now or at_floor):
                 joint = None if at_floor else self._joint_with_refit(cands, names, fold_sigs, sigs_all, rmse_now,
@@ -620,7 +643,10 @@ class Search:
                     break
                 best = joint
             else:
-                best = self._beyond_refit(best, cands, names, fold_sigs, sigs_all, n_eff)
+                best = self._beyond_refit(best, cands, names, fold_sigs, sigs_all, n_eff, exempt=not below_floor,
+                                          gain=FLOOR_GAIN if below_floor else self.min_gain)
+                if below_floor and best.effect == BASE_REFIT:  # the refit explains it as well: the floor holds
+                    break
             steps.append(best)
             # after the base refit, the effects that scored best beside it are fitted again, jointly with it, whatever
             # their signature on the refitted residual: the refit takes up part of an effect (a scaled resistance is
@@ -797,27 +823,32 @@ class Search:
                 return max(rivals, key=lambda c: c.score)
         return best
 
-    def _beyond_refit(self, best, cands, names, fold_sigs, sigs_all, n_eff):
+    def _beyond_refit(self, best, cands, names, fold_sigs, sigs_all, n_eff, exempt: bool = True,
+                      gain: float | None = None):
         """``best``, or the base refit when ``best`` is an effect that explains no more than the refit does.
 
         Where the base refit also cut the error this round, a base-fit error is part of the residual, and a flexible
         effect may have taken it up instead. The effect is fitted jointly with the refit (nested): unless it cuts the
         refit's held-out RMSE by :attr:`min_gain`, what it explained is what a better base fit explains, and the
         refit is taken (never named; the effect is fitted again beside it in the next round). Effects whose evidence
-        is a measured input are exempt: the temperature (the measured temperature differs from the fit's) and a
-        current offset the rests measure."""
-        if best.effect in (BASE_REFIT, "temperature") or BASE_REFIT in names \
-                or (best.effect == "current_bias" and self.bias_measured):
+        is a measured input are exempt (``exempt``): the temperature (the measured temperature differs from the fit's)
+        and a current offset the rests measure. Below the noise floor (:data:`FLOOR_GAIN`) none is, and the effect must
+        cut the refit's error by ``gain`` = ``FLOOR_GAIN`` there (default :attr:`min_gain`): what a flexible effect
+        takes there beyond the refit can be an offset the refit's per-record offset takes too (a measured temperature's
+        entropic term, a hysteresis state fitted fold by fold), and the floor asks more than ``min_gain`` of it."""
+        if best.effect == BASE_REFIT or BASE_REFIT in names or exempt and (
+                best.effect == "temperature" or (best.effect == "current_bias" and self.bias_measured)):
             return best
         refit = next((c for c in cands if c.effect == BASE_REFIT and np.isfinite(c.score) and c.score > 0
                       and c.rmse_after <= (1.0 - self.min_gain) * c.rmse_before), None)
         if refit is None or fold_sigs is None:
             return best
+        gain = self.min_gain if gain is None else gain
         joint = self._try(best.effect, names + [BASE_REFIT], refit.fit.thetas, fold_sigs, sigs_all.get(best.effect),
                           refit.rmse_after, n_eff)
         best.evidence += (f"; fitted jointly with the base refit: held-out RMSE {1000 * refit.rmse_after:.1f} → "
                           f"{1000 * joint.rmse_after:.1f} mV")
-        if np.isfinite(joint.score) and joint.rmse_after <= (1.0 - self.min_gain) * refit.rmse_after:
+        if np.isfinite(joint.score) and joint.rmse_after <= (1.0 - gain) * refit.rmse_after:
             return best
         refit.evidence += (f"; {best.effect} explained no more than this refit (jointly with it "
                            f"{1000 * joint.rmse_after:.1f} mV)")
