@@ -53,8 +53,7 @@ def largest_cut_at_floor(r: dict) -> float:
         return -1.0
     noise, now, steps, best = r["noise_sd_binned"], r["rmse_before"], r["steps"], -1.0
     for k, round_ in enumerate(r["rounds"]):
-        floor = (search.NOISE_FLOOR_REFIT if search.BASE_REFIT in steps[:k] else search.NOISE_FLOOR) * noise
-        if now <= floor:
+        if now <= search.noise_floor(noise, search.BASE_REFIT in steps[:k]):
             cuts = [1.0 - c[2] / 1000.0 / now for c in round_ if c[0] != search.BASE_REFIT and c[1] > 0]
             best = max([best, *cuts])
         adopted = [c for c in round_ if k < len(steps) and c[0] == steps[k]]

@@ -244,7 +244,7 @@ def branch_verdict(diagnosis: dict) -> dict:
     import inspect
 
     from socbench.diagnose import diagnose
-    from socbench.diagnose.search import FLOOR_GAIN, NOISE_FLOOR, NOISE_FLOOR_REFIT
+    from socbench.diagnose.search import FLOOR_GAIN, noise_floor
 
     if "extra_rc" in diagnosis["effects_added"]:
         return {"verdict": "named"}
@@ -257,7 +257,7 @@ def branch_verdict(diagnosis: dict) -> dict:
         return {"verdict": "signature too weak to fit"}
     k, c = (fitted or listed)[-1]
     now, after = c["rmse_v_before"], c["rmse_v_after"]
-    floor = (NOISE_FLOOR_REFIT if "base_refit" in steps[:k] else NOISE_FLOOR) * noise
+    floor = noise_floor(noise, "base_refit" in steps[:k])
     if c["score"] is None:
         verdict = "signature too weak to fit"
     elif "lies within" in c["evidence"]:

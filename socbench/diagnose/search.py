@@ -230,6 +230,12 @@ class Candidate:
                 "worst_block_mse_ratio": round(float(self.fold_ratio), 4) if np.isfinite(self.fold_ratio) else None}
 
 
+def noise_floor(noise_sd: float, refitted: bool = False) -> float:
+    """The search's noise floor for a voltage noise ``noise_sd``: :data:`NOISE_FLOOR` × it, :data:`NOISE_FLOOR_REFIT` ×
+    once the base refit is in the model (``refitted``)."""
+    return (NOISE_FLOOR_REFIT if refitted else NOISE_FLOOR) * noise_sd
+
+
 def initial_soc(model, profile) -> float:
     """The reference SOC at the start when the data carry one, else the SOC the model reads off the first voltage
     (:func:`socbench.segments.restart_soc`)."""
@@ -627,14 +633,13 @@ class Search:
             # error another effect dominates (a cold cell) it cuts nothing until that effect is added beside it
             measured = best is not None and best.effect == "current_bias" and bool(self.bias_measured)
             at_floor = rmse_now <= self.floor(BASE_REFIT in names)
-            below_floor = at_floor and not measured and FLOOR_GAIN is not None
-            if below_floor:  # at the floor only an effect that cuts the error by FLOOR_GAIN goes on
-                strong = [c for c in cands if c.effect != BASE_REFIT and np.isfinite(c.score) and c.score > 0
-                          and c.rmse_after <= (1.0 - FLOOR_GAIN) * rmse_now]
-                if strong:
-                    best, at_floor = max(strong, key=lambda c: c.score), False
-                else:
-                    below_floor = False
+            # at the floor only an effect that cuts the error by FLOOR_GAIN goes on
+            strong = [c for c in cands if c.effect != BASE_REFIT and np.isfinite(c.score) and c.score > 0
+                      and c.rmse_after <= (1.0 - FLOOR_GAIN) * rmse_now] \
+                if at_floor and not measured and FLOOR_GAIN is not None else []
+            below_floor = bool(strong)
+            if below_floor:
+                best, at_floor = max(strong, key=lambda c: c.score), False
             if best is None or not np.isfinite(best.score) or not measured and (
                     best.score <= 0 or best.rmse_after > (1.0 - self.min_gain) * rmse_now or at_floor):
                 joint = None if at_floor else self._joint_with_refit(cands, names, fold_sigs, sigs_all, rmse_now,
@@ -643,8 +648,7 @@ class Search:
                     break
                 best = joint
             else:
-                best = self._beyond_refit(best, cands, names, fold_sigs, sigs_all, n_eff, exempt=not below_floor,
-                                          gain=FLOOR_GAIN if below_floor else self.min_gain)
+                best = self._beyond_refit(best, cands, names, fold_sigs, sigs_all, n_eff, below_floor)
                 if below_floor and best.effect == BASE_REFIT:  # the refit explains it as well: the floor holds
                     break
             steps.append(best)
@@ -793,9 +797,9 @@ class Search:
             self.noise_sd = min(self.noise_sd, sigma * self.noise_scale)
 
     def floor(self, refitted: bool = False) -> float:
-        """No effect is added once the held-out RMSE is at or below this (see :data:`NOISE_FLOOR`;
-        :data:`NOISE_FLOOR_REFIT` once the base refit is in the model)."""
-        return (NOISE_FLOOR_REFIT if refitted else NOISE_FLOOR) * self.noise_sd
+        """No effect is added once the held-out RMSE is at or below this (:func:`noise_floor` of the noise measured
+        so far), but for one that cuts it by :data:`FLOOR_GAIN`."""
+        return noise_floor(self.noise_sd, refitted)
 
     def _choose(self, cands):
         """The best-scoring candidate, except that an effect within :data:`PARSIMONY` of a winning base refit is
@@ -823,27 +827,26 @@ class Search:
                 return max(rivals, key=lambda c: c.score)
         return best
 
-    def _beyond_refit(self, best, cands, names, fold_sigs, sigs_all, n_eff, exempt: bool = True,
-                      gain: float | None = None):
+    def _beyond_refit(self, best, cands, names, fold_sigs, sigs_all, n_eff, below_floor: bool = False):
         """``best``, or the base refit when ``best`` is an effect that explains no more than the refit does.
 
         Where the base refit also cut the error this round, a base-fit error is part of the residual, and a flexible
         effect may have taken it up instead. The effect is fitted jointly with the refit (nested): unless it cuts the
         refit's held-out RMSE by :attr:`min_gain`, what it explained is what a better base fit explains, and the
         refit is taken (never named; the effect is fitted again beside it in the next round). Effects whose evidence
-        is a measured input are exempt (``exempt``): the temperature (the measured temperature differs from the fit's)
-        and a current offset the rests measure. Below the noise floor (:data:`FLOOR_GAIN`) none is, and the effect must
-        cut the refit's error by ``gain`` = ``FLOOR_GAIN`` there (default :attr:`min_gain`): what a flexible effect
-        takes there beyond the refit can be an offset the refit's per-record offset takes too (a measured temperature's
-        entropic term, a hysteresis state fitted fold by fold), and the floor asks more than ``min_gain`` of it."""
-        if best.effect == BASE_REFIT or BASE_REFIT in names or exempt and (
+        is a measured input are exempt: the temperature (the measured temperature differs from the fit's) and a
+        current offset the rests measure. ``below_floor`` (the search goes on below its noise floor,
+        :data:`FLOOR_GAIN`): none is, and the effect must cut the refit's error by ``FLOOR_GAIN`` instead of
+        :attr:`min_gain` — what a flexible effect takes there beyond the refit can be an offset the refit's per-record
+        offset takes too (a measured temperature's entropic term, a hysteresis state fitted fold by fold)."""
+        if best.effect == BASE_REFIT or BASE_REFIT in names or not below_floor and (
                 best.effect == "temperature" or (best.effect == "current_bias" and self.bias_measured)):
             return best
         refit = next((c for c in cands if c.effect == BASE_REFIT and np.isfinite(c.score) and c.score > 0
                       and c.rmse_after <= (1.0 - self.min_gain) * c.rmse_before), None)
         if refit is None or fold_sigs is None:
             return best
-        gain = self.min_gain if gain is None else gain
+        gain = FLOOR_GAIN if below_floor else self.min_gain
         joint = self._try(best.effect, names + [BASE_REFIT], refit.fit.thetas, fold_sigs, sigs_all.get(best.effect),
                           refit.rmse_after, n_eff)
         best.evidence += (f"; fitted jointly with the base refit: held-out RMSE {1000 * refit.rmse_after:.1f} → "
