@@ -146,7 +146,7 @@ def is_slow_test(profile: Profile) -> bool:
 
 
 #: the diagnosis' default for ``refine_ocv`` (:func:`fit_base`): every HPPC's rest-point OCV is refined, the refit kept
-#: where it validates better
+#: where it validates no worse
 REFINE_OCV = True
 #: the base fit's ``refine_ocv="coarse"`` refines an HPPC's rest-point OCV when two neighbouring points lie more than
 #: this far apart in SOC
@@ -220,8 +220,9 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
     on the randomised benchmark 3 of 512 cases had one, two of them a wrong extra branch named.
 
     ``refine_ocv``: with an OCV from the HPPC's rest points, the kept setting is fitted again on that curve refined
-    between the points (:func:`socbench.identify.pseudo_ocv.refine_ocv`) and the refit kept when it validates
-    :data:`~socbench.identify.pseudo_ocv.REFIT_GAIN` better and none of its branches is slower than the record
+    between the points (:func:`socbench.identify.pseudo_ocv.refine_ocv`) and the refit kept when it fits its record
+    :data:`~socbench.identify.pseudo_ocv.REFIT_GAIN` better, predicts the validation records no worse
+    (:data:`~socbench.identify.pseudo_ocv.VALIDATION_GAIN`) and none of its branches is slower than the record
     (:func:`~socbench.identify.pseudo_ocv.refit_on_refined_ocv`). :func:`diagnose` tries it on every HPPC
     (:data:`REFINE_OCV`): even in 5–10 % steps the curve misses the bends between its points (LFP's knees, the top
     of charge), and a base that carries that miss leaves an error along the SOC that the effects then take up. On
