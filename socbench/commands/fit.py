@@ -10,7 +10,7 @@ record of several discharges (battery swaps, recharges) is fitted segment by seg
 step segments (its charge steps in an HPPC run in the charge direction) and fits again
 (:func:`socbench.identify.pseudo_ocv.refit_on_refined_ocv`: the refit is kept when
 no RC branch is slower than the record, it fits the record 10 % better and, with ``--validation`` records, it predicts
-them 10 % better).
+them no worse).
 
 Several ``--data`` records (one per temperature: Panasonic HPPCs at 25, 10, 0, −10, −20 °C) are fitted each and
 assembled into one temperature-aware set (:func:`socbench.identify.temperature.fit_temperatures`): parameter tables over
@@ -94,7 +94,7 @@ def add_arguments(parser) -> None:
                              "its step segments (discharge, or charge in the charge direction) and fit again; the "
                              "refit is kept when no RC branch is slower "
                              "than the record, it fits the record 10%% better and, with --validation records, it "
-                             "predicts them 10%% better")
+                             "predicts them no worse")
     parser.add_argument("--validation", nargs="+", default=(),
                         help="records (with a reference SOC) on which the noise recipe measures the model error "
                              "(default: the identification records)")

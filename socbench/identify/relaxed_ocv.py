@@ -22,10 +22,11 @@ holds a few mV at each rest's end, and each round moves the points further). So 
 holds at least :data:`MIN_SHIFT_V` per cell at some rest's end (below that a refit cannot matter, and the cost of two
 fits is saved), and :func:`refit_on_relaxed_ocv` keeps the refit only when every branch's time constant is within the
 record (a branch slower than the record trades against the OCV offset freely) and, given validation records, when
-their mean open-loop RMSE falls by :data:`~socbench.identify.pseudo_ocv.REFIT_GAIN`, the bar of every other addition
-to the base fit. The diagnosis' base fit calls it when asked to (:func:`socbench.diagnose.core.fit_base`,
-``diagnose(…, relax_ocv=True)``; off by default, the reason is there); ``socbench fit`` has no validation record to
-judge it by and does not.
+their mean open-loop RMSE falls by :data:`~socbench.identify.pseudo_ocv.REFIT_GAIN` (the refined curve, which must
+fit its own record that much better first, is held only to predicting them no worse,
+:data:`~socbench.identify.pseudo_ocv.VALIDATION_GAIN`). The diagnosis' base fit calls it when asked to
+(:func:`socbench.diagnose.core.fit_base`, ``diagnose(…, relax_ocv=True)``; off by default, the reason is there);
+``socbench fit`` has no validation record to judge it by and does not.
 """
 
 from __future__ import annotations
