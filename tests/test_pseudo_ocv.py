@@ -16,6 +16,7 @@ from socbench.diagnose.core import fit_base
 from socbench.identify import fit_model, pseudo_ocv, validation_rmse
 from socbench.identify.fit import branch_time_constants
 from socbench.identify.pseudo_ocv import REFIT_GAIN, VALIDATION_GAIN, refine_ocv
+from socbench.profile import Profile
 
 from . import hppc_records as H
 
@@ -76,7 +77,7 @@ def test_refined_curve_predicts_another_record_better(draws):
     assert np.median(ratios) <= 0.8, ratios.round(2)
 
 
-def test_fit_base_keeps_the_refinement_only_when_it_validates_better():
+def test_fit_base_keeps_the_refinement_only_when_it_validates_no_worse():
     """Asked to (``refine_ocv``), the diagnosis' base fit tries the refined curve beside the chosen setting and keeps
     it when it predicts the evaluation records no worse (``VALIDATION_GAIN``; and its branches are identified, and it
     fits its own record ``REFIT_GAIN`` better); both scores are reported. Not asked, it does not try it."""
@@ -242,8 +243,6 @@ def test_a_refinement_the_noisy_validation_records_do_not_reject_predicts_the_no
     the refined curve predicts that noisy record better agrees with whether it predicts the noise-free voltage better;
     and where it does by less than 10 % (what the bar of 10 %, until stop 51, refused: noise-dominated records) the
     refined curve is the better one without noise."""
-    from socbench.profile import Profile
-
     agree, small = [], []
     shapes = ("lfp", "nmc", "nca")
     with warnings.catch_warnings():
