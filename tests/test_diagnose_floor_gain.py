@@ -18,7 +18,7 @@ import pytest
 
 from socbench.diagnose import diagnose
 from socbench.diagnose import search as search_module
-from socbench.diagnose.search import NOISE_FLOOR
+from socbench.diagnose.search import noise_floor
 from socbench.diagnose.synthetic import hidden_case
 from socbench.profile import Profile
 
@@ -36,7 +36,7 @@ def _diagnosis(effect, seed):
 
 
 def _at_floor(d) -> bool:
-    return d.before["rmse_v"] <= NOISE_FLOOR * d.fit["voltage_noise_sd_binned"]
+    return d.before["rmse_v"] <= noise_floor(d.fit["voltage_noise_sd_binned"])
 
 
 @pytest.mark.slow

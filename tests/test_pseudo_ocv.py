@@ -260,8 +260,10 @@ def test_a_refinement_the_noisy_validation_records_do_not_reject_predicts_the_no
             refit, report = pseudo_ocv.refit_on_refined_ocv(fit, rec.profile, validation=[p], mode="constant")
             if not report["refined"]:
                 continue
-            refined = refine_ocv(fit, rec.profile)
-            on_curve = fit_model(base, rec.profile, mode="constant", ocv=refined, capacity_ah=fit.params.capacity_ah)
+            # the refit on the refined curve, kept or not (refit_on_refined_ocv returns it only when kept)
+            on_curve = refit if refit is not None else fit_model(
+                base, rec.profile, mode="constant", ocv=refine_ocv(fit, rec.profile),
+                capacity_ah=fit.params.capacity_ah)
             before, after = report["validation_rmse_v"]
             better_clean = validation_rmse(on_curve, clean) < validation_rmse(fit, clean)
             agree.append((after <= before) == better_clean)
