@@ -85,6 +85,9 @@ class Layout:
     #: the test stops where its last step reaches ``stop_soc``, under load, with no rest after it (the ORNL Leaf HPPC
     #: ends at the cut-off voltage during its last step)
     stop_under_load: bool = False
+    #: the first set (at full) has no charge pulse: a cycler cannot charge a full cell (the USABC HPPC at 100 % SOC
+    #: has no regen pulse)
+    skip_charge_at_full: bool = False
 
 
 @dataclass(frozen=True)
@@ -163,10 +166,11 @@ def _schedule(cell: Cell, lay: Layout):
     segs += [(0.0, lay.rest_s, "rest")]
     z = 1.0
     for j in range(n_levels):
-        for m, c in enumerate(lay.pulses_c):
+        pulses = [c for c in lay.pulses_c if not (j == 0 and lay.skip_charge_at_full and c < 0)]
+        for m, c in enumerate(pulses):
             segs.append((c * q, _pulse_s(lay, c), "pulse"))
             z -= c * _pulse_s(lay, c) / 3600.0  # C·h = fraction of Q
-            if not (m == len(lay.pulses_c) - 1 and lay.straight_into_step):
+            if not (m == len(pulses) - 1 and lay.straight_into_step):
                 segs.append((0.0, lay.inner_rest_s, "inner"))
         z_next = 1.0 - (j + 1) * lay.step if j < n_levels - 1 else lay.stop_soc
         segs.append((lay.step_c * q, 3600.0 * (z - z_next) / lay.step_c, "step"))

@@ -561,6 +561,10 @@ def _recovery_tau(t: np.ndarray, v: np.ndarray, level: float = 1.0 - np.exp(-1.0
 #: than :data:`FEW_OCV_POINTS` OCV points (:func:`analyze_hppc`): the upper end of each group of the record's held
 #: phases (from a rest) whose lengths lie within this ratio of the next, up to :data:`LADDER_MAX_S`
 LADDER_RATIO = 1.15
+#: … or lie more than this many sample periods apart: a phase's length is measured to a sample period at each edge, so
+#: lengths further apart are different phases however close their ratio (an independent generator's HPPC: 42.5 s
+#: discharge pulses and 48.6 s SOC steps sampled every 0.23 s, one group by the ratio alone, and no bound between them)
+LADDER_SAMPLES = 4.0
 LADDER_MAX_S = 600.0
 #: an analysis with fewer OCV points than this (a straight line through the first and last rest) has the ladder tried
 FEW_OCV_POINTS = 3
@@ -582,7 +586,8 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     :data:`FEW_OCV_POINTS` OCV points, every bound of :func:`pulse_bound_ladder` is tried and the one that finds the
     most OCV points (then the most pulses) is kept when it finds more. The durations mislead in two layouts: charge
     and discharge pulses of lengths four times apart (a 55 s discharge beside a 10 s charge pulse: the gap between
-    them looks like the one between pulses and SOC steps), and SOC steps shorter than :data:`MAX_PULSE_S` and less
+    them looks like the one between pulses and SOC steps; where the sets open with the charge pulse, the top set,
+    which has none, opens with the discharge pulse), and SOC steps shorter than :data:`MAX_PULSE_S` and less
     than :data:`DURATION_GAP` times longer than the pulses (2–5 % at 1–2 C: 40–180 s), taken for pulses, so that no
     charge moves between the "pulses" and every set merges into one level (an "HPPC" of two OCV points, the first
     rest and the last). A record whose own bound finds three OCV points or more is analysed as before.
@@ -598,14 +603,16 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
             raise
         first, why = exc, exc.message
     found = []
-    for bound in pulse_bound_ladder(durations):
+    period = float(np.median(np.diff(profile.time_s))) if profile.n > 1 else 0.0
+    for bound in pulse_bound_ladder(durations, period):
         try:
             found.append(_analyze_hppc(profile, capacity_ah, i_rest, bound, min_rest_s, soc_start))
         except DataError:  # a bound that finds nothing (or "pulses" read upside down) is not the record's
             continue
     # what the ladder finds counts only with FEW_OCV_POINTS points or more, and pulse sets that repeat (their first
-    # pulses' lengths within DURATION_GAP of each other, as a protocol repeats its set at every level): a day of
-    # drives and flights between rests makes "pulse sets" of a minute, ten seconds and ten minutes
+    # pulses' lengths within DURATION_GAP of each other, as a protocol repeats its set at every level, the top one
+    # aside: _sets_repeat): a day of drives and flights between rests makes "pulse sets" of a minute, ten seconds and
+    # ten minutes
     found = [a for a in found if _sets_repeat(a)]
     best = max(found, key=lambda a: (a.ocv_soc.size, len(a.pulses)), default=None)
     if best is None or best.ocv_soc.size < FEW_OCV_POINTS or (
@@ -619,15 +626,17 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     return replace(best, notes=tuple(n for n in best.notes if not n.startswith("pulses: held phases")) + (note,))
 
 
-def pulse_bound_ladder(durations) -> list[float]:
+def pulse_bound_ladder(durations, dt: float = 0.0) -> list[float]:
     """The longest pulses :func:`analyze_hppc` tries: the upper end of each group of ``durations`` (sorted; a group
-    ends where the next is more than :data:`LADDER_RATIO` longer), up to :data:`LADDER_MAX_S`. Every bound between
-    two groups gives the same analysis, so one per group is enough."""
+    ends where the next is more than :data:`LADDER_RATIO` longer, or, on a record sampled every ``dt`` seconds, more
+    than :data:`LADDER_SAMPLES` sample periods longer), up to :data:`LADDER_MAX_S`. Every bound between two groups
+    gives the same analysis, so one per group is enough."""
     d = np.sort(np.asarray(durations, dtype=float))
     d = d[(d > 0) & (d <= LADDER_MAX_S)]
     if d.size == 0:
         return []
-    ends = np.flatnonzero(d[1:] > LADDER_RATIO * d[:-1])
+    step = np.diff(d)
+    ends = np.flatnonzero((d[1:] > LADDER_RATIO * d[:-1]) | ((dt > 0) & (step > LADDER_SAMPLES * dt)))
     return [float(x) for x in np.append(d[ends], d[-1])]
 
 
@@ -766,11 +775,15 @@ def _soc_axis(ah: np.ndarray, ah_full: float, q: float, soc_start: float | None)
 
 
 def _sets_repeat(a: HPPCAnalysis) -> bool:
-    """Whether the first pulses of ``a``'s sets last within :data:`DURATION_GAP` of each other."""
+    """Whether the first pulses of ``a``'s sets last within :data:`DURATION_GAP` of each other, the test's first set
+    aside when two or more follow it: where the test starts (full; empty for a test in the charge direction) a protocol
+    skips the pulse the cell cannot take (a cycler cannot charge a full cell; the USABC HPPC at 100 % SOC has no regen
+    pulse), so where that pulse opens the other sets the first set opens with another one."""
     firsts = {}
     for p in a.pulses:
         firsts.setdefault(p.level, p.duration_s)
     d = np.array(list(firsts.values()))
+    d = d[1:] if d.size > 2 else d
     return d.size > 0 and float(np.max(d)) <= DURATION_GAP * max(float(np.min(d)), 1e-9)
 
 
