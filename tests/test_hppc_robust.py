@@ -389,6 +389,44 @@ def test_pulses_and_steps_of_close_lengths_many_samples_apart(seed):
     assert np.max(np.abs(dz)) <= 0.005 and np.max(dv) <= 1.5 * ins.v_noise + 2e-3, (dz, dv)
 
 
+SHORT_STEP_DRAWS = 8
+
+
+def short_step_layout(seed: int):
+    """``(cell, layout, instrument)``: discharge and charge pulses of 40–60 s (1–2 C, 0.5–1 C) and SOC steps 0.7–1 ×
+    as long at 1–2 C after an inner rest of at least their length, from full down to 40–50 %: no bound on the lengths
+    of the held phases tells the steps from the pulses (the independent generator's draw 1312: 60 s pulses, 55 s
+    steps)."""
+    rng = np.random.default_rng([seed, 53])
+    cell = H.random_cell(rng)
+    ins = H.Instrument(dt=float(rng.uniform(0.2, 2.0)), i_noise_c=float(rng.uniform(0.0, 0.005)),
+                       i_offset_c=float(rng.uniform(-0.002, 0.002)), v_noise=float(rng.uniform(0.5e-3, 2e-3)))
+    pulse, d, c = float(rng.uniform(40.0, 60.0)), float(rng.uniform(1.0, 2.0)), float(rng.uniform(0.5, 1.0))
+    step_s, step_c = pulse * float(rng.uniform(0.7, 1.0)), float(rng.uniform(1.0, 2.0))
+    net = (d - c) * pulse / 3600.0  # the pulses' net discharge, a fraction of Q
+    lay = H.Layout(pulses_c=(d, -c), pulse_s=pulse, inner_rest_s=float(rng.uniform(pulse, 120.0)),
+                   rest_s=float(rng.uniform(300.0, 1200.0)), step=net + step_s * step_c / 3600.0, step_c=step_c,
+                   stop_soc=float(rng.uniform(0.4, 0.5)))
+    return cell, lay, ins
+
+
+@pytest.mark.parametrize("seed", range(SHORT_STEP_DRAWS))
+def test_steps_no_longer_than_the_pulses(seed):
+    """:func:`short_step_layout`: under every bound the steps are pulses too, no charge moves between "pulses" and the
+    sets merge into one; split also at every OCV rest, they are the truth's. Every set and OCV point is found (the
+    steps among the pulses), at the true SOC within half a point (the capacity given: the test stops above empty),
+    the true OCV within the truth's own polarisation and 1.5 σ + 2 mV, with a note that says how; no warning."""
+    cell, lay, ins = short_step_layout(seed)
+    rec = H.hppc_record(cell, lay, ins, seed=seed)
+    a, caught = _analyse_quietly(rec.profile, capacity_ah=cell.capacity_ah)
+    assert not caught, [str(w.message) for w in caught]
+    assert len({p.level for p in a.pulses}) == rec.n_sets and a.ocv_soc.size == rec.ocv_rows.size
+    assert len(a.pulses) >= rec.n_sets * len(lay.pulses_c)
+    dz, dv = H.ocv_point_errors(rec, a)
+    assert np.max(np.abs(dz)) <= 0.005 and np.max(dv) <= 1.5 * ins.v_noise + 2e-3, (dz, dv)
+    assert any("a new one after every rest" in n for n in a.notes)
+
+
 PRECHARGE_DRAWS = 12
 
 

@@ -55,7 +55,9 @@ or a fixed duration where the record can tell. The analysis
 
    Anything else (steps, a CV charge, driving) is a step;
 5. groups pulses into **sets**: a new set starts whenever charge moved between two pulses other than by the pulses
-   themselves (more than :data:`SET_SPLIT` of Q);
+   themselves (more than :data:`SET_SPLIT` of Q) — and, where no bound finds an HPPC that way (SOC steps as long as
+   the pulses or shorter are pulses under every bound, so no charge moves between "pulses"), also after every rest
+   of ``min_rest_s`` (:func:`analyze_hppc`);
 6. takes an **OCV point** at the end of the rest before each set, when that rest lasts ``min_rest_s`` (default
    :data:`MIN_OCV_REST_S`, 4 min) or is the record's initial rest (the cell rested before the test began), and at the
    end of a final rest after a last discharge step. The test ends with that rest: when the record then charges the
@@ -584,13 +586,17 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
 
     Where the longest pulse read from the record's phase durations finds no HPPC, or one with fewer than
     :data:`FEW_OCV_POINTS` OCV points, every bound of :func:`pulse_bound_ladder` is tried and the one that finds the
-    most OCV points (then the most pulses) is kept when it finds more. The durations mislead in two layouts: charge
+    most OCV points (then the most pulses) is kept when it finds more; where none finds that many, the record's own
+    bound and the ladder's up to :data:`MAX_PULSE_S` are tried again with the sets split at every OCV rest too
+    (module docstring, 5). The durations mislead in three layouts: charge
     and discharge pulses of lengths four times apart (a 55 s discharge beside a 10 s charge pulse: the gap between
     them looks like the one between pulses and SOC steps; where the sets open with the charge pulse, the top set,
     which has none, opens with the discharge pulse), and SOC steps shorter than :data:`MAX_PULSE_S` and less
     than :data:`DURATION_GAP` times longer than the pulses (2–5 % at 1–2 C: 40–180 s), taken for pulses, so that no
     charge moves between the "pulses" and every set merges into one level (an "HPPC" of two OCV points, the first
-    rest and the last). A record whose own bound finds three OCV points or more is analysed as before.
+    rest and the last); and steps as long as the pulses or shorter (55 s steps beside 60 s pulses), pulses under every
+    bound, whose sets only the OCV rests tell apart. A record whose own bound finds three OCV points or more is
+    analysed as before.
     """
     durations = []
     try:
@@ -602,19 +608,15 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
         if max_pulse_s is not None or exc.column is not None:  # a bound asked for, or a bad column: say so
             raise
         first, why = exc, exc.message
-    found = []
     period = float(np.median(np.diff(profile.time_s))) if profile.n > 1 else 0.0
-    for bound in pulse_bound_ladder(durations, period):
-        try:
-            found.append(_analyze_hppc(profile, capacity_ah, i_rest, bound, min_rest_s, soc_start))
-        except DataError:  # a bound that finds nothing (or "pulses" read upside down) is not the record's
-            continue
-    # what the ladder finds counts only with FEW_OCV_POINTS points or more, and pulse sets that repeat (their first
-    # pulses' lengths within DURATION_GAP of each other, as a protocol repeats its set at every level, the top one
-    # aside: _sets_repeat): a day of drives and flights between rests makes "pulse sets" of a minute, ten seconds and
-    # ten minutes
-    found = [a for a in found if _sets_repeat(a)]
-    best = max(found, key=lambda a: (a.ocv_soc.size, len(a.pulses)), default=None)
+    ladder = pulse_bound_ladder(durations, period)
+    best = _best_on_ladder(profile, capacity_ah, i_rest, min_rest_s, soc_start, ladder)
+    if best is None or best.ocv_soc.size < FEW_OCV_POINTS:
+        # the last resort: the sets split at every OCV rest too, under the record's own bound and the ladder's up to
+        # MAX_PULSE_S (steps as long as the pulses or shorter are pulses under every bound that keeps the pulses; a
+        # longer bound would take a field record's minutes-long charges and drives between its rests for pulses)
+        best = _best_on_ladder(profile, capacity_ah, i_rest, min_rest_s, soc_start,
+                               [None, *(b for b in ladder if b <= MAX_PULSE_S)], rest_sets=True)
     if best is None or best.ocv_soc.size < FEW_OCV_POINTS or (
             isinstance(first, HPPCAnalysis) and best.ocv_soc.size <= first.ocv_soc.size):
         if isinstance(first, DataError):
@@ -624,6 +626,21 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
             f"points or more ({why}); pulses of at most {best.max_pulse_s:.3g} s find {best.ocv_soc.size} (of the "
             "bounds between the lengths of its held phases, the one that finds the most)")
     return replace(best, notes=tuple(n for n in best.notes if not n.startswith("pulses: held phases")) + (note,))
+
+
+def _best_on_ladder(profile, capacity_ah, i_rest, min_rest_s, soc_start, bounds, rest_sets: bool = False):
+    """Of the analyses under each of ``bounds`` (None: the record's own), the one with the most OCV points, then the
+    most pulses, among those whose pulse sets repeat (:func:`_sets_repeat`: a day of drives and flights between rests
+    makes "pulse sets" of a minute, ten seconds and ten minutes); None when no bound finds an HPPC."""
+    found = []
+    for bound in bounds:
+        try:
+            a = _analyze_hppc(profile, capacity_ah, i_rest, bound, min_rest_s, soc_start, rest_sets=rest_sets)
+        except DataError:  # a bound that finds nothing (or "pulses" read upside down) is not the record's
+            continue
+        if _sets_repeat(a):
+            found.append(a)
+    return max(found, key=lambda a: (a.ocv_soc.size, len(a.pulses)), default=None)
 
 
 def pulse_bound_ladder(durations, dt: float = 0.0) -> list[float]:
@@ -788,9 +805,10 @@ def _sets_repeat(a: HPPCAnalysis) -> bool:
 
 
 def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_start=None,
-                  durations: list | None = None) -> HPPCAnalysis:
+                  durations: list | None = None, rest_sets: bool = False) -> HPPCAnalysis:
     """:func:`analyze_hppc` with a given (or the record-read, for None) longest pulse; the lengths of the held
-    phases from a rest (the pulse candidates, before the bound) are appended to ``durations`` when it is a list."""
+    phases from a rest (the pulse candidates, before the bound) are appended to ``durations`` when it is a list.
+    ``rest_sets``: a pulse after a rest of ``min_rest_s`` or more opens a new set too (module docstring, 5)."""
     if profile.batched:
         raise DataError("analyze_hppc needs a plain profile", file=profile.meta.source or profile.name)
     profile.require("voltage_v")
@@ -882,6 +900,9 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
         max_pulse_s = _pulse_bound(np.array([c[2] for c in candidates])) if candidates else MAX_PULSE_S
         notes.append(f"pulses: held phases from a rest of at most {max_pulse_s:.3g} s (read from the record)")
 
+    if rest_sets:
+        notes.append(f"pulse sets: a new one after every rest of {min_rest_s:g} s or more, as well as where charge "
+                     "moved between pulses")
     pulses = []
     level = -1
     last_stop_ah = None
@@ -889,7 +910,8 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
     for a, b, dur in candidates:
         if dur > max_pulse_s:
             continue
-        if last_stop_ah is None or abs(ah[a - 1] - last_stop_ah) > SET_SPLIT * q:
+        rested = rest_sets and a in rest_by_stop and rest_by_stop[a].duration_s >= min_rest_s
+        if last_stop_ah is None or abs(ah[a - 1] - last_stop_ah) > SET_SPLIT * q or rested:
             level += 1
         last_stop_ah = ah[b]
         dts = t[a + 1:b + 1] - t[a:b]
@@ -944,7 +966,10 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
     end = _test_end(pulses, rests, ah, q, ascending)
     last = next((r for r in rests if r.stop == end), None)
     if last is not None and last.duration_s >= min_rest_s:
-        if abs(ah[end - 1] - ah[pulses[-1].stop]) > SET_SPLIT * q:
+        # after a last step (charge moved since the last pulse; with the sets split at every rest, the last "pulse"
+        # may be that step: charge moved since the last set began)
+        since = ah[firsts[pulses[-1].level].start - 1] if rest_sets else ah[pulses[-1].stop]
+        if abs(ah[end - 1] - since) > SET_SPLIT * q:
             ocv_z.append(last.soc_end)
             ocv_v.append(last.v_end)
     if end < n:
