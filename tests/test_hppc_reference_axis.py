@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from socbench.cli import main
-from socbench.identify import analyze_hppc
+from socbench.diagnose import core
+from socbench.identify import analyze_hppc, start_soc
 from socbench.identify.hppc import NO_KNEE
 from socbench.profile import Profile, ProfileMeta
 
@@ -205,13 +206,15 @@ def _part_charged_stopped(k: int):
     return rec, fit, z0, drive
 
 
-def test_cli_diagnose_takes_the_fit_records_axis(tmp_path, capsys):
+def test_cli_diagnose_takes_the_fit_records_axis(tmp_path, capsys, monkeypatch):
     """``socbench diagnose --capacity Q --soc0 Z``: an HPPC started part charged and stopped above empty, without a
     reference, diagnosed against a drive of the same cell over the SOC range the test covers. Counted from full to
     its most discharged point, the SOC axis is too fast and too high: the held-out EKF SOC error before the search is
     several points (and the command warns that the test shows no knee). Given the truth's capacity and start SOC, the
     same record gives a held-out SOC error under a third of that, and no warning. Bad values are one error line,
-    exit 2."""
+    exit 2. (The drive's reference SOC would place the test by default: ``START_FROM_REFERENCES``, off here to keep
+    the count from full; tests/test_hppc_start_from_references.py tests the placement.)"""
+    monkeypatch.setattr(core, "START_FROM_REFERENCES", False)
     rec, fit, z0, drive = _part_charged_stopped(2)
     fit_csv = tmp_path / "hppc.csv"
     fit.to_frame().to_csv(fit_csv, index=False)
@@ -237,12 +240,16 @@ def test_cli_diagnose_takes_the_fit_records_axis(tmp_path, capsys):
 AXIS_DRAWS = 5
 
 
-def test_diagnose_on_the_given_axis_over_random_draws():
+def test_diagnose_on_the_given_axis_over_random_draws(monkeypatch):
     """The same over random cells, layouts and instruments (seeds 43 002–43 006): with the truth's capacity and start
     SOC, the held-out EKF SOC error before the search under a third of the one on the counted axis, and the voltage
     error no worse (measured: SOC 4.8–18.7 → 0.15–0.73 %, voltage 7–101 → 2.3–5.9 mV; the counted axis named a
-    hysteresis the cell lacks in one draw, the given axis nothing a one-branch cell lacks)."""
+    hysteresis the cell lacks in one draw, the given axis nothing a one-branch cell lacks). Counted from full: the
+    drive's reference does not place the test here (``START_FROM_REFERENCES`` off; the placement is
+    tests/test_hppc_start_from_references.py's)."""
     from socbench.diagnose import diagnose
+
+    monkeypatch.setattr(core, "START_FROM_REFERENCES", False)
 
     for k in range(2, 2 + AXIS_DRAWS):
         rec, fit, z0, drive = _part_charged_stopped(k)
@@ -291,3 +298,63 @@ def test_a_reference_in_whole_percent_or_counted_through_the_offset_places_the_t
             a, _ = _analyse(prof.with_(soc_ref=reference))
             dz = _point_errors(rec, first, a)
             assert abs(a.capacity_ah / rec.cell.capacity_ah - 1.0) <= 0.05 and np.max(np.abs(dz)) <= 0.03, k
+
+
+# ------------------------------------------------------------------------ placed by the evaluation records' reference
+PLACED_DRAWS = 8
+
+
+@pytest.mark.parametrize("k", range(2, 2 + PLACED_DRAWS))
+def test_a_part_charged_test_is_placed_by_the_evaluation_records_reference(k):
+    """:func:`_part_charged_stopped` (no reference, no capacity declared, started at 60–95 %, stopped at 10–40 %) with
+    the drive's reference SOC: the diagnosis' base fit (:func:`socbench.diagnose.core.fit_base`) counts the test with
+    the capacity the reference counts with (:func:`socbench.identify.start_soc.reference_capacity_ah`: the truth's
+    here, read through the drive's own count, sampled every 1–5 s of a current that changes every second: within
+    6 %) and places its start within a point of the truth's (:func:`socbench.identify.start_soc.start_shift`); its OCV
+    over the drive's true SOC lies within 4 mV (RMS) of the one fitted on the truth's axis given, and at least 5 ×
+    closer to the truth's than the one counted from full (measured over these 8 draws: start within 0.4 points,
+    capacity within 5.2 %, OCV RMS 0.7–3.7 mV placed, 0.4–3.0 mV given, 8–78 mV counted)."""
+    rec, fit, z0, drive = _part_charged_stopped(k)
+    placed, info = core.fit_base("thevenin", [fit], "constant", validation=[drive])
+    found = info["start_from_references"]
+    assert found["kept"] and found["capacity_from"] == "the references", found
+    assert info["axis"]["soc0"] == pytest.approx(z0, abs=0.01), (found, z0)
+    assert placed.capacity_ah == pytest.approx(rec.cell.capacity_ah, rel=0.06)
+    given, _ = core.fit_base("thevenin", [fit], "constant", validation=[drive], soc0=z0,
+                             capacity_ah=rec.cell.capacity_ah)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(core, "START_FROM_REFERENCES", False)
+        counted, _ = core.fit_base("thevenin", [fit], "constant", validation=[drive])
+    z = drive.get("soc_ref")
+    rms = {name: float(np.sqrt(np.mean((m.params.ocv(z) - rec.cell.ocv(z)) ** 2)))
+           for name, m in (("placed", placed), ("given", given), ("counted", counted))}
+    assert rms["placed"] <= rms["given"] + 4e-3 and rms["placed"] <= rms["counted"] / 5, rms
+
+
+def test_a_test_from_full_stays_counted_from_full():
+    """The same HPPCs from their first rest at full (no reference, no capacity declared, stopped at 10–40 %): the
+    drive's reference reads no start offset worth taking (below 2 points, or below 0: the curve's own error between
+    its points, never a test started above full), and the axis stays counted from full, the capacity the HPPC's."""
+    for k in range(2, 2 + PLACED_DRAWS):
+        rng, cell, lay, ins = H.random_setup(43_000 + k)
+        lay = dataclasses.replace(lay, gaps=False, stop_soc=float(rng.uniform(0.10, 0.40)))
+        rec = H.hppc_record(cell, lay, ins, seed=k, with_soc_ref=False)
+        fit = Profile(rec.profile.time_s, rec.profile.current_a, voltage_v=rec.profile.voltage_v,
+                      meta=ProfileMeta(name="full-hppc", source="full-hppc"))
+        drive = H.drive_record(cell, dataclasses.replace(ins, dt=max(ins.dt, 1.0)), seed=k, duration_s=3600.0,
+                               soc0=0.95).profile
+        _, info = core.fit_base("thevenin", [fit], "constant", validation=[drive])
+        found = info["start_from_references"]
+        assert not found["kept"] and found["shift"] < start_soc.MIN_SHIFT, (k, found)
+        assert info["axis"] == {}
+
+
+def test_a_test_with_its_own_reference_or_a_start_given_is_not_placed():
+    """Where the HPPC carries a reference SOC, or the user gives its start, the evaluation records are not asked."""
+    rec, fit, z0, drive = _part_charged_stopped(2)
+    _, info = core.fit_base("thevenin", [fit], "constant", validation=[drive], soc0=z0)
+    assert "start_from_references" not in info and info["axis"] == {"soc0": z0}
+    with_ref = Profile(fit.time_s, fit.current_a, voltage_v=fit.voltage_v, soc_ref=rec.soc_true[-fit.n:],
+                       meta=fit.meta)
+    _, info = core.fit_base("thevenin", [with_ref], "constant", validation=[drive])
+    assert "start_from_references" not in info

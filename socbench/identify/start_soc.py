@@ -1,0 +1,122 @@
+"""Where an HPPC without a reference SOC started: read off other records of the same cell that carry one.
+
+An HPPC record without a reference SOC (and without a start SOC given) is counted from its most charged point, taken
+as full (:func:`socbench.identify.hppc.analyze_hppc`). A test put on the cycler part charged (80–95 %, a cell taken
+from storage) then has every rest point, and the OCV curve through them, ``δ = 1 − z_start`` too high on the SOC axis.
+A model fitted on it reads any record whose own reference SOC is right ``δ`` off: on an NMC cell, whose OCV moves
+several mV per SOC point, tens of mV (an independent generator's HPPC started at 84 % beside a drive record with its
+reference: 100 mV open loop).
+
+Records measured on the same cell that do carry a reference SOC (the evaluation records of a diagnosis) place the
+test. The model fitted on the HPPC counted from full is run open loop on each of them from its reference start moved
+by ``δ`` (:data:`SHIFT_GRID`, one batched simulation per record): moving the model's start by ``δ`` is moving its
+curve by ``−δ``, what starting the HPPC at ``1 − δ`` does. The ``δ`` of the least mean RMSE is the HPPC's offset
+when it is at least :data:`MIN_SHIFT` and lowers that RMSE by :data:`GAIN` (the bar of the other choices the base fit
+makes on these records); else the HPPC stays counted from full.
+
+Such a test often stops above empty too, and without a declared capacity its axis is counted with the charge it
+moved, short of the cell's. The records' reference counts charge with a capacity of its own
+(:func:`reference_capacity_ah`: the slope of the reference against the charge counted from the record's current);
+where that is more than :data:`CAPACITY_TOL` above the charge the HPPC moved, the HPPC did not span full to empty and
+its axis is counted with the references' capacity before its start is placed (the caller,
+:func:`socbench.diagnose.core.fit_base`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..segments import restart_soc
+
+#: the offsets tried [fraction of SOC]: a test started up to half empty; a little below 0 so that a minimum at 0 is a
+#: minimum, not the grid's end
+GRID_STEP = 0.01
+SHIFT_GRID = np.round(np.arange(-0.05, 0.5 + 1e-9, GRID_STEP), 2)
+#: the step of the second, finer grid about the first one's best
+FINE_STEP = 0.001
+#: the least offset taken: within it the records' own reference errors (a start read to ±1 point, a nominal capacity)
+#: and the curve's shape near full decide as much as where the test started
+MIN_SHIFT = 0.02
+#: the mean open-loop RMSE on the records must fall by this share
+GAIN = 0.10
+#: a reference read over less than this span of SOC does not measure its capacity
+MIN_SPAN = 0.1
+#: the references' capacity replaces the charge an HPPC moved when it is this share larger (the count's own error,
+#: a nominal capacity's)
+CAPACITY_TOL = 0.03
+
+
+@dataclass(frozen=True)
+class StartShift:
+    """``shift``: the offset δ of least mean RMSE on the records; ``rmse_v``: ``(at δ = 0, at δ)``; ``kept``: whether
+    it is taken (at least :data:`MIN_SHIFT`, :data:`GAIN` lower)."""
+
+    shift: float
+    rmse_v: tuple
+    kept: bool
+    records: tuple
+
+    def to_dict(self) -> dict:
+        return {"shift": self.shift, "start_soc": round(1.0 - self.shift, 4), "rmse_v": list(self.rmse_v),
+                "kept": self.kept, "records": list(self.records),
+                "note": "the model fitted on the HPPC counted from full, run open loop on each record from its "
+                        "reference start moved by the offset; the offset of least mean RMSE, taken when it is at "
+                        f"least {MIN_SHIFT:g} and lowers that RMSE by {100 * GAIN:.0f} %"}
+
+
+def start_shift(model, records) -> StartShift | None:
+    """The offset of an HPPC's start (see the module docstring) from ``records`` (those with a reference SOC are
+    used); None when none has one or no offset gives a finite RMSE."""
+    used = [p for p in records if p.get("soc_ref") is not None and p.voltage_v is not None]
+    if not used:
+        return None
+    rmse = _rmse_by_shift(model, used, SHIFT_GRID)
+    if not np.any(np.isfinite(rmse)):
+        return None
+    j = int(np.nanargmin(np.where(np.isfinite(rmse), rmse, np.nan)))
+    at0 = float(rmse[int(np.argmin(np.abs(SHIFT_GRID)))])
+    # the grid's step again, finer (FINE_STEP) about its best: a start a point off leaves the top of every record
+    # that far off the curve, an error a drifting effect then takes up
+    fine = SHIFT_GRID[j] + np.arange(-1.0, 1.0 + 1e-9, FINE_STEP / GRID_STEP) * GRID_STEP
+    fine_rmse = _rmse_by_shift(model, used, fine)
+    if np.any(np.isfinite(fine_rmse)) and np.nanmin(fine_rmse) < rmse[j]:
+        k = int(np.nanargmin(np.where(np.isfinite(fine_rmse), fine_rmse, np.nan)))
+        shift, best = float(fine[k]), float(fine_rmse[k])
+    else:
+        shift, best = float(SHIFT_GRID[j]), float(rmse[j])
+    kept = bool(shift >= MIN_SHIFT and best <= (1.0 - GAIN) * at0)
+    return StartShift(round(shift, 4), (at0, best), kept, tuple(p.name for p in used))
+
+
+def _rmse_by_shift(model, records, shifts) -> np.ndarray:
+    """Voltage RMSE of ``model`` open loop on ``records`` (pooled) from each one's reference start plus each shift."""
+    sse, n = np.zeros(len(shifts)), 0
+    for p in records:
+        z0 = float(restart_soc(p, 0, model))
+        with np.errstate(all="ignore"):
+            sim = model.simulate(p, x0=model.x0(z0 + np.asarray(shifts), (len(shifts),)))
+        e = p.voltage_v[None, :] - sim.voltage_v
+        sse += np.where(np.all(np.isfinite(e), axis=1), np.sum(e * e, axis=1), np.inf)
+        n += p.n
+    return np.sqrt(sse / n)
+
+
+def reference_capacity_ah(records) -> float | None:
+    """The capacity [Ah] the records' reference SOC counts with: ``Q = −1/slope`` of the least-squares line of the
+    reference against the charge counted from each record's current (its samples strictly inside (0, 1): a clipped
+    reference stops counting), the median over the records whose reference moves :data:`MIN_SPAN` or more; None
+    without one."""
+    qs = []
+    for p in records:
+        z = p.get("soc_ref")
+        if z is None:
+            continue
+        inside = (z > 0.0) & (z < 1.0)
+        if inside.sum() < 3 or np.ptp(z[inside]) < MIN_SPAN:
+            continue
+        slope = float(np.polyfit(p.amp_hours()[inside], z[inside], 1)[0])
+        if slope < 0:
+            qs.append(-1.0 / slope)
+    return float(np.median(qs)) if qs else None
