@@ -358,3 +358,25 @@ def test_a_test_with_its_own_reference_or_a_start_given_is_not_placed():
                        meta=fit.meta)
     _, info = core.fit_base("thevenin", [with_ref], "constant", validation=[drive])
     assert "start_from_references" not in info
+
+
+def test_cli_fit_places_a_part_charged_test_by_the_validation_records(tmp_path, capsys):
+    """``socbench fit --validation DRIVE`` on :func:`_part_charged_stopped`'s HPPC (a canonical CSV without a sidecar:
+    no capacity declared): the validation record's reference places the test (one line says where and what the
+    records read), PARAMS.json's OCV tops out at the truth's start within a point and its capacity is the truth's
+    within 6 %; without ``--validation`` the axis is counted from full (its top at 1)."""
+    rec, fit, z0, drive = _part_charged_stopped(3)
+    fit_csv = tmp_path / "hppc.csv"
+    fit.to_frame().to_csv(fit_csv, index=False)
+    drive_csv = H.write_canonical(drive, tmp_path / "drive.csv")
+    out = tmp_path / "p.json"
+    base = ["fit", "--data", str(fit_csv), "--model", "thevenin", "--mode", "constant", "--out", str(out)]
+    assert main(base + ["--validation", str(drive_csv)]) == 0
+    said = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("start SOC")]
+    assert len(said) == 1 and "--validation records' reference SOC" in said[0], said
+    params = json.loads(out.read_text())
+    assert max(params["ocv"]["soc"]) == pytest.approx(z0, abs=0.01)
+    assert params["capacity_ah"] == pytest.approx(rec.cell.capacity_ah, rel=0.06)
+    assert main(base) == 0
+    assert not any(ln.startswith("start SOC") for ln in capsys.readouterr().out.splitlines())
+    assert max(json.loads(out.read_text())["ocv"]["soc"]) == pytest.approx(1.0, abs=1e-3)

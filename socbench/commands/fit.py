@@ -51,6 +51,7 @@ from ..estimators import DEFAULT_NOISE, model_error, nis_calibration
 from ..identify import FIT_SETTINGS, MODES, fit_model, select_fit, select_temperature_fit
 from ..identify.hppc import NO_KNEE, analyze_hppc, declared_capacity
 from ..identify.pseudo_ocv import refit_on_refined_ocv
+from ..identify.start_soc import place_start
 from ..identify.temperature import fit_temperatures
 from ..io import output_file
 from ..models import make_model, model_class, save_params
@@ -80,7 +81,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--soc0", type=float, default=None,
                         help="initial SOC of the record (default: counted back from the HPPC's full point: 1 for "
                              "one that starts full; where the record's own reference SOC says its top lies below "
-                             "full, there)")
+                             "full, there; an HPPC without one that starts part charged is placed by the "
+                             "--validation records' reference SOC where they read it 2 points or more lower)")
     parser.add_argument("--ocv", default=None,
                         help="OCV curve JSON ({soc, voltage}) or a PARAMS.json whose curve to use "
                              "(default: the record's HPPC rest points)")
@@ -183,7 +185,14 @@ def run(args) -> int:
                 print(f"capacity {capacity:.4g} Ah as the record's sidecar declares it (--capacity overrides)")
             elif why_not:
                 print(f"note: {why_not}")
-        kw = {"ocv": ocv, "capacity_ah": capacity, "soc0": args.soc0,
+        soc0 = args.soc0
+        if soc0 is None and ocv is None and validation:  # an HPPC without a reference placed by the records' one
+            soc0, capacity, placed = place_start(args.model, profile, capacity, validation)
+            if soc0 is not None:
+                print(f"start SOC {soc0:.3f}, capacity {placed['capacity_ah']:.4g} Ah ({placed['capacity_from']}), "
+                      f"read off the --validation records' reference SOC: their open-loop RMS "
+                      f"{1000 * placed['rmse_v'][0]:.1f} → {1000 * placed['rmse_v'][1]:.1f} mV (--soc0 overrides)")
+        kw = {"ocv": ocv, "capacity_ah": capacity, "soc0": soc0,
               "segments": False if args.no_segments else None}
         if auto:
             sel = select_fit(args.model, profile, validation, candidates=FIT_SETTINGS, **kw)
@@ -199,7 +208,7 @@ def run(args) -> int:
         for note in (n for n in res.params.notes if n.startswith(NO_KNEE)):
             _warnings.warn(f"{profile.name}: {note}", SocbenchWarning, stacklevel=2)
         if args.refine_ocv:
-            res = _refine(res, profile, validation, mode=args.mode, soc0=args.soc0,
+            res = _refine(res, profile, validation, mode=args.mode, soc0=soc0,
                           segments=False if args.no_segments else None)
             params, summary = res.params, res.fit_summary()
         if res.lsq is not None and res.lsq.domain.get("samples"):

@@ -63,9 +63,9 @@ from ..identify import (
 )
 from ..identify.fit import branches_identified
 from ..identify.fit_test_effect import FIT_TEST_EFFECTS, effect_on_fit_test
-from ..identify.hppc import analyze_hppc, declared_capacity, quantisation_step
+from ..identify.hppc import declared_capacity, quantisation_step
 from ..identify.pseudo_ocv import step_direction
-from ..identify.start_soc import CAPACITY_TOL, reference_capacity_ah, start_shift
+from ..identify.start_soc import place_start
 from ..models import make_model
 from ..models.base import T_REF_C
 from ..models.effects import EFFECTS
@@ -250,7 +250,7 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
 
     An HPPC without a reference SOC (and no ``soc0`` given, no charge to full before it) that started part charged
     has its rest points counted from full, too high on the SOC axis; the ``validation`` records' reference SOC places
-    it (:data:`START_FROM_REFERENCES`, :func:`_start_from_references`, :mod:`socbench.identify.start_soc`). On an
+    it (:data:`START_FROM_REFERENCES`, :func:`socbench.identify.start_soc.place_start`). On an
     independent generator's records (numpy only, outside the repository; 117 diagnosed draws, Thevenin base), of the
     28 HPPCs started part charged without a reference or a start, beside a drive with its reference, 21 were placed:
     their open-loop error before the search (median over the 28) 36.4 → 10.8 mV, EKF SOC error before 9.07 → 1.11 %
@@ -301,8 +301,11 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
             info["capacity_note"] = why_not
     capacity = capacity_ah or capacity
     validation = list(validation or [])
-    if soc0 is None and START_FROM_REFERENCES and ocv is None and steps == "discharge":
-        soc0, capacity = _start_from_references(name, prof, capacity, validation, info)
+    if soc0 is None and START_FROM_REFERENCES and ocv is None:
+        soc0, capacity, placed = place_start(name, prof, capacity, validation,
+                                             **next(iter(FIT_CANDIDATES.values())))
+        if placed is not None:
+            info["start_from_references"] = placed
     axis = {} if soc0 is None else {"soc0": float(soc0)}
     info["axis"] = axis
     if mode == "auto" and validation:
@@ -361,33 +364,6 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
     t_fit = prof.temperature_c
     info["t_ref_c"] = float(np.mean(t_fit)) if t_fit is not None else T_REF_C
     return make_model(name, res.params), info
-
-
-def _start_from_references(name: str, prof: Profile, capacity, validation, info: dict) -> tuple:
-    """``(start SOC or None, capacity)``: where the HPPC ``prof`` has no reference SOC of its own, starts at its most
-    charged point (no charge to full before it) and ``validation`` records with a reference SOC place it
-    (:func:`socbench.identify.start_soc.start_shift` on the model fitted with the first setting, counted from full),
-    its start SOC — and, where no capacity is declared (``capacity`` None) and the references count with one
-    :data:`~socbench.identify.start_soc.CAPACITY_TOL` larger than the charge the HPPC moved (it stopped above
-    empty), that capacity; else ``(None, capacity)``. ``info["start_from_references"]`` says what the records read."""
-    if prof.get("soc_ref") is not None or not any(p.get("soc_ref") is not None for p in validation):
-        return None, capacity
-    try:
-        analysis = analyze_hppc(prof, capacity_ah=capacity)
-        if analysis.start_index != 0:
-            return None, capacity  # a charge to full before the test: its top is full
-        q_ref = reference_capacity_ah(validation) if capacity is None else None
-        q = q_ref if q_ref is not None and q_ref > (1.0 + CAPACITY_TOL) * analysis.capacity_ah else capacity
-        plain = fit_model(name, prof, mode="constant", capacity_ah=q, **next(iter(FIT_CANDIDATES.values())))
-    except DataError:  # not an HPPC, or no fit: the selection below says why
-        return None, capacity
-    found = start_shift(make_model(name, plain.params), validation)
-    if found is None:
-        return None, capacity
-    info["start_from_references"] = {**found.to_dict(), "capacity_ah": plain.params.capacity_ah,
-                                     "capacity_from": "the references" if q is not capacity else
-                                     "declared" if capacity else "the HPPC's charge"}
-    return (1.0 - found.shift, q) if found.kept else (None, capacity)
 
 
 def effect_on_fit_test_record(model_name: str, base, fit_profiles, evals, info: dict, candidates=None):

@@ -18,8 +18,10 @@ Such a test often stops above empty too, and without a declared capacity its axi
 moved, short of the cell's. The records' reference counts charge with a capacity of its own
 (:func:`reference_capacity_ah`: the slope of the reference against the charge counted from the record's current);
 where that is more than :data:`CAPACITY_TOL` above the charge the HPPC moved, the HPPC did not span full to empty and
-its axis is counted with the references' capacity before its start is placed (the caller,
-:func:`socbench.diagnose.core.fit_base`).
+its axis is counted with the references' capacity before its start is placed.
+
+:func:`place_start` does both for an HPPC record (the diagnosis' base fit, :func:`socbench.diagnose.core.fit_base`,
+and ``socbench fit`` with ``--validation`` records).
 """
 
 from __future__ import annotations
@@ -28,7 +30,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import DataError
+from ..models import make_model
 from ..segments import restart_soc
+from .fit import fit_model
+from .hppc import analyze_hppc
 
 #: the offsets tried [fraction of SOC]: a test started up to half empty; a little below 0 so that a minimum at 0 is a
 #: minimum, not the grid's end
@@ -120,3 +126,30 @@ def reference_capacity_ah(records) -> float | None:
         if slope < 0:
             qs.append(-1.0 / slope)
     return float(np.median(qs)) if qs else None
+
+
+def place_start(name: str, profile, capacity_ah, records, **fit_kwargs) -> tuple:
+    """``(start SOC or None, capacity, report or None)`` of the HPPC ``profile`` for model ``name``: where it has no
+    reference SOC of its own, steps down from its most charged point (no charge to full before it) and ``records``
+    with a reference SOC place it (:func:`start_shift` on the model fitted counted from full, ``fit_kwargs`` its
+    setting), its start SOC — and, where no capacity is given (``capacity_ah`` None) and the references count with one
+    :data:`CAPACITY_TOL` larger than the charge the HPPC moved (it stopped above empty), that capacity; else
+    ``(None, capacity_ah, report)``. ``report`` (None where the records are not asked) says what they read."""
+    if profile.get("soc_ref") is not None or not any(p.get("soc_ref") is not None for p in records):
+        return None, capacity_ah, None
+    try:
+        analysis = analyze_hppc(profile, capacity_ah=capacity_ah)
+        if analysis.start_index != 0 or analysis.steps != "discharge":
+            return None, capacity_ah, None  # a charge to full before the test, or a test up to full: its top is full
+        q_ref = reference_capacity_ah(records) if capacity_ah is None else None
+        q = q_ref if q_ref is not None and q_ref > (1.0 + CAPACITY_TOL) * analysis.capacity_ah else capacity_ah
+        plain = fit_model(name, profile, mode="constant", capacity_ah=q, **fit_kwargs)
+    except DataError:  # not an HPPC, or no fit: the caller's own fit says why
+        return None, capacity_ah, None
+    found = start_shift(make_model(name, plain.params), records)
+    if found is None:
+        return None, capacity_ah, None
+    report = {**found.to_dict(), "capacity_ah": plain.params.capacity_ah,
+              "capacity_from": "the references" if q is not capacity_ah else
+              "given" if capacity_ah else "the HPPC's charge"}
+    return (1.0 - found.shift, q, report) if found.kept else (None, capacity_ah, report)
