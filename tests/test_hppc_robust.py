@@ -238,20 +238,6 @@ def test_field_records_of_another_generator_are_not_hppc_whatever_the_pulse_boun
     assert refused >= FIELD_DRAWS
 
 
-def test_field_records_with_two_long_rests_are_not_a_two_point_hppc():
-    """Field records of the randomised generator's seed 8181 (its first 70 cases: drives, flights, mission days) are
-    no HPPC either. Two of them (cases 1 and 66: a mission day, drive cycles) hold two long rests each followed by a
-    held current, which made a "test" of two OCV points, a straight line, until an HPPC needed OCV points at three
-    SOC levels (``MIN_OCV_POINTS``)."""
-    from socbench.diagnose.randomized import draw_case
-
-    for k in range(70):
-        for p in draw_case(k, 8181).evals:
-            with pytest.raises(DataError) as e:
-                analyze_hppc(p)
-            assert "\n" not in str(e.value)
-
-
 def test_fit_removes_the_sensor_offset_measured_on_the_rests():
     """An offset of +0.5 % of 1C over a 15 h HPPC is 7 % of the capacity: the fit must not count it. The same record
     without the offset (same seed, same noise) is the yardstick."""

@@ -64,8 +64,8 @@ or a fixed duration where the record can tell. The analysis
    cell back to full (a cycler's script), the charge back is post-conditioning, not part of the test
    (``end_index``). The point is the end of the least-squares line through the voltage over the rest's last
    ``min(60 s, 10 % of the rest)`` — noise averaged, without the lag of a mean behind a voltage still relaxing —
-   never reaching back across a gap in the record longer than that window. A record is an HPPC test when it has at
-   least three OCV points (:data:`MIN_OCV_POINTS`) and rests before at least half of its pulse sets
+   never reaching back across a gap in the record longer than that window. A record is an
+   HPPC test when it has at least two OCV points and rests before at least half of its pulse sets
    (:data:`REST_SHARE`); otherwise (a drive cycle, a constant discharge, a flight) :func:`analyze_hppc` raises one
    :class:`DataError` line;
 7. estimates per pulse the **instantaneous resistance** ``r_inst = −ΔV/ΔI`` across the leading edge (one sample: under
@@ -570,11 +570,6 @@ LADDER_SAMPLES = 4.0
 LADDER_MAX_S = 600.0
 #: an analysis with fewer OCV points than this (a straight line through the first and last rest) has the ladder tried
 FEW_OCV_POINTS = 3
-#: an HPPC has OCV points at this many SOC levels or more. Two are a straight line, no OCV curve, and they are what a
-#: field record with two long rests and a held current after each makes of itself (2 of 150 field records of the
-#: randomised generator's seed 8181 passed as HPPCs with 2 points; no HPPC of its seven documented seeds, of
-#: docs/foreign_records or of the independent generator's 400 draws has fewer than 3)
-MIN_OCV_POINTS = 3
 
 
 def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: float | None = None,
@@ -980,10 +975,10 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
     if end < n:
         notes.append(f"the test ends at the rest after its most discharged point (z = {soc[end - 1]:.3f}): the "
                      f"{(t[-1] - t[end - 1]) / 3600:.2g} h of charge back that follow are not part of it")
-    if len(ocv_z) < MIN_OCV_POINTS or n_rested < REST_SHARE * n_sets:
+    if len(ocv_z) < 2 or n_rested < REST_SHARE * n_sets:
         raise DataError(f"not an HPPC test: {n_rested} of {n_sets} pulse set(s) follow a rest of {min_rest_s:g} s or "
-                        f"more, {len(ocv_z)} OCV rest point(s) in all (an HPPC rests before most of its pulse sets, "
-                        f"at {MIN_OCV_POINTS} SOC levels or more)", file=src)
+                        f"more, {len(ocv_z)} OCV rest point(s) in all (an HPPC rests before most of its pulse sets; "
+                        "an OCV curve needs 2 points)", file=src)
     knee = end_knee(ocv_z, ocv_v, profile.meta.n_series or 1)
     if knee is not None and not (knee[0] >= KNEE_RATIO and knee[1] >= KNEE_SLOPE_V) and not capacity_ah \
             and placed is None and soc_start is None:
