@@ -269,6 +269,13 @@ def test_fit_at_a_sample_period_as_long_as_the_pulses(dt):
     assert res.values["R1"] * res.values["C1"] == pytest.approx(25.0, rel=0.3)  # the fast time constant
 
 
+def _layout_instrument(rng, dt_lo: float, dt_hi: float):
+    """The instrument of the layout tests below: a sample every ``dt_lo``–``dt_hi`` s, current noise up to 0.5 % and an
+    offset of ±0.2 % of 1C, voltage noise 0.5–2 mV (drawn in that order)."""
+    return H.Instrument(dt=float(rng.uniform(dt_lo, dt_hi)), i_noise_c=float(rng.uniform(0.0, 0.005)),
+                        i_offset_c=float(rng.uniform(-0.002, 0.002)), v_noise=float(rng.uniform(0.5e-3, 2e-3)))
+
+
 MISLEADING_DRAWS = 16
 
 
@@ -279,8 +286,7 @@ def misleading_layout(seed: int):
     longest pulse of 120 s) after pulses of 18–30 s, less than four times shorter."""
     rng = np.random.default_rng([seed, 41])
     cell = H.random_cell(rng)
-    ins = H.Instrument(dt=float(rng.uniform(0.5, 2.0)), i_noise_c=float(rng.uniform(0.0, 0.005)),
-                       i_offset_c=float(rng.uniform(-0.002, 0.002)), v_noise=float(rng.uniform(0.5e-3, 2e-3)))
+    ins = _layout_instrument(rng, 0.5, 2.0)
     inner, rest = float(rng.uniform(60.0, 120.0)), float(rng.uniform(600.0, 2400.0))
     if seed % 2 == 0:
         pulse = float(rng.uniform(40.0, 60.0))
@@ -321,8 +327,7 @@ def skipped_at_full_layout(seed: int):
     HPPC has no regen pulse at 100 % SOC). The independent generator's draws 967 and 1034 are such tests."""
     rng = np.random.default_rng([seed, 43])
     cell = H.random_cell(rng)
-    ins = H.Instrument(dt=float(rng.uniform(0.2, 2.0)), i_noise_c=float(rng.uniform(0.0, 0.005)),
-                       i_offset_c=float(rng.uniform(-0.002, 0.002)), v_noise=float(rng.uniform(0.5e-3, 2e-3)))
+    ins = _layout_instrument(rng, 0.2, 2.0)
     pulse = float(rng.uniform(40.0, 60.0))
     c1, d1 = float(rng.uniform(0.5, 1.0)), float(rng.uniform(1.0, 2.0))
     shares = np.sort(rng.uniform(0.3, 0.9, 2))[::-1]  # the other pairs' amplitudes
@@ -360,8 +365,7 @@ def close_step_layout(seed: int):
     apart (the independent generator's draw 1333: 42.5 s pulses, 48.6 s steps, every 0.23 s)."""
     rng = np.random.default_rng([seed, 47])
     cell = H.random_cell(rng)
-    ins = H.Instrument(dt=float(rng.uniform(0.1, 0.3)), i_noise_c=float(rng.uniform(0.0, 0.005)),
-                       i_offset_c=float(rng.uniform(-0.002, 0.002)), v_noise=float(rng.uniform(0.5e-3, 2e-3)))
+    ins = _layout_instrument(rng, 0.1, 0.3)
     pulse, d, c = float(rng.uniform(35.0, 50.0)), float(rng.uniform(1.0, 2.0)), float(rng.uniform(0.5, 1.0))
     charge_s = pulse / float(rng.uniform(1.5, 2.5))
     step_s = pulse * float(rng.uniform(1.05, 1.13))
@@ -399,8 +403,7 @@ def short_step_layout(seed: int):
     steps)."""
     rng = np.random.default_rng([seed, 53])
     cell = H.random_cell(rng)
-    ins = H.Instrument(dt=float(rng.uniform(0.2, 2.0)), i_noise_c=float(rng.uniform(0.0, 0.005)),
-                       i_offset_c=float(rng.uniform(-0.002, 0.002)), v_noise=float(rng.uniform(0.5e-3, 2e-3)))
+    ins = _layout_instrument(rng, 0.2, 2.0)
     pulse, d, c = float(rng.uniform(40.0, 60.0)), float(rng.uniform(1.0, 2.0)), float(rng.uniform(0.5, 1.0))
     step_s, step_c = pulse * float(rng.uniform(0.7, 1.0)), float(rng.uniform(1.0, 2.0))
     net = (d - c) * pulse / 3600.0  # the pulses' net discharge, a fraction of Q
