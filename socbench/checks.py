@@ -70,13 +70,17 @@ IMPLIED_CAPACITY_MIN_SPAN = 0.10
 
 def implied_reference_capacity(profile: Profile) -> float | None:
     """The capacity [Ah] a record's reference SOC moves with against its counted current: ``−1/slope`` of the
-    least-squares line of ``soc_ref`` on the discharged charge ``Ah`` (``z = z₀ − Ah/Q``), when the reference spans at
-    least :data:`IMPLIED_CAPACITY_MIN_SPAN` (else None). A reference that is a charge count, a simulated truth or a
-    good BMS estimate all move so."""
+    least-squares line of ``soc_ref`` on the discharged charge ``Ah`` (``z = z₀ − Ah/Q``) over its samples strictly
+    inside (0, 1) (a reference clipped at full or empty stops counting there), when those span at least
+    :data:`IMPLIED_CAPACITY_MIN_SPAN` (else None). A reference that is a charge count, a simulated truth or a good BMS
+    estimate all move so."""
     ref = profile.soc_ref
-    if ref is None or ref.ndim != 1 or float(np.ptp(ref)) < IMPLIED_CAPACITY_MIN_SPAN:
+    if ref is None or ref.ndim != 1:
         return None
-    slope = float(np.polyfit(profile.amp_hours(), ref, 1)[0])
+    inside = (ref > 0.0) & (ref < 1.0)
+    if np.count_nonzero(inside) < 3 or float(np.ptp(ref[inside])) < IMPLIED_CAPACITY_MIN_SPAN:
+        return None
+    slope = float(np.polyfit(profile.amp_hours()[inside], ref[inside], 1)[0])
     return -1.0 / slope if slope < 0.0 else None
 
 

@@ -16,7 +16,8 @@ makes on these records); else the HPPC stays counted from full.
 
 Such a test often stops above empty too, and without a declared capacity its axis is counted with the charge it
 moved, short of the cell's. The records' reference counts charge with a capacity of its own
-(:func:`reference_capacity_ah`: the slope of the reference against the charge counted from the record's current);
+(:func:`reference_capacity_ah`: the slope of the reference against the charge counted from the record's current,
+:func:`socbench.checks.implied_reference_capacity`);
 where that is more than :data:`CAPACITY_TOL` above the charge the HPPC moved, the HPPC did not span full to empty and
 its axis is counted with the references' capacity before its start is placed.
 
@@ -30,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..checks import implied_reference_capacity
 from ..errors import DataError
 from ..models import make_model
 from ..segments import restart_soc
@@ -47,8 +49,6 @@ FINE_STEP = 0.001
 MIN_SHIFT = 0.02
 #: the mean open-loop RMSE on the records must fall by this share
 GAIN = 0.10
-#: a reference read over less than this span of SOC does not measure its capacity
-MIN_SPAN = 0.1
 #: the references' capacity replaces the charge an HPPC moved when it is this share larger (the count's own error,
 #: a nominal capacity's)
 CAPACITY_TOL = 0.03
@@ -110,21 +110,9 @@ def _rmse_by_shift(model, records, shifts) -> np.ndarray:
 
 
 def reference_capacity_ah(records) -> float | None:
-    """The capacity [Ah] the records' reference SOC counts with: ``Q = −1/slope`` of the least-squares line of the
-    reference against the charge counted from each record's current (its samples strictly inside (0, 1): a clipped
-    reference stops counting), the median over the records whose reference moves :data:`MIN_SPAN` or more; None
-    without one."""
-    qs = []
-    for p in records:
-        z = p.get("soc_ref")
-        if z is None:
-            continue
-        inside = (z > 0.0) & (z < 1.0)
-        if inside.sum() < 3 or np.ptp(z[inside]) < MIN_SPAN:
-            continue
-        slope = float(np.polyfit(p.amp_hours()[inside], z[inside], 1)[0])
-        if slope < 0:
-            qs.append(-1.0 / slope)
+    """The capacity [Ah] the records' reference SOC counts with: the median over the records of the one each moves with
+    against its counted current (:func:`socbench.checks.implied_reference_capacity`); None without one."""
+    qs = [q for q in map(implied_reference_capacity, records) if q is not None]
     return float(np.median(qs)) if qs else None
 
 
