@@ -59,7 +59,8 @@ signature on the refitted residual (the refit took up part of their shape).
 A fit at the end of a range is not the effect's own shape: an SOC drift at the limit of its physical range
 (``DRIFT_AT_BOUND``), a hysteresis at Plett's γ floor or a branch at the longest time constant (``SLOW_END``: a state
 that never settles within the records, a slow offset or a ramp) stands in for an OCV or SOC-axis error and is not
-scored.
+scored. So is a temperature whose resistances do not move with it (activation energy below
+``TEMPERATURE_EA_MIN``): its entropic term alone is an offset the temperature column indexes.
 
 The current sensor gets evidence of its own: where the records hold rests (at least ``FIELD_REST_MIN_S`` below C/20
 whose spread is the sensor's noise), the true current is zero, so the measured rest current *is* the offset. ``b`` is
@@ -195,6 +196,14 @@ DRIFT_AT_BOUND = True
 SLOW_END = {"hysteresis": ("gamma", 0), "extra_rc": ("log10_tau", 1)}
 #: whether :data:`SLOW_END` applies
 SLOW_END_RULE = True
+#: a temperature effect whose all-data fit has an activation energy below this [J/mol] is not scored
+#: (:meth:`Search.resistance_unmoved`): its resistances barely move with the temperature (below 0.7 %/K at 25 °C), so
+#: what it fits is its entropic term ``dU/dT·(T − T_ref)``, on a record held near one temperature a voltage offset,
+#: which the temperature column merely indexes: an OCV offset or a second instrument's voltage offset, not the cell's
+#: temperature dependence, which moves the over-potential first. The value lies below every apparent activation energy
+#: fitted on the Panasonic 18650PF's temperature pairs by more than a factor of two (12–44 kJ/mol,
+#: ``benchmarks/closing_the_loop.py``) and at a quarter of the randomised benchmark's lower end (20 kJ/mol). None: off
+TEMPERATURE_EA_MIN = 5e3
 #: relative change of the held-out RMSE below which an effect fitted alone counts as fitted to its null
 NULL_FIT_TOL = 1e-3
 #: compression of the training record for the fits (the held-out part is scored on every sample)
@@ -1003,6 +1012,10 @@ class Search:
         if slow is not None:
             score = -np.inf
             evidence += f"; {slow}: a state that never settles within the records stands in for a drift"
+        unmoved = self.resistance_unmoved(name, params)
+        if unmoved is not None:
+            score = -np.inf
+            evidence += f"; {unmoved}: its entropic term alone, an offset the temperature indexes, stands in for it"
         if name == "extra_rc":
             refit = dict(zip(dict(layout).get(BASE_REFIT, ()), self._refit_row(layout, row)))
             twin = self.twin_branch(10.0 ** params["log10_tau"], refit)
@@ -1032,6 +1045,15 @@ class Search:
         if abs(params[p] - (lo, hi)[end]) > BOUND_TOL * (hi - lo):
             return None
         return f"{p} = {params[p]:.4g} at the {('lower', 'upper')[end]} end of [{lo:.4g}, {hi:.4g}]"
+
+    @staticmethod
+    def resistance_unmoved(name: str, params: dict) -> str | None:
+        """Where the temperature effect's fitted ``params`` move no resistance (``Ea`` below
+        :data:`TEMPERATURE_EA_MIN`), that as a phrase; else None."""
+        if name != "temperature" or not params or TEMPERATURE_EA_MIN is None or params["Ea"] >= TEMPERATURE_EA_MIN:
+            return None
+        return (f"Ea = {params['Ea']:.3g} J/mol < {TEMPERATURE_EA_MIN:.3g}: the resistances barely move with the "
+                "temperature")
 
     @staticmethod
     def _refit_row(layout, row) -> np.ndarray:
