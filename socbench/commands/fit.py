@@ -192,6 +192,9 @@ def run(args) -> int:
                 print(f"start SOC {soc0:.3f}, capacity {placed['capacity_ah']:.4g} Ah ({placed['capacity_from']}), "
                       f"read off the --validation records' reference SOC: their open-loop RMS "
                       f"{1000 * placed['rmse_v'][0]:.1f} → {1000 * placed['rmse_v'][1]:.1f} mV (--soc0 overrides)")
+            elif placed is not None and placed.get("capacity_kept"):
+                print(f"capacity {capacity:.4g} Ah read off the --validation records' reference SOC: "
+                      f"{placed['capacity_note']} (--capacity overrides)")
         kw = {"ocv": ocv, "capacity_ah": capacity, "soc0": soc0,
               "segments": False if args.no_segments else None}
         if auto:

@@ -19,7 +19,16 @@ moved, short of the cell's. The records' reference counts charge with a capacity
 (:func:`reference_capacity_ah`: the slope of the reference against the charge counted from the record's current,
 :func:`socbench.checks.implied_reference_capacity`);
 where that is more than :data:`CAPACITY_TOL` above the charge the HPPC moved, the HPPC did not span full to empty and
-its axis is counted with the references' capacity before its start is placed.
+its axis is counted with the references' capacity before its start is placed. Where the offset is not taken (a test
+from full), the capacity still is when the test shows no end-of-discharge knee
+(:data:`~socbench.identify.hppc.NO_KNEE`): it stopped above empty, and counted with the charge it moved, its SOC axis
+runs fast by the share it left out — an axis a voltage fit does not see (the OCV points move with it) but every SOC a
+filter reports on it does (an independent generator's HPPCs from full stopping at 10–40 %, beside a drive with its
+reference: the charge moved 10–41 % short, EKF SOC errors of 10–30 %).
+
+A record that charges before its test (a charge to full, or sets that open with a charge pulse) has its first sample
+below its most charged point: the start returned is that sample's SOC, ``z₁ − δ`` with ``z₁`` its SOC counted from the
+top as full.
 
 :func:`place_start` does both for an HPPC record (the diagnosis' base fit, :func:`socbench.diagnose.core.fit_base`,
 and ``socbench fit`` with ``--validation`` records).
@@ -36,7 +45,7 @@ from ..errors import DataError
 from ..models import make_model
 from ..segments import restart_soc
 from .fit import fit_model
-from .hppc import analyze_hppc
+from .hppc import NO_KNEE, analyze_hppc
 
 #: the offsets tried [fraction of SOC]: a test started up to half empty; a little below 0 so that a minimum at 0 is a
 #: minimum, not the grid's end
@@ -118,26 +127,45 @@ def reference_capacity_ah(records) -> float | None:
 
 def place_start(name: str, profile, capacity_ah, records, **fit_kwargs) -> tuple:
     """``(start SOC or None, capacity, report or None)`` of the HPPC ``profile`` for model ``name``: where it has no
-    reference SOC of its own, steps down from its most charged point (no charge to full before it) and ``records``
-    with a reference SOC place it (:func:`start_shift` on the model fitted counted from full, ``fit_kwargs`` its
-    setting), its start SOC — and, where no capacity is given (``capacity_ah`` None) and the references count with one
-    :data:`CAPACITY_TOL` larger than the charge the HPPC moved (it stopped above empty), that capacity; else
+    reference SOC of its own, steps down (discharge steps) and ``records`` with a reference SOC place it
+    (:func:`start_shift` on the model fitted counted from its most charged point as full, ``fit_kwargs`` its setting),
+    the SOC of its first sample — and, where no capacity is given (``capacity_ah`` None) and the references count with
+    one :data:`CAPACITY_TOL` larger than the charge the HPPC moved, that capacity. Where the offset is not taken, the
+    test keeps its top at full, and the references' capacity is still taken where the test shows no end-of-discharge
+    knee (it stopped above empty: the charge it moved is short of the cell's whatever its start); else
     ``(None, capacity_ah, report)``. ``report`` (None where the records are not asked) says what they read."""
     if profile.get("soc_ref") is not None or not any(p.get("soc_ref") is not None for p in records):
         return None, capacity_ah, None
     try:
         analysis = analyze_hppc(profile, capacity_ah=capacity_ah)
-        if analysis.start_index != 0 or analysis.steps != "discharge":
-            return None, capacity_ah, None  # a charge to full before the test, or a test up to full: its top is full
+        if analysis.steps != "discharge":
+            return None, capacity_ah, None  # a test up to full: its top is full, its count the charge to full
         q_ref = reference_capacity_ah(records) if capacity_ah is None else None
         q = q_ref if q_ref is not None and q_ref > (1.0 + CAPACITY_TOL) * analysis.capacity_ah else capacity_ah
+        short = q is not capacity_ah and any(n.startswith(NO_KNEE) for n in analysis.notes)
+        # the first sample's SOC counted from the most charged point as full (below 1 where the record charges first:
+        # a charge to full, or a test whose sets open with a charge pulse)
+        first = float((analysis if q is capacity_ah else analyze_hppc(profile, capacity_ah=q)).soc[0])
         plain = fit_model(name, profile, mode="constant", capacity_ah=q, **fit_kwargs)
     except DataError:  # not an HPPC, or no fit: the caller's own fit says why
         return None, capacity_ah, None
     found = start_shift(make_model(name, plain.params), records)
     if found is None:
-        return None, capacity_ah, None
-    report = {**found.to_dict(), "capacity_ah": plain.params.capacity_ah,
+        return (None, q, _capacity_report(q, analysis)) if short else (None, capacity_ah, None)
+    report = {**found.to_dict(), "start_soc": round(first - found.shift, 4), "capacity_ah": plain.params.capacity_ah,
               "capacity_from": "the references" if q is not capacity_ah else
               "given" if capacity_ah else "the HPPC's charge"}
-    return (1.0 - found.shift, q, report) if found.kept else (None, capacity_ah, report)
+    if found.kept:
+        return first - found.shift, q, report
+    return (None, q, {**report, "capacity_kept": True, "capacity_note": _SHORT_NOTE}) if short \
+        else (None, capacity_ah, report)
+
+
+_SHORT_NOTE = ("the HPPC shows no end-of-discharge knee (it stopped above empty), so the charge it moved is short of "
+               "the cell's capacity: counted with the capacity the records' reference SOC counts with")
+
+
+def _capacity_report(q: float, analysis) -> dict:
+    """The report of a test whose start stays at full and whose axis is counted with the references' capacity ``q``."""
+    return {"capacity_ah": float(q), "capacity_from": "the references", "capacity_kept": True,
+            "hppc_charge_ah": float(analysis.capacity_ah), "kept": False, "capacity_note": _SHORT_NOTE}
