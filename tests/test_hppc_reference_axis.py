@@ -441,3 +441,27 @@ def test_cli_fit_places_a_part_charged_test_by_the_validation_records(tmp_path, 
     assert main(base) == 0
     assert not any(ln.startswith("start SOC") for ln in capsys.readouterr().out.splitlines())
     assert max(json.loads(out.read_text())["ocv"]["soc"]) == pytest.approx(1.0, abs=1e-3)
+
+
+def test_cli_fit_takes_the_validation_records_capacity_for_a_test_from_full(tmp_path, capsys):
+    """``socbench fit --validation DRIVE`` on :func:`_from_full`'s HPPC (stopped at 10–40 %, no capacity declared):
+    one line says the capacity was read off the validation record's reference, PARAMS.json's capacity is the truth's
+    within 6 % and its OCV still tops out at full; without ``--validation`` the capacity is the charge the test moved
+    (and the command warns that the test shows no knee)."""
+    rec, fit, drive = _from_full(2)
+    fit_csv = tmp_path / "hppc.csv"
+    fit.to_frame().to_csv(fit_csv, index=False)
+    drive_csv = H.write_canonical(drive, tmp_path / "drive.csv")
+    out = tmp_path / "p.json"
+    base = ["fit", "--data", str(fit_csv), "--model", "thevenin", "--mode", "constant", "--out", str(out)]
+    assert main(base + ["--validation", str(drive_csv)]) == 0
+    said = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("capacity")]
+    assert len(said) == 1 and "--validation records' reference SOC" in said[0], said
+    params = json.loads(out.read_text())
+    assert params["capacity_ah"] == pytest.approx(rec.cell.capacity_ah, rel=0.06)
+    assert max(params["ocv"]["soc"]) == pytest.approx(1.0, abs=1e-3)
+    assert main(base) == 0
+    captured = capsys.readouterr()
+    assert not any(ln.startswith("capacity") for ln in captured.out.splitlines())
+    assert NO_KNEE in captured.err
+    assert json.loads(out.read_text())["capacity_ah"] < 0.92 * rec.cell.capacity_ah
