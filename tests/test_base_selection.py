@@ -7,7 +7,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import pytest
 
 from socbench import loads
 from socbench.diagnose import core
@@ -68,31 +67,3 @@ def test_the_base_fit_passes_over_a_setting_whose_branch_is_slower_than_its_reco
     assert sel["chosen"] != f"constant, {doctored['label']}"
     assert sel["branch_slower_than_record"] == [f"constant, {doctored['label']}"]
     assert branches_identified(base.params, hppc.duration_s)
-
-
-@pytest.mark.parametrize("lookup_share, form", [(0.95, "constant"), (0.85, "lookup")])
-def test_a_lookup_fit_is_chosen_only_when_it_validates_ten_percent_better(monkeypatch, lookup_share, form):
-    """``core.LOOKUP_GAIN``: the lookup fit (SOC-dependent parameters) replaces the best constant setting only when its
-    validation RMSE is 10 % lower. The lookup's score is set here to a share of the best constant one's: at 95 % the
-    constant fit is kept, at 85 % the lookup is taken (and the selection reports the scores it chose by)."""
-    hppc, ev = _records()
-    real_select = core.select_fit
-    best = {}
-
-    def select(*args, **kwargs):  # the constant settings' scores: the lookup is scored against their best
-        sel = real_select(*args, **kwargs)
-        best["constant"] = min(float(np.mean(v)) for v in sel.scores.values())
-        return sel
-
-    def scored(fit, record):
-        assert fit.mode == "lookup"
-        return lookup_share * best["constant"]
-
-    monkeypatch.setattr(core, "select_fit", select)
-    monkeypatch.setattr(core, "validation_rmse", scored)
-    _, info = core.fit_base("thevenin", [hppc], validation=[ev], refine_ocv=False)
-    sel = info["selection"]
-    assert sel["form"] == form, sel
-    lookup = next(k for k in sel["validation_rmse_v"] if k.startswith("lookup"))
-    best_constant = min(v for k, v in sel["validation_rmse_v"].items() if not k.startswith("lookup"))
-    assert sel["validation_rmse_v"][lookup] == pytest.approx(lookup_share * best_constant)

@@ -324,9 +324,6 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
         if branches_identified(fits[lookup].params, prof.duration_s):
             identified.add(lookup)
         chosen = min(identified or scores, key=scores.get)
-        constant = min((k for k in (identified or scores) if k != lookup), key=scores.get, default=None)
-        if chosen == lookup and constant is not None and scores[lookup] > (1.0 - LOOKUP_GAIN) * scores[constant]:
-            chosen = constant  # the SOC-dependent parameters must earn their place (LOOKUP_GAIN)
         slower_than_record = [k for k in fits if k not in identified]
 
         def setting(label):  # the fit arguments of a candidate label of this selection
@@ -443,13 +440,6 @@ def search_beside(make_search, model_name: str, base, refit, evidence: str, plai
 
 #: SOC knots of the lookup-mode base fit: denser towards empty, where resistances rise (few knots keep the fit cheap)
 LOOKUP_KNOTS = np.array([0.0, 0.1, 0.2, 0.4, 0.7, 1.0])
-#: the lookup fit (SOC-dependent parameters at LOOKUP_KNOTS) is chosen over the best constant one only when it
-#: validates this share better: the bar of the base fit's other choices on these records (the OCV refinement, the
-#: start placement). A lookup fit of barely better voltage gives a filter SOC-observability it does not have: its
-#: ``∂h/∂z`` holds ``−I·∂R/∂z`` of resistances whose SOC shape the HPPC barely fixed, and under load an EKF then moves
-#: the SOC to wherever that shape explains the sag (an independent generator's LFP draw: lookup 3 % better in voltage,
-#: EKF SOC error 44 % against 1.7 % with the constant fit)
-LOOKUP_GAIN = 0.10
 #: the largest lag-1 autocorrelation of a model's residual the filters' voltage noise accounts for (×√1999 at most)
 MAX_RHO = 0.999
 #: samples per record for the SOC filters (their cost is per sample)
