@@ -188,11 +188,12 @@ def test_cli_fit_warns_of_a_test_without_the_knee(tmp_path, capsys):
             assert len(err) == warned and all("may stop above empty" in ln for ln in err), (argv[0], err)
 
 
-def _part_charged_stopped(k: int):
+def _part_charged_stopped(k: int, **layout):
     """An HPPC without a reference or a declared capacity, started part charged and stopped at 10–40 %, and a drive
-    record of the same cell (its reference SOC the truth): ``(record, fit profile, z0, drive profile)``."""
+    record of the same cell (its reference SOC the truth): ``(record, fit profile, z0, drive profile)``. ``layout``:
+    fields of the drawn :class:`tests.hppc_records.Layout` replaced."""
     rng, cell, lay, ins = H.random_setup(43_000 + k)
-    lay = dataclasses.replace(lay, gaps=False, stop_soc=float(rng.uniform(0.10, 0.40)))
+    lay = dataclasses.replace(lay, gaps=False, stop_soc=float(rng.uniform(0.10, 0.40)), **layout)
     rec = H.hppc_record(cell, lay, ins, seed=k, with_soc_ref=False)
     p = rec.profile
     first = part_charged_start(rec, rng)
@@ -338,18 +339,7 @@ def test_a_part_charged_test_whose_sets_open_with_a_charge_pulse_is_placed(k):
     pulse, beyond the analysis' tolerance of full, so the test reads as one with a charge before it
     (``start_index`` > 0), which was never placed. Placed now, the start given is the first sample's SOC (below the
     top by the charge pulse), within a point of the truth's, and the capacity the truth's within 6 %."""
-    rng, cell, lay, ins = H.random_setup(43_000 + k)
-    lay = dataclasses.replace(lay, gaps=False, stop_soc=float(rng.uniform(0.10, 0.40)), pulses_c=(-2.0, 2.0),
-                              pulse_s=45.0)
-    rec = H.hppc_record(cell, lay, ins, seed=k, with_soc_ref=False)
-    p = rec.profile
-    first = part_charged_start(rec, rng)
-    fit = Profile(p.time_s[first:] - p.time_s[first], p.current_a[first:], voltage_v=p.voltage_v[first:],
-                  meta=ProfileMeta(name="part-hppc", source="part-hppc"))
-    z0 = float(rec.soc_true[first])
-    hours = (z0 - 0.02 - lay.stop_soc - 0.05) / 0.6
-    drive = H.drive_record(cell, dataclasses.replace(ins, dt=max(ins.dt, 1.0)), seed=k, duration_s=3600.0 * hours,
-                           soc0=z0 - 0.02).profile
+    rec, fit, z0, drive = _part_charged_stopped(k, pulses_c=(-2.0, 2.0), pulse_s=45.0)
     placed, info = core.fit_base("thevenin", [fit], "constant", validation=[drive])
     found = info["start_from_references"]
     assert found["kept"], found
