@@ -411,17 +411,24 @@ def test_a_test_with_its_own_reference_or_a_start_given_is_not_placed():
     assert "start_from_references" not in info
 
 
+def _fit_command(tmp_path, fit, drive):
+    """``(socbench fit arguments, drive CSV, PARAMS path)``: the HPPC written as a canonical CSV without a sidecar (no
+    capacity declared), the drive with its reference SOC, a constant-mode Thevenin fit."""
+    fit_csv = tmp_path / "hppc.csv"
+    fit.to_frame().to_csv(fit_csv, index=False)
+    drive_csv = H.write_canonical(drive, tmp_path / "drive.csv")
+    out = tmp_path / "p.json"
+    return (["fit", "--data", str(fit_csv), "--model", "thevenin", "--mode", "constant", "--out", str(out)], drive_csv,
+            out)
+
+
 def test_cli_fit_places_a_part_charged_test_by_the_validation_records(tmp_path, capsys):
     """``socbench fit --validation DRIVE`` on :func:`_part_charged_stopped`'s HPPC (a canonical CSV without a sidecar:
     no capacity declared): the validation record's reference places the test (one line says where and what the
     records read), PARAMS.json's OCV tops out at the truth's start within a point and its capacity is the truth's
     within 6 %; without ``--validation`` the axis is counted from full (its top at 1)."""
     rec, fit, z0, drive = _part_charged_stopped(3)
-    fit_csv = tmp_path / "hppc.csv"
-    fit.to_frame().to_csv(fit_csv, index=False)
-    drive_csv = H.write_canonical(drive, tmp_path / "drive.csv")
-    out = tmp_path / "p.json"
-    base = ["fit", "--data", str(fit_csv), "--model", "thevenin", "--mode", "constant", "--out", str(out)]
+    base, drive_csv, out = _fit_command(tmp_path, fit, drive)
     assert main(base + ["--validation", str(drive_csv)]) == 0
     said = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("start SOC")]
     assert len(said) == 1 and "--validation records' reference SOC" in said[0], said
@@ -439,11 +446,7 @@ def test_cli_fit_takes_the_validation_records_capacity_for_a_test_from_full(tmp_
     within 6 % and its OCV still tops out at full; without ``--validation`` the capacity is the charge the test moved
     (and the command warns that the test shows no knee)."""
     rec, fit, drive = _from_full(2)
-    fit_csv = tmp_path / "hppc.csv"
-    fit.to_frame().to_csv(fit_csv, index=False)
-    drive_csv = H.write_canonical(drive, tmp_path / "drive.csv")
-    out = tmp_path / "p.json"
-    base = ["fit", "--data", str(fit_csv), "--model", "thevenin", "--mode", "constant", "--out", str(out)]
+    base, drive_csv, out = _fit_command(tmp_path, fit, drive)
     assert main(base + ["--validation", str(drive_csv)]) == 0
     said = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("capacity")]
     assert len(said) == 1 and "--validation records' reference SOC" in said[0], said

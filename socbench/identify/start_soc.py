@@ -144,8 +144,8 @@ def place_start(name: str, profile, capacity_ah, records, **fit_kwargs) -> tuple
         q = q_ref if q_ref is not None and q_ref > (1.0 + CAPACITY_TOL) * analysis.capacity_ah else capacity_ah
         short = q is not capacity_ah and any(n.startswith(NO_KNEE) for n in analysis.notes)
         # the first sample's SOC counted from the most charged point as full (below 1 where the record charges first:
-        # a charge to full, or a test whose sets open with a charge pulse)
-        first = float((analysis if q is capacity_ah else analyze_hppc(profile, capacity_ah=q)).soc[0])
+        # a charge to full, or a test whose sets open with a charge pulse), the charge to the top counted with q
+        first = 1.0 - (1.0 - float(analysis.soc[0])) * analysis.capacity_ah / (q or analysis.capacity_ah)
         plain = fit_model(name, profile, mode="constant", capacity_ah=q, **fit_kwargs)
     except DataError:  # not an HPPC, or no fit: the caller's own fit says why
         return None, capacity_ah, None
