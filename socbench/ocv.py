@@ -8,8 +8,17 @@ Outside the rest points ``[z_lo, z_hi]`` the curve is extended linearly with its
 ``EXCURSION_FLAG`` = 0.05 (ECM_SPEC §3.3/§7.3: extrapolate linearly, flag ``|Δz| > 0.05``), and held at the value it
 reached there beyond::
 
-    U_oc(z) = U(z_lo) + U'(z_lo)·max(z − z_lo, −0.05)     z < z_lo      dU_oc/dz = U'(z_lo) within 0.05, else 0
-    U_oc(z) = U(z_hi) + U'(z_hi)·min(z − z_hi, +0.05)     z > z_hi      dU_oc/dz = U'(z_hi) within 0.05, else 0
+    U_oc(z) = U(z_lo) + S_lo·max(z − z_lo, −0.05)     z < z_lo      dU_oc/dz = S_lo within 0.05, else 0
+    U_oc(z) = U(z_hi) + S_hi·min(z − z_hi, +0.05)     z > z_hi      dU_oc/dz = S_hi within 0.05, else 0
+
+The end slope ``S`` is the interpolant's end derivative, but never below the mean slope of the end segment (its
+secant): ``S_lo = max(U'(z_lo), (U_2 − U_1)/(z_2 − z_1))``, ``S_hi`` likewise with the last two points. PCHIP's end
+derivative is a three-point formula that is set to 0 where the two end secants differ enough to overshoot (the top of
+a flat LFP curve read up to 0.89: secants 0.23 and 0.057 V per unit SOC); right inside the segment, but extended past
+the last rest point it makes every SOC there read one voltage, and a filter that enters the band can no longer be told
+where it is (an EKF held 0.9 through a discharge to 0.17 on such a curve). Every lithium-ion OCV steepens towards both
+ends (the knee at empty, the rise to full), so beyond its last rest point a curve is at least as steep as its end
+segment; where the interpolant's end derivative already is, nothing changes and the curve stays C¹ there.
 
 so an SOC driven far outside the curve (a model counting through a battery swap, a filter before its clamp) meets a
 bounded voltage instead of an unbounded line (kilovolts after a few units of SOC). The derivative is the exact one of
@@ -89,8 +98,9 @@ class OCVCurve:
         object.__setattr__(self, "_coef", np.ascontiguousarray(pchip.c.T))  # (segments, 4)
         object.__setattr__(self, "_inner", np.ascontiguousarray(z[1:-1]))
         d = pchip.derivative()
-        object.__setattr__(self, "_slope_lo", float(d(z[0])))
-        object.__setattr__(self, "_slope_hi", float(d(z[-1])))
+        secant = np.diff(v) / np.diff(z)
+        object.__setattr__(self, "_slope_lo", max(float(d(z[0])), float(secant[0])))
+        object.__setattr__(self, "_slope_hi", max(float(d(z[-1])), float(secant[-1])))
 
     # ------------------------------------------------------------ evaluation
     def _segment(self, z: np.ndarray):
