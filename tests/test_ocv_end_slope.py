@@ -95,10 +95,10 @@ MISSES = 5
 @pytest.mark.parametrize("lookup_dip", [False, True])
 def test_filters_find_a_cell_charged_past_the_top_rest_point_of_a_flat_curve(lookup_dip):
     """EKF and UKF SOC RMSE above 5 points in at most 5 of 30 draws each (measured: EKF 0 and 0, UKF 1 and 4, without
-    and with the dip; the UKF's misses with the dip are the dip's own error: 4 % of R0 at 3C is mV, tens of points of
-    SOC on the plateau). With PCHIP's own end derivatives (the extension before) the same draws miss more than that:
-    the UKF in 7 with constant resistances, with the dip the EKF in 16 (its 90th percentile at 49 points) and the UKF
-    in 9."""
+    and with the dip; the UKF's misses with the dip are the dip's own error: 4 % of R0 at 3C is some 6 mV, ten points
+    of SOC on a plateau of 0.06 V per unit). With PCHIP's own end derivatives (the extension before) the same draws
+    miss more than that: the UKF in 7 with constant resistances, with the dip the EKF in 16 (its 90th percentile at
+    49 points) and the UKF in 9."""
     now = _soc_errors(lookup_dip, pchip_ends=False)
     before = _soc_errors(lookup_dip, pchip_ends=True)
     for name in ("ekf", "ukf"):
