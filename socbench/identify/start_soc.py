@@ -151,21 +151,21 @@ def place_start(name: str, profile, capacity_ah, records, **fit_kwargs) -> tuple
         return None, capacity_ah, None
     found = start_shift(make_model(name, plain.params), records)
     if found is None:
-        return (None, q, _capacity_report(q, analysis)) if short else (None, capacity_ah, None)
+        return (None, q, _capacity_kept(q, analysis)) if short else (None, capacity_ah, None)
     report = {**found.to_dict(), "start_soc": round(first - found.shift, 4), "capacity_ah": plain.params.capacity_ah,
               "capacity_from": "the references" if q is not capacity_ah else
               "given" if capacity_ah else "the HPPC's charge"}
     if found.kept:
         return first - found.shift, q, report
-    return (None, q, {**report, "capacity_kept": True, "capacity_note": _SHORT_NOTE}) if short \
-        else (None, capacity_ah, report)
+    return (None, q, _capacity_kept(q, analysis, report)) if short else (None, capacity_ah, report)
 
 
 _SHORT_NOTE = ("the HPPC shows no end-of-discharge knee (it stopped above empty), so the charge it moved is short of "
                "the cell's capacity: counted with the capacity the records' reference SOC counts with")
 
 
-def _capacity_report(q: float, analysis) -> dict:
-    """The report of a test whose start stays at full and whose axis is counted with the references' capacity ``q``."""
-    return {"capacity_ah": float(q), "capacity_from": "the references", "capacity_kept": True,
-            "hppc_charge_ah": float(analysis.capacity_ah), "kept": False, "capacity_note": _SHORT_NOTE}
+def _capacity_kept(q: float, analysis, report: dict | None = None) -> dict:
+    """The report of a test whose start stays at full and whose axis is counted with the references' capacity ``q``:
+    ``report`` (the start search's, where it ran) with what the capacity was read from and why."""
+    base = report if report is not None else {"capacity_ah": float(q), "capacity_from": "the references", "kept": False}
+    return {**base, "capacity_kept": True, "hppc_charge_ah": float(analysis.capacity_ah), "capacity_note": _SHORT_NOTE}
