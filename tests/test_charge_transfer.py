@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from socbench.errors import ConfigError
+from socbench.identify.fit import fit_model
 from socbench.identify.temperature import I0_LABEL, arrhenius_law, fit_temperatures
 from socbench.models import Constant, ModelParams, load_params, make_model, paper_params, save_params
 from socbench.models.effects import FARADAY, KELVIN, R_GAS, AugmentedModel, ButlerVolmer, augment
@@ -152,3 +153,59 @@ def test_the_fit_recovers_a_planted_exchange_current_law(draw):
     plain = fit_temperatures("dp", records[:1], mode="constant")
     assert res.fits[0].rmse_v < 0.5 * plain.rmse_v
     assert I0_LABEL not in res.fits[0].values  # the second pass holds the law's I0
+
+
+# ------------------------------------------------------------------------------------------------ pass (c)'s start
+def _lookup_fit_pair(seed: int):
+    """``(record, ButlerVolmer at the fitted I0, pass-(a)-like fit)``: a lookup-mode dp fitted with its exchange current
+    on one cold synthetic HPPC of a random truth."""
+    rng = np.random.default_rng(seed)
+    cell, truth_params, planted = _random_bv_cell(rng)
+    rec = _cold_hppc(float(rng.uniform(-20.0, 10.0)), truth_params, planted, cell, seed)
+    first = fit_model("dp", rec, mode="lookup", effects=(ButlerVolmer(I0=cell.capacity_ah),))
+    return rec, ButlerVolmer(I0=first.values[I0_LABEL]), first
+
+
+@pytest.mark.parametrize("seed", (7, 8))
+def test_a_refit_from_start_fit_starts_where_that_fit_ended(seed):
+    """``fit_model(..., start_fit=f)`` starts from ``f``'s base θ, every SOC node as it ended (pass (c) of
+    ``fit_temperatures`` with the charge-transfer term: only I0 moved since pass (a)). With the exchange current held
+    where the first fit put it and a single evaluation, the refit is that fit; from the record's own guesses it is
+    not."""
+    rec, held, first = _lookup_fit_pair(seed)
+    nb = sum(1 for name in first.corr_names if name != I0_LABEL)
+    again = fit_model("dp", rec, mode="lookup", effects=(held,), fit_effects=False, start_fit=first, max_nfev=1)
+    np.testing.assert_allclose(again.lsq.theta, first.lsq.theta[:nb], rtol=0, atol=1e-9)
+    assert again.rmse_v == pytest.approx(first.rmse_v, rel=1e-6)
+    cold = fit_model("dp", rec, mode="lookup", effects=(held,), fit_effects=False, warm_start=False, max_nfev=1)
+    assert cold.rmse_v > 2.0 * first.rmse_v
+
+
+def test_a_start_fit_of_another_layout_is_refused():
+    rec, held, first = _lookup_fit_pair(9)
+    with pytest.raises(ValueError, match="other base parameters"):
+        fit_model("dp", rec, mode="constant", effects=(held,), fit_effects=False, start_fit=first)
+
+
+def test_the_law_refit_starts_at_each_temperature_from_its_own_first_pass(monkeypatch):
+    """Pass (c) refits every temperature from where pass (a) ended there, not from the record's guesses: from those,
+    liu on the five Panasonic HPPCs (`socbench fit --data $HPPCS --model liu --mode auto --validation $CYCLES`, the
+    per-temperature setting with the term) predicted its 25 °C Cycle_1 run at 171 mV; from pass (a), at 25 mV, as
+    without the term."""
+    import socbench.identify.temperature as temperature
+
+    cell, truth_params, planted = _random_bv_cell(np.random.default_rng(11))
+    records = [_cold_hppc(t, truth_params, planted, cell, 40 + k) for k, t in enumerate((-10.0, 25.0))]
+    calls = []
+
+    def spy(name, profile, **kw):
+        out = fit_model(name, profile, **kw)
+        calls.append((profile.name, kw.get("fit_effects", True), kw.get("start_fit"), out))
+        return out
+
+    monkeypatch.setattr(temperature, "fit_model", spy)
+    fit_temperatures("dp", records, mode="constant", charge_transfer=True)
+    first = {name: out for name, fitted, _, out in calls if fitted}
+    second = [(name, start) for name, fitted, start, _ in calls if not fitted]
+    assert len(first) == 2 and len(second) == 2
+    assert all(start is first[name] for name, start in second)

@@ -531,7 +531,8 @@ def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
               capacity_ah: float | None = None, soc0: float | None = None, *, knots=None, options: dict | None = None,
               compress: bool | dict = True, warm_start: bool = True, max_nfev: int | None = None,
               time_weighted: bool = False, loss: str = "linear", segments=None, effects=(),
-              fit_effects: bool = True, start: ModelParams | None = None) -> FitResult:
+              fit_effects: bool = True, start: ModelParams | None = None,
+              start_fit: FitResult | None = None) -> FitResult:
     """Fit model ``name`` to ``profile`` (see the module docstring). Returns a :class:`FitResult`.
 
     ``effects``: effects in the model, their ``joint_params`` fitted with the base parameters (held as given with
@@ -541,14 +542,25 @@ def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
     one piece; see :func:`~socbench.identify.lsq.fit_parameters` and :mod:`socbench.segments`).
 
     ``start``: a parameter set to start from instead of the record's guesses (:func:`setup_fit`): a refit of a set
-    fitted before, with an effect held beside it."""
+    fitted before, with an effect held beside it.
+
+    ``start_fit``: a fit of this record in this setting to start from exactly (no warm start): its base parameters'
+    θ, every SOC node as it ended there (``start`` keeps only each parameter's median over SOC) — the refit of a fit
+    whose effect parameters alone were moved.
+    """
     t0 = _time.perf_counter()
     if compress is True:
         compress = dict(FIT_COMPRESSION)
     prob = setup_fit(name, profile, mode, ocv, capacity_ah, soc0, knots, options, effects, fit_effects, start)
     profile = prob.fit_profile(profile)
     theta0 = prob.theta0.copy()
-    if warm_start and any(not isinstance(f, ConstantForm) for f in prob.forms):
+    if start_fit is not None:
+        nb = prob.n_base
+        if tuple(start_fit.corr_names[:nb]) != tuple(prob.labels[:nb]):
+            raise ValueError(f"start_fit ({start_fit.name}, {start_fit.mode}) lays out other base parameters than "
+                             f"this fit ({name}, {mode})")
+        theta0[:nb] = np.clip(start_fit.lsq.theta[:nb], prob.lower[:nb], prob.upper[:nb])
+    elif warm_start and any(not isinstance(f, ConstantForm) for f in prob.forms):
         const = setup_fit(name, profile, "constant", prob.ocv, prob.capacity_ah, prob.soc0, None, prob.options,
                           effects, fit_effects, start)
         cres = fit_parameters(const.build, profile, const.theta0, const.lower, const.upper, names=const.labels,
