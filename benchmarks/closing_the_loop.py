@@ -326,7 +326,11 @@ HOW = (
     "swapped for "
     "another one when that one, fitted beside everything else added, cuts the held-out RMSE by a further 10 % (a "
     "fade that comes with grown resistances loses its round alone to a leak at its bound, and wins once the base "
-    "refit is beside it).")
+    "refit is beside it). The search is greedy, and its first round judges every effect against the base alone: "
+    "the search is run again without the first effect it named (not a current offset or a temperature the records "
+    "measure, not an SOC drift (the swap above covers those), not a step the fit test found) and that run is "
+    "kept when it ends 10 % lower (`socbench.diagnose.core.search_without_first`: a hysteresis, an offset set by the "
+    "sign of the current's history, can win the first round from a slow branch or a charge-transfer term).")
 SOC_HOW = (
     "SOC: the EKF and the UKF run on every record once per fold (records averaged to at most 1500 bins), block j "
     "scored with fold j's model; each fold's filter voltage noise is the held-out residual outside block j (each "
