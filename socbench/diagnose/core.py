@@ -443,7 +443,7 @@ def search_beside(make_search, model_name: str, base, refit, evidence: str, plai
     return search, run
 
 
-def search_without_first(make_search, search: Search, steps, candidates, min_gain: float):
+def search_without_first(make_search, search: Search, steps, min_gain: float):
     """``(search, run, first)`` of the search run again without the first effect ``steps`` name, where that run
     ends ``min_gain`` below them; ``(None, None, first)`` where it does not (``first`` None: nothing to check).
 
@@ -460,7 +460,7 @@ def search_without_first(make_search, search: Search, steps, candidates, min_gai
     first = next((s.effect for s in steps if s.effect != BASE_REFIT and not search.measured_input(s.effect)), None)
     if first is None or first in SOC_DRIFT or any(s.fit_test for s in steps):
         return None, None, None
-    others = [c for c in (candidates or EFFECTS) if c not in (first, BASE_REFIT)]
+    others = [c for c in search.candidates if c not in (first, BASE_REFIT)]
     alt = make_search(search.base, candidates=others)
     run = alt.run()
     if not run[1] or run[1][-1].rmse_after > (1.0 - min_gain) * steps[-1].rmse_after:
@@ -719,7 +719,7 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
         if beside is not None:
             search, (final, steps, rounds, _) = beside
     if RECHECK_FIRST and steps:
-        alt, run, first = search_without_first(make_search, search, steps, candidates, min_gain)
+        alt, run, first = search_without_first(make_search, search, steps, min_gain)
         if first is not None:
             fit_info["recheck"] = {
                 "without": first, "effects": [s.effect for s in run[1] if s.effect != BASE_REFIT],
