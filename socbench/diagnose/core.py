@@ -404,11 +404,14 @@ def effect_on_fit_test_record(model_name: str, base, fit_profiles, evals, info: 
             s0, s1 = r["rests"]["structure_v"]
             rests = (f", what its {r['rests']['rests']} rests leave of the relaxation beyond the noise "
                      f"{1000 * s0:.2f} → {1000 * s1:.2f} mV")
+        # where constant mode fell short, the gain the record showed in the base's own form
+        fit_rmse, form = (r["fit_rmse_v_in_form"], " (in the base's form)") if "fit_rmse_v_in_form" in r \
+            else (r["fit_rmse_v"], "")
         info["fit_test_effect"].update({key: name, "shown_by_rests": bool(r.get("shown_by_rests")),
                                         "validation": r.get("validation", "gain"), "evidence": (
             f"fitted with the base on the fit record {prof.name} "
             f"({format_params({k: v for k, v in r['values'].items() if k in EFFECTS[name].param_names})}): its RMSE "
-            f"{1000 * r['fit_rmse_v'][0]:.2f} → {1000 * r['fit_rmse_v'][1]:.2f} mV{rests}, the evaluation records "
+            f"{1000 * fit_rmse[0]:.2f} → {1000 * fit_rmse[1]:.2f} mV{form}{rests}, the evaluation records "
             f"predicted {1000 * r['validation_rmse_v'][0]:.1f} → {1000 * r['validation_rmse_v'][1]:.1f} mV")})
         break
     return refit, deferred

@@ -141,6 +141,9 @@ BASE_SCALE = float(np.log(4.0))
 BASE_OFFSET_V = 0.05
 #: an effect is preferred to the base refit when its held-out RMSE is within this share of the refit's
 PARSIMONY = 0.10
+#: … and only when it would be added itself (score above zero, the search's gain): an effect short of the gain, chosen
+#: over a refit that passed, ended the search, and was never fitted again beside the refit (seed 2026 case 12)
+PARSIMONY_ACCEPTED = True
 #: an extra RC branch whose time constant lies within this factor of one of the base model's is that branch misfitted
 TWIN_TAU = 3.0
 #: a measured temperature this far from the fit's [K] is evidence of a temperature effect (Search._choose)
@@ -812,7 +815,8 @@ class Search:
 
     def _choose(self, cands):
         """The best-scoring candidate, except that an effect within :data:`PARSIMONY` of a winning base refit is
-        preferred (a named effect with fewer parameters explains the same), and that a current-sensor offset the
+        preferred (a named effect with fewer parameters explains the same) where it would be added itself
+        (:data:`PARSIMONY_ACCEPTED`), and that a current-sensor offset the
         rests measure comes first when it explains a share of the residual of its own (:attr:`min_gain`): the rest
         current *is* the offset (direct evidence, no model needed), while a leak or a fade reads none. The same for
         the temperature when the records' measured temperature differs from the fit's (:data:`T_EVIDENCE_K`)."""
@@ -831,7 +835,8 @@ class Search:
                 return temp[0]
         if best.effect == BASE_REFIT:
             rivals = [c for c in ok if c.effect != BASE_REFIT and c.score > 0
-                      and c.rmse_after <= (1.0 + PARSIMONY) * best.rmse_after]
+                      and c.rmse_after <= (1.0 + PARSIMONY) * best.rmse_after
+                      and (not PARSIMONY_ACCEPTED or c.rmse_after <= (1.0 - self.min_gain) * c.rmse_before)]
             if rivals:
                 return max(rivals, key=lambda c: c.score)
         return best

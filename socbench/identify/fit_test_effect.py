@@ -13,7 +13,10 @@ own share::
 The refit is kept (:func:`fit_with_effect`) when
 
 * it fits its own record :data:`FIT_GAIN` better (the effect is in the test), fitted in constant mode against the
-  base fitted so (few parameters: several starts are cheap), then again in the base's own form; or, for a branch,
+  base fitted so (few parameters: several starts are cheap), then again in the base's own form; where constant mode
+  falls short and the base's form is SOC-lookup, the gain is asked in that form instead (:data:`IN_FORM_GAIN`: the
+  open-loop error on the record of the base against the refit, both in that form — a constant-mode base's own error,
+  the SOC shape of its resistances, can hide what the effect adds); or, for a branch,
   the record's rests show it (:func:`_rests_refuse` passes on :func:`~socbench.identify.rest_relaxation.
   rest_evidence`: the base's branches and one more fitted on the rests' relaxation alone, each rest's OCV level
   free, the extra one takes :data:`REST_GAIN` of what the base's leave beyond the noise). The whole record's fit
@@ -94,6 +97,10 @@ from .select import validation_rmse
 FIT_TEST_EFFECTS = ("extra_rc", "hysteresis")
 #: the refit must fit its own record by this share better
 FIT_GAIN = 0.10
+#: where the constant-mode refit falls short of FIT_GAIN, ask it of the refit in the base's SOC-lookup form (measured
+#: on the randomised benchmark: seed 4242 case 69, a 17 mV LFP hysteresis, 6 % better in constant mode and 14 % in the
+#: lookup form, is named; nothing else changed on seeds 2026 and 4242)
+IN_FORM_GAIN = True
 #: … and predict the evaluation records by this share better (mean open-loop RMSE)
 VALIDATION_GAIN = 0.10
 #: function evaluations of the refit in the base's SOC-lookup form (it starts from the constant-mode fit with the
@@ -281,16 +288,22 @@ def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, 
         if best is None:
             return None, {**report, "why_not": "every fit failed"}
     report["fit_rmse_v"] = [reference.rmse_v, best.rmse_v]
+    in_form = False
     if not shown and not best.rmse_v <= (1.0 - FIT_GAIN) * reference.rmse_v:
-        return None, {**report, "why_not": f"fit record not {100 * FIT_GAIN:.0f} % better"
-                      + (", nor do its rests show the branch" if "rests" in report else "")}
+        if IN_FORM_GAIN and lookup is not None:
+            in_form = True
+        else:
+            return None, {**report, "why_not": f"fit record not {100 * FIT_GAIN:.0f} % better"
+                          + (", nor do its rests show the branch" if "rests" in report else "")}
     report["shown_by_rests"] = shown
-    if effect == "extra_rc" and relax_rests:  # the rest points, read before the new branch had relaxed
+    # the rest points, read before the new branch had relaxed
+    if effect == "extra_rc" and relax_rests and not in_form:
         best, report["ocv_relaxation"] = relax_rest_points(
             name, profile, best, effect, setting, validation, shown,
             rests_read(name, reference, rests, settings) if shown else None)
         ocv = best.params.ocv
-    if effect == "extra_rc" and refine_rests:  # the curve between the points, read again beside the branch
+    # the curve between the points, read again beside the branch (not for a branch the gain in form is still to judge)
+    if effect == "extra_rc" and refine_rests and not in_form:
         values = best.params.effects[0]["values"]
         refit, report["ocv_refinement"] = refit_on_refined_ocv(
             best, profile, validation, mode="constant", effects=[EFFECTS[effect](**values)], fit_effects=not shown,
@@ -306,6 +319,11 @@ def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, 
             return None, {**report, "why_not": f"fit in the base's form failed: {exc}"}
     values = {k: float(v) for k, v in best.params.effects[0]["values"].items()}
     report.update({"values": values, "final_fit_rmse_v": best.rmse_v})
+    if in_form:  # the same open-loop error on the record for both, the base's form for both
+        report["fit_rmse_v_in_form"] = [validation_rmse(base, profile), validation_rmse(best, profile)]
+    if in_form and not report["fit_rmse_v_in_form"][1] <= (1.0 - FIT_GAIN) * report["fit_rmse_v_in_form"][0]:
+        return None, {**report, "why_not": f"fit record not {100 * FIT_GAIN:.0f} % better, in constant mode nor "
+                      "in the base's form" + (", nor do its rests show the branch" if "rests" in report else "")}
     why = _at_bound(effect, values, best)
     if effect == "extra_rc":
         tau = 10.0 ** values["log10_tau"]
