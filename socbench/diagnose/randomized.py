@@ -827,8 +827,12 @@ def markdown(summary: dict) -> str:
         L.append(f"| cases with a hidden effect where an effect that is not there is named too (no target) | "
                  f"{fraction(false)} | – | – |")
     wall, slow = summary["wall_s"], summary["diagnosis_wall_max_s"]
-    L.append(f"| wall time of the whole run ({summary['jobs']} workers) | {wall:.0f} s | ≤ {RUN_WALL_S:.0f} s | "
-             f"{'yes' if wall <= RUN_WALL_S else '**no**'} |")
+    if "oracle_accepted_single" in R:  # every single-effect case diagnosed twice: not the run the target is set for
+        L.append(f"| wall time of the whole run ({summary['jobs']} workers), with the oracle's second diagnosis of "
+                 f"every single-effect case (no target: the target is the run without it) | {wall:.0f} s | – | – |")
+    else:
+        L.append(f"| wall time of the whole run ({summary['jobs']} workers) | {wall:.0f} s | ≤ {RUN_WALL_S:.0f} s | "
+                 f"{'yes' if wall <= RUN_WALL_S else '**no**'} |")
     L.append(f"| slowest single diagnosis (wall) | {slow:.1f} s | < {DIAGNOSIS_WALL_S:.0f} s | "
              f"{'yes' if slow < DIAGNOSIS_WALL_S else '**no**'} |")
     L += ["", "Per effect (single-effect cases; pairs: named when it was one of the two hidden; footprint: RMS voltage "
