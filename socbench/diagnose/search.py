@@ -242,6 +242,12 @@ class Candidate:
                 "worst_block_mse_ratio": round(float(self.fold_ratio), 4) if np.isfinite(self.fold_ratio) else None}
 
 
+def added_alone(c: Candidate, min_gain: float) -> bool:
+    """Whether candidate ``c`` would be added by its own round: a score above zero and a held-out RMSE ``min_gain``
+    below the model's before it."""
+    return bool(c.score > 0 and c.rmse_after <= (1.0 - min_gain) * c.rmse_before)
+
+
 def noise_floor(noise_sd: float, refitted: bool = False) -> float:
     """The search's noise floor for a voltage noise ``noise_sd``: :data:`NOISE_FLOOR` × it, :data:`NOISE_FLOOR_REFIT` ×
     once the base refit is in the model (``refitted``)."""
@@ -829,14 +835,12 @@ class Search:
             if bias:
                 return bias[0]
         if self.temperature_measured:  # likewise the measured temperature: a base refit would only mimic it
-            temp = [c for c in ok if c.effect == "temperature" and c.score > 0
-                    and c.rmse_after <= (1.0 - self.min_gain) * c.rmse_before]
+            temp = [c for c in ok if c.effect == "temperature" and added_alone(c, self.min_gain)]
             if temp:
                 return temp[0]
         if best.effect == BASE_REFIT:
-            rivals = [c for c in ok if c.effect != BASE_REFIT and c.score > 0
-                      and c.rmse_after <= (1.0 + PARSIMONY) * best.rmse_after
-                      and (not PARSIMONY_ACCEPTED or c.rmse_after <= (1.0 - self.min_gain) * c.rmse_before)]
+            rivals = [c for c in ok if c.effect != BASE_REFIT and c.rmse_after <= (1.0 + PARSIMONY) * best.rmse_after
+                      and (added_alone(c, self.min_gain) if PARSIMONY_ACCEPTED else c.score > 0)]
             if rivals:
                 return max(rivals, key=lambda c: c.score)
         return best
@@ -856,8 +860,8 @@ class Search:
         if best.effect == BASE_REFIT or BASE_REFIT in names or not below_floor and (
                 best.effect == "temperature" or (best.effect == "current_bias" and self.bias_measured)):
             return best
-        refit = next((c for c in cands if c.effect == BASE_REFIT and np.isfinite(c.score) and c.score > 0
-                      and c.rmse_after <= (1.0 - self.min_gain) * c.rmse_before), None)
+        refit = next((c for c in cands if c.effect == BASE_REFIT and np.isfinite(c.score)
+                      and added_alone(c, self.min_gain)), None)
         if refit is None or fold_sigs is None:
             return best
         gain = FLOOR_GAIN if below_floor else self.min_gain

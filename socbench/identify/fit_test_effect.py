@@ -321,10 +321,11 @@ def fit_with_effect(name: str, base, profile: Profile, validation, effect: str, 
     values = {k: float(v) for k, v in best.params.effects[0]["values"].items()}
     report.update({"values": values, "final_fit_rmse_v": best.rmse_v})
     if in_form:  # the same open-loop error on the record for both, the base's form for both
-        report["fit_rmse_v_in_form"] = [validation_rmse(base, profile), validation_rmse(best, profile)]
-    if in_form and not report["fit_rmse_v_in_form"][1] <= (1.0 - FIT_GAIN) * report["fit_rmse_v_in_form"][0]:
-        return None, {**report, "why_not": f"fit record not {100 * FIT_GAIN:.0f} % better, in constant mode nor "
-                      "in the base's form" + (", nor do its rests show the branch" if "rests" in report else "")}
+        fit_before, fit_after = report["fit_rmse_v_in_form"] = [validation_rmse(base, profile),
+                                                                validation_rmse(best, profile)]
+        if not fit_after <= (1.0 - FIT_GAIN) * fit_before:
+            return None, {**report, "why_not": f"fit record not {100 * FIT_GAIN:.0f} % better, in constant mode nor "
+                          "in the base's form" + (", nor do its rests show the branch" if "rests" in report else "")}
     why = _at_bound(effect, values, best)
     if effect == "extra_rc":
         tau = 10.0 ** values["log10_tau"]
