@@ -26,6 +26,8 @@ The reference SOC is the one column checked leniently, because a reference count
 
 from __future__ import annotations
 
+import hashlib
+import json
 import warnings
 from dataclasses import dataclass, field, replace
 
@@ -69,6 +71,22 @@ class ProfileMeta:
             "chemistry": self.chemistry,
             **({"extra": self.extra} if self.extra else {}),
         }
+
+
+def samples_fingerprint(profile) -> str:
+    """SHA-256 of a profile's samples and of the metadata that says what they measure (capacity, cells in series,
+    chemistry; not its name or source): two records with this hash are the same test."""
+    h = hashlib.sha256()
+    for name in ("time_s", "current_a", "voltage_v", "temperature_c", "soc_ref"):
+        arr = getattr(profile, name)
+        h.update(name.encode())
+        if arr is not None:
+            arr = np.ascontiguousarray(arr, dtype=np.float64)
+            h.update(str(arr.shape).encode())
+            h.update(arr.tobytes())
+    meta = profile.meta
+    h.update(json.dumps([meta.capacity_ah, meta.n_series, meta.chemistry], default=str).encode())
+    return h.hexdigest()
 
 
 def _first_bad_row(mask: np.ndarray) -> int:

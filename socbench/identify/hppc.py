@@ -85,6 +85,9 @@ falling as the SOC rises — and gets one :class:`DataError` line naming the cur
 
 from __future__ import annotations
 
+import json
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -92,7 +95,7 @@ import numpy as np
 from ..errors import DataError
 from ..metrics import lag1_autocorrelation
 from ..ocv import OCVCurve, monotone_points
-from ..profile import Profile
+from ..profile import Profile, samples_fingerprint
 from ..socaxis import reference_capacity
 
 #: relative disagreement between the integrated current and the reference SOC above which the reference is used
@@ -597,7 +600,55 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
     rest and the last); and steps as long as the pulses or shorter (55 s steps beside 60 s pulses), pulses under every
     bound, whose sets only the OCV rests tell apart. A record whose own bound finds three OCV points or more is
     analysed as before.
+
+    The analysis of a record is kept (:data:`MEMO_SIZE` records, keyed on their samples, all their metadata and
+    the arguments): a diagnosis fits one HPPC in several modes, models and effect sets, and each fit analysed it again
+    (2 313 analyses in the 42 slowest tests, 5 % of their time). The key holds this module's settings too (a setting
+    changed, as a study of a rule does, analyses again). Its arrays are read-only; an error is raised again as it was.
     """
+    key = (samples_fingerprint(profile), json.dumps(profile.meta.to_dict(), sort_keys=True, default=str),
+           str(profile.soc_ref_error), capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_start, _settings())
+    with _MEMO_LOCK:
+        hit = _MEMO.get(key)
+        if hit is not None:
+            _MEMO.move_to_end(key)
+    if hit is None:
+        try:
+            hit = _read_only(_analyze_with_ladder(profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_start))
+        except DataError as exc:
+            hit = exc
+        with _MEMO_LOCK:
+            _MEMO[key] = hit
+            while len(_MEMO) > MEMO_SIZE:
+                _MEMO.popitem(last=False)
+    if isinstance(hit, DataError):
+        raise hit.with_traceback(None)
+    return hit
+
+
+#: records whose analysis :func:`analyze_hppc` keeps
+MEMO_SIZE = 16
+_MEMO: OrderedDict = OrderedDict()
+_MEMO_LOCK = threading.Lock()
+
+
+def _settings() -> tuple:
+    """This module's settings as they are now: every upper-case name bound to a number, string, bool or tuple."""
+    return tuple((k, v) for k, v in globals().items()
+                 if k.isupper() and isinstance(v, (bool, int, float, str, tuple)))
+
+
+def _read_only(analysis: HPPCAnalysis) -> HPPCAnalysis:
+    """``analysis`` with its per-sample and OCV arrays made read-only (a kept analysis is shared by every caller)."""
+    for name in ("ocv_soc", "ocv_voltage", "soc", "ah", "level_soc"):
+        arr = getattr(analysis, name)
+        if isinstance(arr, np.ndarray):
+            arr.flags.writeable = False
+    return analysis
+
+
+def _analyze_with_ladder(profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_start) -> HPPCAnalysis:
+    """:func:`analyze_hppc` without its memo: the record's own pulse bound, then the ladder."""
     durations = []
     try:
         first = _analyze_hppc(profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_start, durations)
@@ -842,10 +893,19 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
         raise DataError("the record discharges no charge: cannot place it on the SOC axis", file=src)
     soc = _soc_axis(ah, ah_full, q, soc_start)
 
+    # a rest's end voltage (a line through its last window) is read where it is used, once: a drive cycle has
+    # thousands of moments at zero current, and a record that is no HPPC uses hardly any of them
+    v_ends: dict = {}
+
+    def v_end(r: Rest) -> float:
+        if r.start not in v_ends:
+            v_ends[r.start] = _rest_end_voltage(t, v, r.start, r.stop, r.duration_s)
+        return v_ends[r.start]
+
     rests = []
     for a, b in _intervals(~active):
         dur = float(t_after[b - 1] - t[a]) if b < n else float(t[b - 1] - t[a])
-        rests.append(Rest(a, b, dur, float(soc[b - 1]), _rest_end_voltage(t, v, a, b, dur)))
+        rests.append(Rest(a, b, dur, float(soc[b - 1]), float("nan")))
     rest_by_stop = {r.stop: r for r in rests}  # (their lengths: the SOC axis is final further down)
 
     # pulse candidates: held phases that start from a rest and end inside the record
@@ -855,16 +915,16 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
         for pa, pb in _phases(a, b, sign, t_after, t):
             if pa != a or pa == 0 or pb >= n:
                 continue
+            dur = float(t[pb] - t[pa])
+            before = rest_by_stop.get(pa)
+            if before is None or before.duration_s < PULSE_REST_RATIO * dur:
+                continue  # an HPPC rests before every pulse; a drive cycle crosses zero for a moment
             seg = di[pa:pb]
             level = float(np.median(seg))
             if float(np.median(np.abs(seg - level))) > max(lev.lo_a, PULSE_FLATNESS * abs(level)):
                 continue  # not a held current (driving, a ramp)
             if abs(level) < PULSE_SNR * lev.hi_a:
                 continue  # hardly above the rest threshold: a wobble of a current that has no clear rest level
-            dur = float(t[pb] - t[pa])
-            before = rest_by_stop.get(pa)
-            if before is None or before.duration_s < PULSE_REST_RATIO * dur:
-                continue  # an HPPC rests before every pulse; a drive cycle crosses zero for a moment
             candidates.append((pa, pb, dur))
     # which way the test steps: down from full (the usual HPPC: what comes before full is pre-conditioning) or up to
     # it (an HPPC in the charge direction, whose levels are reached by charging: the whole record before full is the
@@ -922,7 +982,7 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
         r_inst = float((v[a - 1] - v[a]) / d_on) if resolved and abs(d_on) >= EDGE_FRACTION * abs(cur) else np.nan
         r_off = float((v[b] - v[b - 1]) / d_off) if resolved and abs(d_off) >= EDGE_FRACTION * abs(cur) else np.nan
         before = rest_by_stop.get(a)
-        v_before = before.v_end if before is not None else float(v[a - 1])
+        v_before = v_end(before) if before is not None else float(v[a - 1])
         r_pulse = float((v_before - v[b - 1]) / cur)
         nxt = rest_by_start.get(b)
         tau = tau_slow = float("nan")
@@ -957,7 +1017,7 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
             unrested.append(p.soc)
             continue
         ocv_z.append(r.soc_end)
-        ocv_v.append(r.v_end)
+        ocv_v.append(v_end(r))
     n_sets, n_rested = len(firsts), len(ocv_z)
     if unrested:
         notes.append(f"{len(unrested)} of {n_sets} pulse sets (at z = {', '.join(f'{z:.3f}' for z in unrested[:5])}"
@@ -971,7 +1031,7 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
         since = ah[firsts[pulses[-1].level].start - 1] if rest_sets else ah[pulses[-1].stop]
         if abs(ah[end - 1] - since) > SET_SPLIT * q:
             ocv_z.append(last.soc_end)
-            ocv_v.append(last.v_end)
+            ocv_v.append(v_end(last))
     if end < n:
         notes.append(f"the test ends at the rest after its most discharged point (z = {soc[end - 1]:.3f}): the "
                      f"{(t[-1] - t[end - 1]) / 3600:.2g} h of charge back that follow are not part of it")
@@ -992,6 +1052,7 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
     start_ocv = float(v[0] + r_inst * di[0]) if k_full == 0 and r_inst > 0 else float("nan")
     bottom = (None if ascending or not BOTTOM_EXTENSION
               else _bottom_point(t, v, di, ah, soc, pulses, start, end, lev, max_pulse_s))
+    rests = [replace(r, v_end=v_end(r)) for r in rests]
     return HPPCAnalysis(tuple(rests), tuple(pulses), np.asarray(ocv_z), np.asarray(ocv_v), q, soc, ah, ah_source,
                         level_soc, tuple(notes), lev, float(max_pulse_s), start_ocv, start,
                         "charge" if ascending else "discharge", end, bottom)

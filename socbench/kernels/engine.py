@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor, wait
+from functools import cache
 
 import numpy as np
 
@@ -18,16 +19,22 @@ from . import jit
 from .lowering import Lowered, try_lower
 
 
+@cache
+def cores() -> int:
+    """The machine's cores (asked once: a fit asks for every batch it simulates)."""
+    return max(1, os.cpu_count() or 1)
+
+
 def n_threads() -> int:
     """Threads for a batch: ``$SOCBENCH_THREADS``, else one per core."""
     env = os.environ.get("SOCBENCH_THREADS")
-    return max(1, int(env)) if env else max(1, os.cpu_count() or 1)
+    return max(1, int(env)) if env else cores()
 
 
 def share_cores(workers: int) -> None:
     """``workers`` processes share the machine's cores: each runs its batches on ``cores // workers`` threads (set in
     ``$SOCBENCH_THREADS`` unless the user set it; a forked or spawned worker inherits it)."""
-    os.environ.setdefault("SOCBENCH_THREADS", str(max(1, (os.cpu_count() or 1) // max(1, workers))))
+    os.environ.setdefault("SOCBENCH_THREADS", str(max(1, cores() // max(1, workers))))
 
 
 #: slices of a batch per thread (parallel_runs)

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
+from ..profile import samples_fingerprint
 
 #: bump when the meaning of a stored record changes (old records are then ignored, never misread)
 STORE_SCHEMA = 1
@@ -74,21 +75,12 @@ def _json_default(o):
 
 
 def profile_fingerprint(profile) -> str:
-    """SHA-256 of a profile's samples and metadata: two characterisations with this hash are the same test. A
-    characterisation made of several records (a measured scenario's) brings its own ``fingerprint()``."""
+    """SHA-256 of a profile's samples and metadata (:func:`socbench.profile.samples_fingerprint`): two
+    characterisations with this hash are the same test. A characterisation made of several records (a measured
+    scenario's) brings its own ``fingerprint()``."""
     if hasattr(profile, "fingerprint"):
         return profile.fingerprint()
-    h = hashlib.sha256()
-    for name in ("time_s", "current_a", "voltage_v", "temperature_c", "soc_ref"):
-        arr = getattr(profile, name)
-        h.update(name.encode())
-        if arr is not None:
-            arr = np.ascontiguousarray(arr, dtype=np.float64)
-            h.update(str(arr.shape).encode())
-            h.update(arr.tobytes())
-    meta = profile.meta
-    h.update(json.dumps([meta.capacity_ah, meta.n_series, meta.chemistry], default=str).encode())
-    return h.hexdigest()
+    return samples_fingerprint(profile)
 
 
 def parse_names(text: str | None, known: list[str], kind: str, default) -> tuple[str, ...]:
