@@ -38,6 +38,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..models.effects import AugmentedModel
+from ..models.params import Constant, Lookup, Polynomial, TemperatureTable
+from ..ocv import EXCURSION_FLAG, OCVCurve, TemperatureOCV
+
 # ---------------------------------------------------------------------------------------------- codes (shared)
 #: model families: the family of Model.kernel_spec() -> code (one compiled step/output pair each in evaluate.py)
 FAMILIES = {"rc_network": 1, "improved_rc": 2, "static_terms": 3, "tremblay": 4, "esc": 5}
@@ -138,7 +142,6 @@ class _Builder:
 
 # ---------------------------------------------------------------------------------------------- SOC functions
 def _plain_function(b: _Builder, f) -> int:
-    from ..models.params import Constant, Lookup, Polynomial
 
     if isinstance(f, Constant):
         return b.record(FN_CONST, b.slot(f.value), 1, 0)
@@ -155,7 +158,6 @@ def _plain_function(b: _Builder, f) -> int:
 
 
 def _function(b: _Builder, f) -> int:
-    from ..models.params import TemperatureTable
 
     if not isinstance(f, TemperatureTable):
         return _plain_function(b, f)
@@ -167,7 +169,6 @@ def _function(b: _Builder, f) -> int:
 # ---------------------------------------------------------------------------------------------- OCV curves
 def _extension_limit(curve) -> float:
     """How far beyond its rest points an OCVCurve extends linearly before it is held (socbench.ocv)."""
-    from ..ocv import EXCURSION_FLAG
 
     return float(EXCURSION_FLAG)
 
@@ -181,7 +182,6 @@ def _pchip(b: _Builder, c) -> int:
 
 
 def _ocv(b: _Builder, curve) -> int:
-    from ..ocv import OCVCurve, TemperatureOCV
 
     if isinstance(curve, TemperatureOCV):
         recs = [_pchip(b, c) for c in curve.curves]
@@ -195,7 +195,6 @@ def _ocv(b: _Builder, curve) -> int:
 # ---------------------------------------------------------------------------------------------- models
 def lower(model) -> Lowered:
     """Lower ``model`` (see the module docstring); :class:`NotLowerable` if it has no compiled form."""
-    from ..models.effects import AugmentedModel
 
     base, effects = (model.base, model.effects) if isinstance(model, AugmentedModel) else (model, ())
     if getattr(model, "mode", "robust") != "robust":
