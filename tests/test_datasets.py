@@ -260,6 +260,36 @@ def test_every_format_is_registered_and_thermocouples_are_refused(leaf_dir):
         load(leaf_dir / "temperature_1C_discharge_thermocouples.csv")
 
 
+@pytest.mark.parametrize("kind", ["semicolon", "unit headers", "iso stamps", "time in ms"])
+def test_a_csv_no_format_reads_says_what_its_header_is_and_what_is_expected(tmp_path, capsys, kind):
+    """A record written by another tool (a semicolon CSV with decimal commas, headers with units in them, ISO time
+    stamps) is not guessed at: the one error line quotes the file's first line and names the canonical columns; a
+    canonical file with its time in ms is read far enough to say which unit to convert."""
+    t = np.arange(0.0, 600.0)
+    df = pd.DataFrame({"time_s": t, "current_a": np.where(t % 120 < 10, 3.0, 0.0), "voltage_v": 3.7 - 0.01 * (t > 0)})
+    path = tmp_path / "foreign.csv"
+    if kind == "semicolon":
+        df.to_csv(path, sep=";", decimal=",", index=False)
+    elif kind == "unit headers":
+        df.rename(columns={"time_s": "Time [s]", "current_a": "Current (A)", "voltage_v": "Voltage(V)"}).to_csv(
+            path, index=False)
+    elif kind == "iso stamps":
+        df.assign(time_s=pd.to_datetime(1.7e9 + t, unit="s").strftime("%Y-%m-%d %H:%M:%S")).rename(
+            columns={"time_s": "timestamp"}).to_csv(path, index=False)
+    else:
+        df.assign(time_s=1000.0 * t).rename(columns={"time_s": "time_ms"}).to_csv(path, index=False)
+    header = path.read_text().splitlines()[0]
+    with pytest.raises(DataError) as e:
+        load(path)
+    if kind == "time in ms":
+        assert e.value.column == "time_ms" and "convert to s" in str(e.value)
+    else:
+        assert f"its first line reads {header!r}" in str(e.value) and "time_s, current_a, voltage_v" in str(e.value)
+    assert main(["fit", "--data", str(path), "--model", "thevenin", "--out", str(tmp_path / "p.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err and str(path) in err
+
+
 def test_wrong_explicit_format_is_a_clear_error(data_dir, calce_dir, leaf_dir, pan):
     dst = calce_dir / "A1-00x_20degC_DST_from_full.csv"
     leaf = leaf_dir / "hppc_25degC.csv"

@@ -50,9 +50,29 @@ def detect_format(path) -> str:
     if len(hits) == 1:
         return hits[0]
     if not hits:
-        raise DataError(f"could not detect the format; pass --format explicitly (known: {', '.join(FORMATS)})",
-                        file=str(path))
+        raise DataError(f"could not detect the format{_first_line(p)}; a canonical CSV is comma-separated with the "
+                        "columns time_s, current_a, voltage_v (temperature_c, soc_ref optional); else pass --format "
+                        f"(known: {', '.join(FORMATS)})", file=str(path))
     raise DataError(f"ambiguous format: matches {' and '.join(hits)}; pass --format explicitly", file=str(path))
+
+
+def _first_line(path: Path) -> str:
+    """``": its first line reads '…'"`` for a text file (what the user sees of a header none of the formats knows),
+    else ``""``."""
+    try:
+        with open(path, encoding="utf-8-sig") as fh:
+            line = fh.readline(FIRST_LINE_SHOWN + 1).strip()
+    except (OSError, UnicodeDecodeError):
+        return ""
+    if not line or not line.isprintable():
+        return ""
+    if len(line) > FIRST_LINE_SHOWN:
+        line = line[:FIRST_LINE_SHOWN] + "…"
+    return f": its first line reads {line!r}"
+
+
+#: characters of an unrecognised file's first line the error quotes
+FIRST_LINE_SHOWN = 100
 
 
 def load(path, fmt: str = "auto") -> Profile:

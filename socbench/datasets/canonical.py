@@ -60,7 +60,9 @@ def sniff(path) -> bool:
     except OSError:
         return False
     cols = {c.strip().lower() for c in header.split(",")}
-    return "time_s" in cols and ({"current_a", "current_ma"} & cols) != set() and "current_A" not in header
+    # the unit variants (time_ms, current_ma) are the canonical loader's too: it names the unit to convert
+    return ({"time_s", "time_ms"} & cols) != set() and ({"current_a", "current_ma"} & cols) != set() \
+        and "current_A" not in header
 
 
 def _read_meta(path: Path) -> dict:
