@@ -80,7 +80,10 @@ def implied_reference_capacity(profile: Profile) -> float | None:
     inside = (ref > 0.0) & (ref < 1.0)
     if np.count_nonzero(inside) < 3 or float(np.ptp(ref[inside])) < IMPLIED_CAPACITY_MIN_SPAN:
         return None
-    slope = float(np.polyfit(profile.amp_hours()[inside], ref[inside], 1)[0])
+    ah = profile.amp_hours()[inside]
+    if not float(np.ptp(ah)) > 0.0:  # a reference that moves while the current counts nothing: no capacity in it
+        return None
+    slope = float(np.polyfit(ah, ref[inside], 1)[0])
     return -1.0 / slope if slope < 0.0 else None
 
 

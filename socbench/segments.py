@@ -84,9 +84,13 @@ class Segments:
                 **({"boundaries_not_listed": self.count - 1 - max_listed} if self.count - 1 > max_listed else {})}
 
 
-def find_segments(profile: Profile, ocv=None, capacity_ah: float | None = None) -> Segments:
+def find_segments(profile: Profile, ocv=None, capacity_ah: float | None = None,
+                  unrecorded_discharge: bool = False, soc_jump: float = SOC_JUMP) -> Segments:
     """The segments of ``profile`` (module docstring). ``ocv`` and ``capacity_ah`` (the model's) serve the rule
-    without a reference SOC and stand in when the record declares no capacity."""
+    without a reference SOC and stand in when the record declares no capacity. ``unrecorded_discharge``: a reference
+    that *falls* by more than ``soc_jump`` beyond the counted charge over a gap is a boundary too (for a caller that
+    carries no SOC jumps across gaps: the diagnosis' evaluation records,
+    :func:`socbench.diagnose.data.split_at_gaps`); ``soc_jump`` is the reference rule's limit either way."""
     n = profile.n
     if n < 3:
         return Segments.whole(n)
@@ -100,7 +104,7 @@ def find_segments(profile: Profile, ocv=None, capacity_ah: float | None = None) 
     counted = -i_before * dt[gap] / (3600.0 * q) if q else np.zeros(np.shape(i_before))
     if profile.soc_ref is not None:
         rise = profile.soc_ref[..., gap + 1] - profile.soc_ref[..., gap] - counted
-        what, limit = "reference SOC", SOC_JUMP
+        what, limit = "reference SOC", soc_jump
     elif profile.voltage_v is not None and ocv is not None and q:
         rest = (np.abs(i_before) <= REST_C_RATE * q) & (np.abs(profile.current_a[..., gap + 1]) <= REST_C_RATE * q)
         z_before = ocv.inverse(profile.voltage_v[..., gap], temp=_temp(profile, gap))
@@ -110,8 +114,12 @@ def find_segments(profile: Profile, ocv=None, capacity_ah: float | None = None) 
     else:
         return Segments.whole(n)
     rise = np.reshape(rise, (-1, gap.size))
-    worst = rise.max(axis=0)  # a batch restarts where any run does
-    hit = worst > limit
+    if unrecorded_discharge and what == "reference SOC":  # the largest move of any run, either way
+        worst = rise[np.abs(rise).argmax(axis=0), np.arange(gap.size)]
+        hit = np.abs(worst) > limit
+    else:
+        worst = rise.max(axis=0)  # a batch restarts where any run does
+        hit = worst > limit
     reasons = tuple(f"{what} {worst[j]:+.2f} beyond the counted charge over a {dt[gap[j]]:.0f} s gap"
                     for j in np.flatnonzero(hit))
     return Segments((0,) + tuple(int(k) + 1 for k in gap[hit]), n, reasons)

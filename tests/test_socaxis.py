@@ -153,3 +153,29 @@ def test_the_named_remedy_puts_the_reference_on_the_models_axis(tmp_path, capsys
     assert "scored as it stands" not in capsys.readouterr().err
     before, after = (json.loads((tmp_path / d / "metrics.json").read_text())["soc_rmse"] for d in ("E", "E2"))
     assert after < 0.5 * before, (before, after)
+
+
+def test_a_reference_that_moves_while_the_current_reads_zero_implies_no_capacity(tmp_path, capsys):
+    """A record whose current sensor read zero throughout while its reference SOC fell (a BMS's estimate beside a
+    dead current channel): no capacity can be read from it (the line of the reference on a charge that never moves has
+    no slope; it was a LinAlgError, an internal error of ``socbench diagnose``), and the diagnosis runs."""
+    import pandas as pd
+
+    from socbench.checks import implied_reference_capacity
+
+    drive = H.drive_record(H.ISSUE_CELL, H.Instrument(dt=1.0, i_noise_c=0.003, v_noise=1e-3), seed=3).profile
+    dead = drive.with_(current_a=np.zeros(drive.n))
+    assert implied_reference_capacity(dead) is None
+    assert implied_reference_capacity(drive) == pytest.approx(H.ISSUE_CELL.capacity_ah, rel=0.05)  # the check reads
+    hppc = H.issue_record(seed=1).profile
+    paths = {}
+    for name, p in (("hppc", hppc), ("dead", dead)):
+        cols = {"time_s": p.time_s, "current_a": p.current_a, "voltage_v": p.voltage_v}
+        if p.soc_ref is not None:
+            cols["soc_ref"] = p.soc_ref
+        paths[name] = tmp_path / f"{name}.csv"
+        pd.DataFrame(cols).to_csv(paths[name], index=False)
+    args = ["diagnose", "--fit", str(paths["hppc"]), "--eval", str(paths["dead"]), "--model", "thevenin", "--out",
+            str(tmp_path / "d")]
+    assert main(args) == 0, capsys.readouterr().err
+    assert (tmp_path / "d" / "diagnosis.json").exists()

@@ -91,6 +91,8 @@ def run(args) -> int:
     print(f"  wrote {args.out}/diagnosis.json, diagnosis.md ({diag.seconds['total']:.1f} s)")
     if diag.fit.get("capacity_note"):
         print(f"  note: {diag.fit['capacity_note']}")
+    for note in diag.fit.get("evaluation_records_cut", ()):
+        print(f"  note: {note}")
     for note in (n for n in diag.base_model.params.notes if n.startswith(NO_KNEE)):
         warnings.warn(f"{diag.fit.get('fitted_on', 'fit record')}: {note}", SocbenchWarning, stacklevel=2)
     for when, model in (("before", args.model), ("after", "+".join([args.model, *diag.effects_added]))):

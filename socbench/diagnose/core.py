@@ -74,7 +74,7 @@ from ..models.effects import EFFECTS
 from ..profile import Profile
 from ..socaxis import soc_axis
 from .cv import cv_residual
-from .data import Folds, bin_average, make_folds
+from .data import Folds, bin_average, make_folds, split_at_gaps
 from .leftover import leftover, ocv_gap
 from .search import BASE_REFIT, SOC_DRIFT, TWIN_TAU, Search, format_params, initial_soc, residual_noise, rest_current
 
@@ -686,6 +686,10 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
         p.require("voltage_v")
     base, fit_info = fit_base(model_name, fit_profiles, mode, slow_ocv, validation=evals, refine_ocv=refine_ocv,
                               relax_ocv=relax_ocv, capacity_ah=capacity_ah, soc0=soc0)
+    eval_profiles, cut = split_at_gaps(eval_profiles, base)
+    if cut:
+        fit_info["evaluation_records_cut"] = cut
+        evals = [_coarse(p, dt, max_samples) for p in eval_profiles]
     t_fit = _time.perf_counter()
     cv = make_folds(evals, folds)
     # the voltage noise of the averaged records: the sensor's (measured on the records as recorded) over √(samples

@@ -24,6 +24,49 @@ import numpy as np
 
 from ..profile import Profile
 
+#: the fewest samples, and the shortest duration [s], of a piece :func:`split_at_gaps` keeps
+MIN_PIECE_SAMPLES, MIN_PIECE_S = 10, 60.0
+#: a reference SOC that moves across a gap by more than this beyond the counted charge cuts the record there
+#: (:func:`split_at_gaps`). Lower than a simulation's restart rule (socbench.segments.SOC_JUMP, 5 points, made for a
+#: BMS's 1 % steps): the diagnosis compares voltages, and one point of SOC is 5–15 mV on a sloped OCV, several times
+#: the noise (a 10-minute pause in a 1C drive whose last sample's current held over it: 3 points off, 13.5 -> 22 mV)
+GAP_SOC_JUMP = 0.01
+
+
+def split_at_gaps(profiles, model) -> tuple[list, list]:
+    """``(records, notes)``: every evaluation record cut at its segment boundaries
+    (:func:`socbench.segments.find_segments` with ``model``'s OCV and capacity standing in), a reference SOC that
+    falls across a gap beyond the counted charge included, the reference's limit :data:`GAP_SOC_JUMP`. The diagnosis
+    simulates a record from its start with the current it holds: across a battery swap, a recharge, or a logger that
+    paused while the cell was driven, the zero-order hold would carry the last current through the gap and leave the
+    SOC wrong for the rest of the record, and the search would spend effects on that. Each piece starts again from its
+    own reference SOC (or the SOC its first voltage reads, :func:`socbench.diagnose.search.initial_soc`); pieces
+    shorter than :data:`MIN_PIECE_SAMPLES` samples or :data:`MIN_PIECE_S` are left out. A record without such a gap
+    is kept whole (the same object)."""
+    from ..segments import find_segments
+
+    out, notes = [], []
+    for p in profiles:
+        seg = find_segments(p, model.ocv, model.capacity_ah, unrecorded_discharge=True, soc_jump=GAP_SOC_JUMP)
+        if seg.count == 1:
+            out.append(p)
+            continue
+        spans = [(a, b) for a, b in seg.spans()
+                 if b - a >= MIN_PIECE_SAMPLES and p.time_s[b - 1] - p.time_s[a] >= MIN_PIECE_S]
+        name = p.meta.name or p.name
+        if not spans:
+            out.append(p)
+            notes.append(f"{name}: {seg.count - 1} gap(s) the current does not bridge ({'; '.join(seg.reasons)}), "
+                         f"but no piece between them of {MIN_PIECE_SAMPLES} samples and {MIN_PIECE_S:g} s: kept whole")
+            continue
+        for j, (a, b) in enumerate(spans):
+            piece = p.slice(a, b)
+            out.append(piece.with_(meta=replace(piece.meta, name=f"{name} [{j + 1}/{len(spans)}]")))
+        notes.append(f"{name}: cut into {len(spans)} at {seg.count - 1} gap(s) the current does not bridge "
+                     f"({'; '.join(seg.reasons)}); each piece starts from its own SOC"
+                     + (f" ({seg.count - len(spans)} piece(s) too short left out)" if len(spans) < seg.count else ""))
+    return out, notes
+
 
 def bin_average(profile: Profile, dt: float = 1.0) -> Profile:
     """``profile`` on bins of at least ``dt`` s (see the module docstring); unchanged if it is already that coarse."""

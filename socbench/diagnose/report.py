@@ -45,6 +45,8 @@ def markdown(diag, figures=()) -> str:
     lines += ["", f"Held-out scoring ({sp['method']}, {sp['folds']} folds): every evaluation record ({recs}) is cut "
               f"into {sp['folds']} blocks of equal duration; the effect parameters are fitted {sp['folds']} times, "
               "each time without one block, and every block is scored by the fit that did not see it.", ""]
+    for note in diag.fit.get("evaluation_records_cut", ()):
+        lines[-1:-1] = [f"Cut at gaps: {note}."]
     added = " + ".join(diag.effects_added) or "no change"
     lines += markdown_table(["", "held-out voltage RMSE [mV]", "held-out SOC RMSE (EKF) [%]"],
                             [[label, _mv(d["rmse_v"]), _pct(d.get("soc_rmse"))]
