@@ -9,7 +9,7 @@ import numpy as np
 from .errors import DataError, SocbenchWarning
 from .models.params import ModelParams
 from .ocv import T_REF_C
-from .profile import Profile
+from .profile import Profile, gap_steps
 from .socaxis import REFERENCE_CAPACITY_KEY
 
 #: share of samples outside a temperature-aware set's measured range above which the user is warned
@@ -85,6 +85,37 @@ def implied_reference_capacity(profile: Profile) -> float | None:
         return None
     slope = float(np.polyfit(ah, ref[inside], 1)[0])
     return -1.0 / slope if slope < 0.0 else None
+
+
+#: a reference SOC that moves by this much or more while the current column counts less than
+#: :data:`DEAD_CURRENT_SHARE` of that charge does not describe the same current
+#: (:func:`check_current_against_reference`)
+DEAD_CURRENT_SPAN = 0.10
+DEAD_CURRENT_SHARE = 0.2
+
+
+def check_current_against_reference(profile: Profile, capacity_ah: float | None, what: str) -> bool:
+    """Warn (one line) when the record's reference SOC moves :data:`DEAD_CURRENT_SPAN` or more while its current
+    column, counted with ``capacity_ah``, moves less than :data:`DEAD_CURRENT_SHARE` of that (both over the recorded
+    steps, gaps left out): a dead, disconnected or
+    mis-scaled current channel (a BMS estimate logged beside it still falls), which every error measured on the record
+    then measures too (``what`` says which). Returns whether it warned."""
+    ref = profile.soc_ref
+    if ref is None or ref.ndim != 1 or not capacity_ah or profile.n < 2:
+        return False
+    # the moves over recorded steps only: across a logging gap the reference carries charge the column cannot (the
+    # Panasonic HPPC files omit the discharges between pulse sets)
+    recorded = ~gap_steps(profile.dt)
+    span = float(np.ptp(np.cumsum(np.diff(ref)[recorded])))
+    counted = float(np.ptp(np.cumsum(np.diff(profile.amp_hours())[recorded]))) / float(capacity_ah)
+    if span < DEAD_CURRENT_SPAN or counted >= DEAD_CURRENT_SHARE * span:
+        return False
+    src = profile.meta.source or profile.meta.name
+    warnings.warn(f"{src}: the reference SOC moves {100 * span:.0f} points but the current column counts "
+                  f"{100 * counted:.1f} points of {float(capacity_ah):.4g} Ah: a dead, "
+                  f"disconnected or mis-scaled current channel? {what} measured on this record measure that too",
+                  SocbenchWarning, stacklevel=2)
+    return True
 
 
 def check_reference_axis(profile: Profile, params: ModelParams, axis, params_name: str = "parameters") -> None:

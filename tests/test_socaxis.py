@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -158,10 +159,11 @@ def test_the_named_remedy_puts_the_reference_on_the_models_axis(tmp_path, capsys
 def test_a_reference_that_moves_while_the_current_reads_zero_implies_no_capacity(tmp_path, capsys):
     """A record whose current sensor read zero throughout while its reference SOC fell (a BMS's estimate beside a
     dead current channel): no capacity can be read from it (the line of the reference on a charge that never moves has
-    no slope; it was a LinAlgError, an internal error of ``socbench diagnose``), and the diagnosis runs."""
+    no slope; it was a LinAlgError, an internal error of ``socbench diagnose``), the diagnosis runs, and it says that
+    the current column does not carry what the reference moves (checks.check_current_against_reference)."""
     import pandas as pd
 
-    from socbench.checks import implied_reference_capacity
+    from socbench.checks import check_current_against_reference, implied_reference_capacity
 
     drive = H.drive_record(H.ISSUE_CELL, H.Instrument(dt=1.0, i_noise_c=0.003, v_noise=1e-3), seed=3).profile
     dead = drive.with_(current_a=np.zeros(drive.n))
@@ -177,5 +179,10 @@ def test_a_reference_that_moves_while_the_current_reads_zero_implies_no_capacity
         pd.DataFrame(cols).to_csv(paths[name], index=False)
     args = ["diagnose", "--fit", str(paths["hppc"]), "--eval", str(paths["dead"]), "--model", "thevenin", "--out",
             str(tmp_path / "d")]
-    assert main(args) == 0, capsys.readouterr().err
+    assert main(args) == 0
     assert (tmp_path / "d" / "diagnosis.json").exists()
+    err = capsys.readouterr().err
+    assert "dead.csv: the reference SOC moves" in err and "dead, disconnected or mis-scaled" in err, err
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a drive whose current counts what its reference says: nothing said
+        assert not check_current_against_reference(drive, H.ISSUE_CELL.capacity_ah, "the errors")

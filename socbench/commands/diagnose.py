@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import warnings
 
+from ..checks import check_current_against_reference
 from ..datasets import load
 from ..diagnose import diagnose
 from ..diagnose.core import COARSE_OCV_GAP
@@ -93,6 +94,9 @@ def run(args) -> int:
         print(f"  note: {diag.fit['capacity_note']}")
     for note in diag.fit.get("evaluation_records_cut", ()):
         print(f"  note: {note}")
+    for p in evals:
+        check_current_against_reference(p, p.meta.capacity_ah or diag.base_model.capacity_ah,
+                                        "the voltage and SOC errors")
     for note in (n for n in diag.base_model.params.notes if n.startswith(NO_KNEE)):
         warnings.warn(f"{diag.fit.get('fitted_on', 'fit record')}: {note}", SocbenchWarning, stacklevel=2)
     for when, model in (("before", args.model), ("after", "+".join([args.model, *diag.effects_added]))):

@@ -32,7 +32,7 @@ from __future__ import annotations
 import json
 import warnings
 
-from ..checks import check_capacity, check_reference_axis, check_temperature_range
+from ..checks import check_capacity, check_current_against_reference, check_reference_axis, check_temperature_range
 from ..datasets import load
 from ..domain import guard_fractions, warn_outside
 from ..errors import ConfigError, DataError, SocbenchWarning
@@ -93,6 +93,7 @@ def run(args) -> int:
     temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set",
                                           fitted_at_c(args.params))
     capacity_ratio = check_capacity(profile, params, f"the '{args.params}' parameter set")
+    check_current_against_reference(profile, params.capacity_ah, "the SOC errors")
     for note in (n for n in params.notes if n.startswith(NO_KNEE)):  # the SOC it reports rides on that axis
         warnings.warn(f"{args.params}: fitted on an HPPC with {note}", SocbenchWarning, stacklevel=2)
     model = make_model(name, params)
