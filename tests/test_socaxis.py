@@ -183,6 +183,13 @@ def test_a_reference_that_moves_while_the_current_reads_zero_implies_no_capacity
     assert (tmp_path / "d" / "diagnosis.json").exists()
     err = capsys.readouterr().err
     assert "dead.csv: the reference SOC moves" in err and "dead, disconnected or mis-scaled" in err, err
+    params = tmp_path / "p.json"
+    assert main(["fit", "--data", str(paths["hppc"]), "--model", "thevenin", "--out", str(params)]) == 0
+    capsys.readouterr()
+    for command in (["simulate", "--json", str(tmp_path / "s.json")], ["estimate", "--estimator", "ekf", "--out",
+                                                                        str(tmp_path / "e")]):
+        assert main([command[0], "--data", str(paths["dead"]), "--params", str(params), *command[1:]]) == 0
+        assert "dead, disconnected or mis-scaled" in capsys.readouterr().err, command[0]
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a drive whose current counts what its reference says: nothing said
         assert not check_current_against_reference(drive, H.ISSUE_CELL.capacity_ah, "the errors")

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from ..checks import check_capacity, check_temperature_range, check_voltage_level
+from ..checks import check_capacity, check_current_against_reference, check_temperature_range, check_voltage_level
 from ..datasets import load
 from ..domain import warn_outside
 from ..errors import DataError
@@ -80,6 +80,7 @@ def run(args) -> int:
     temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set",
                                           fitted_at_c(args.params))
     capacity_ratio = check_capacity(profile, params, f"the '{args.params}' parameter set")
+    check_current_against_reference(profile, params.capacity_ah, "the voltage errors")
     model = make_model(name, params)
     axis = soc_axis(params, profile)
     soc0 = args.soc0 if args.soc0 is not None else (float(profile.soc_ref[0]) if profile.soc_ref is not None
