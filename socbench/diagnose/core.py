@@ -686,6 +686,8 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
         p.require("voltage_v")
     base, fit_info = fit_base(model_name, fit_profiles, mode, slow_ocv, validation=evals, refine_ocv=refine_ocv,
                               relax_ocv=relax_ocv, capacity_ah=capacity_ah, soc0=soc0)
+    # cut after the base fit, whose OCV and capacity the cut reads where a record has no reference or capacity (the
+    # fit's choice of setting validated on the records whole)
     eval_profiles, cut = split_at_gaps(eval_profiles, base)
     if cut:
         fit_info["evaluation_records_cut"] = cut
