@@ -603,8 +603,9 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
 
     The analysis of a record is kept (:data:`MEMO_SIZE` records, keyed on their samples, all their metadata and
     the arguments): a diagnosis fits one HPPC in several modes, models and effect sets, and each fit analysed it again
-    (2 313 analyses in the 42 slowest tests, 5 % of their time). The key holds this module's settings too (a setting
-    changed, as a study of a rule does, analyses again). Its arrays are read-only; an error is raised again as it was.
+    (in the 42 slowest tests, fits analysed records 2 313 times, 5 % of their time). The key holds this module's
+    settings too (a setting changed, as a study of a rule does, analyses again). Its arrays are read-only; an error
+    is raised again as it was.
     """
     key = (samples_fingerprint(profile), json.dumps(profile.meta.to_dict(), sort_keys=True, default=str),
            str(profile.soc_ref_error), capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_start, _settings())
