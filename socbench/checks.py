@@ -97,9 +97,9 @@ DEAD_CURRENT_SHARE = 0.2
 def check_current_against_reference(profile: Profile, capacity_ah: float | None, what: str) -> bool:
     """Warn (one line) when the record's reference SOC moves :data:`DEAD_CURRENT_SPAN` or more while its current
     column, counted with ``capacity_ah``, moves less than :data:`DEAD_CURRENT_SHARE` of that (both over the recorded
-    steps, gaps left out): a dead, disconnected or
-    mis-scaled current channel (a BMS estimate logged beside it still falls), which every error measured on the record
-    then measures too (``what`` says which). Returns whether it warned."""
+    steps, gaps left out): a dead, disconnected or mis-scaled current channel (a BMS estimate logged beside it still
+    falls), which every error measured on the record then measures too (``what`` says which). Returns whether it
+    warned."""
     ref = profile.soc_ref
     if ref is None or ref.ndim != 1 or not capacity_ah or profile.n < 2:
         return False

@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..profile import Profile
+from ..segments import find_segments
 
 #: the fewest samples, and the shortest duration [s], of a piece :func:`split_at_gaps` keeps
 MIN_PIECE_SAMPLES, MIN_PIECE_S = 10, 60.0
@@ -43,8 +44,6 @@ def split_at_gaps(profiles, model) -> tuple[list, list]:
     own reference SOC (or the SOC its first voltage reads, :func:`socbench.diagnose.search.initial_soc`); pieces
     shorter than :data:`MIN_PIECE_SAMPLES` samples or :data:`MIN_PIECE_S` are left out. A record without such a gap
     is kept whole (the same object)."""
-    from ..segments import find_segments
-
     out, notes = [], []
     for p in profiles:
         seg = find_segments(p, model.ocv, model.capacity_ah, unrecorded_discharge=True, soc_jump=GAP_SOC_JUMP)
@@ -53,7 +52,7 @@ def split_at_gaps(profiles, model) -> tuple[list, list]:
             continue
         spans = [(a, b) for a, b in seg.spans()
                  if b - a >= MIN_PIECE_SAMPLES and p.time_s[b - 1] - p.time_s[a] >= MIN_PIECE_S]
-        name = p.meta.name or p.name
+        name = p.name
         if not spans:
             out.append(p)
             notes.append(f"{name}: {seg.count - 1} gap(s) the current does not bridge ({'; '.join(seg.reasons)}), "

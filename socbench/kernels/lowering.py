@@ -142,7 +142,6 @@ class _Builder:
 
 # ---------------------------------------------------------------------------------------------- SOC functions
 def _plain_function(b: _Builder, f) -> int:
-
     if isinstance(f, Constant):
         return b.record(FN_CONST, b.slot(f.value), 1, 0)
     if isinstance(f, Polynomial):
@@ -158,7 +157,6 @@ def _plain_function(b: _Builder, f) -> int:
 
 
 def _function(b: _Builder, f) -> int:
-
     if not isinstance(f, TemperatureTable):
         return _plain_function(b, f)
     nodes = [_plain_function(b, n) for n in f.nodes]
@@ -169,7 +167,6 @@ def _function(b: _Builder, f) -> int:
 # ---------------------------------------------------------------------------------------------- OCV curves
 def _extension_limit(curve) -> float:
     """How far beyond its rest points an OCVCurve extends linearly before it is held (socbench.ocv)."""
-
     return float(EXCURSION_FLAG)
 
 
@@ -182,7 +179,6 @@ def _pchip(b: _Builder, c) -> int:
 
 
 def _ocv(b: _Builder, curve) -> int:
-
     if isinstance(curve, TemperatureOCV):
         recs = [_pchip(b, c) for c in curve.curves]
         off = b.block(curve.temps)
@@ -195,7 +191,6 @@ def _ocv(b: _Builder, curve) -> int:
 # ---------------------------------------------------------------------------------------------- models
 def lower(model) -> Lowered:
     """Lower ``model`` (see the module docstring); :class:`NotLowerable` if it has no compiled form."""
-
     base, effects = (model.base, model.effects) if isinstance(model, AugmentedModel) else (model, ())
     if getattr(model, "mode", "robust") != "robust":
         raise NotLowerable(f"mode '{model.mode}' (strict mode raises on its guards; only robust mode is compiled)")
