@@ -28,6 +28,29 @@ separated by gaps). Counting charge through them from the first SOC, a model lea
 **The current over a boundary is not integrated.** The zero-order hold would carry the last sample's current across
 the whole gap (16 A of flight current over a 10-minute battery swap: 2.7 Ah, half a pack); the restart SOC replaces
 whatever happened in the gap. Gaps that are not boundaries keep the zero-order hold, as every model step does.
+
+**What the hold does not know.** Across a step much longer than the record's own sampling (longer than
+``GAP_FACTOR`` median steps: a logger pause, or a cycler that logs slowly while nothing changes) the current was not
+measured. :func:`hold_var` gives the filters the variance of the mean current over such a step about the held sample,
+the larger of two readings of the record:
+
+* **the ends differ**: the current changed somewhere inside the step; as one change from ``I_k`` to ``I_{k+1}`` at a
+  moment uniform over the step, the mean current is ``I_k + u·ΔI`` (``u ~ U(0, 1)``) and the hold's error ``u·ΔI``
+  has second moment ``ΔI²/3``;
+* **the load was varying on both sides**: the current's variance over ``HOLD_WINDOW_STEPS`` median steps (at least
+  ``HOLD_WINDOW_S``) before the step and over as long after it, the smaller of the two; each window cut at its
+  largest change of current and only the part touching the step kept, so that one change of mode there (a
+  constant-current discharge ending, a rest beginning) does not count as a varying load. A drive paused and resumed
+  varies on both sides, so its pause is seen even where its two ends happen to read the same current; a load that
+  starts or stops in the step, or a rest logged slowly, is steady on at least one side and is left to the first
+  reading.
+
+The filters add it to the sensor's input variance at that step, each state on its own (``Q_k = σ_I² B_k B_kᵀ +
+σ_hold,k²·diag(B_k²)``, :mod:`socbench.estimators.noise`), so the SOC band widens by about
+``σ_hold·Δt/(3600 Q)`` across the step instead of carrying the sensor's noise alone. A long step between equal,
+steady currents keeps zero (the Panasonic files write a sample a minute at rest, ten a second under load); so do
+sampled steps. What it leaves out: the hold's mean error ``ΔI/2`` over a slowly logged taper (a slope, not noise: it
+stays in the count).
 """
 
 from __future__ import annotations
@@ -48,6 +71,10 @@ MIN_GAP_S = 30.0
 SOC_JUMP = 0.05
 #: the same from the OCV inverse of rest voltages (no reference)
 SOC_JUMP_VOLTAGE = 0.10
+#: the load's variance either side of a long step is read over this many median steps ...
+HOLD_WINDOW_STEPS = 20
+#: ... and at least this long [s]
+HOLD_WINDOW_S = 30.0
 #: |I| ≤ this C-rate counts as rest for the voltage rule
 REST_C_RATE = 0.2
 #: restart rules
@@ -94,9 +121,8 @@ def find_segments(profile: Profile, ocv=None, capacity_ah: float | None = None,
     n = profile.n
     if n < 3:
         return Segments.whole(n)
-    t = profile.time_s
-    dt = np.diff(t)
-    gap = np.flatnonzero((dt > GAP_FACTOR * float(np.median(dt))) & (dt >= MIN_GAP_S))
+    dt = np.diff(profile.time_s)
+    gap = np.flatnonzero(gap_steps(dt) & (dt >= MIN_GAP_S))
     if gap.size == 0:
         return Segments.whole(n)
     q = profile.meta.capacity_ah or capacity_ah
@@ -123,6 +149,48 @@ def find_segments(profile: Profile, ocv=None, capacity_ah: float | None = None,
     reasons = tuple(f"{what} {worst[j]:+.2f} beyond the counted charge over a {dt[gap[j]]:.0f} s gap"
                     for j in np.flatnonzero(hit))
     return Segments((0,) + tuple(int(k) + 1 for k in gap[hit]), n, reasons)
+
+
+def gap_steps(dt: np.ndarray) -> np.ndarray:
+    """``(T − 1,)`` bool: the steps longer than ``GAP_FACTOR`` × the median step (where the current was not sampled)."""
+    dt = np.asarray(dt, dtype=float)
+    if dt.size == 0:
+        return np.zeros(0, dtype=bool)
+    return dt > GAP_FACTOR * float(np.median(dt))
+
+
+def hold_var(profile: Profile) -> np.ndarray:
+    """``(T − 1,)`` variance [A²] of the current the zero-order hold does not know over each step (module docstring):
+    over the :func:`gap_steps`, the larger of ``(I_{k+1} − I_k)²/3`` and the smaller of the current's variances just
+    before and just after the step (the largest over the runs); 0 elsewhere."""
+    dt = profile.dt
+    gaps = gap_steps(dt)
+    out = np.zeros(gaps.size)
+    if not gaps.any():
+        return out
+    cur = np.reshape(profile.current_a, (-1, profile.n))
+    t = profile.time_s
+    window = max(HOLD_WINDOW_STEPS * float(np.median(dt)), HOLD_WINDOW_S)
+    for k in np.flatnonzero(gaps):
+        before = cur[:, np.searchsorted(t, t[k] - window):k + 1]
+        after = cur[:, k + 1:np.searchsorted(t, t[k + 1] + window, side="right")]
+        steady = np.minimum(_var_next_to_step(before[:, ::-1]), _var_next_to_step(after))
+        change = (cur[:, k + 1] - cur[:, k]) ** 2 / 3.0
+        out[k] = float(np.max(np.maximum(change, steady)))
+    return out
+
+
+def _var_next_to_step(current: np.ndarray) -> np.ndarray:
+    """The variance of each row of ``current (R, m)`` (its first sample next to the step) up to its largest change of
+    current (module docstring); 0 for fewer than 3 samples."""
+    out = np.zeros(current.shape[0])
+    if current.shape[1] < 3:
+        return out
+    jump = np.argmax(np.abs(np.diff(current, axis=1)), axis=1)  # the largest change is between jump and jump + 1
+    for r, j in enumerate(jump):
+        part = current[r, :j + 1]
+        out[r] = part.var() if part.size >= 3 else 0.0
+    return out
 
 
 def _temp(profile: Profile, k):

@@ -114,7 +114,7 @@ class AdaptiveEKF(Estimator):
                 # ---------------------------------------------------------------- predict
                 x, F, B = m.step(x, ik, inputs.dt[k], tk, jac=True)
                 F = scheduled_jacobian(m, F)
-                Q = noise.Q(B, inputs.dt[k])
+                Q = noise.Q(B, inputs.dt[k], inputs.hold_var[k])
                 if opt["adapt_q"]:
                     Q = Q + q_hat
                 P = symmetrise(F @ P @ np.swapaxes(F, -1, -2) + Q)

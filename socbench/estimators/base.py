@@ -5,7 +5,10 @@ P0=None, seed=None) -> Estimate`` does the work, batched over the profile's Mont
 its time loop in ``_run(inputs, x0, P0, seed)`` with the equations next to the code; this module holds what is not
 specific to one filter:
 
-* :class:`Inputs`   the profile as ``(R, T)`` arrays (current, voltage, temperature), the step lengths;
+* :class:`Inputs`   the profile as ``(R, T)`` arrays (current, voltage, temperature), the step lengths, and the
+                    current variance the zero-order hold misses over each step (``hold_var``: nonzero across a
+                    logger pause, :func:`socbench.segments.hold_var`; every filter widens each state by it
+                    there, :func:`socbench.estimators.noise.hold_cov`);
 * initial state     ``x0 = model.x0(soc0)``; ``soc0`` scalar or ``(R,)`` (default: the SOC the model reads off the
                     first voltage with the first current flowing, ``Model.soc_from_voltage``);
                     ``P0`` scalar (SOC variance), ``(n,)`` diagonal, ``(n, n)`` or ``(R, n, n)``; by default
@@ -67,6 +70,11 @@ class Inputs:
     temp: np.ndarray | None
     name: str
     capacity_ah: float | None = None  # the record's declared capacity (the coulomb counter's default)
+    hold_var: np.ndarray | None = None  # (T-1,) A²: the current the hold misses over each step (None: zeros)
+
+    def __post_init__(self):
+        if self.hold_var is None:
+            object.__setattr__(self, "hold_var", np.zeros(self.dt.size))
 
     @property
     def n_runs(self) -> int:
@@ -90,16 +98,19 @@ class Inputs:
         def full(a):
             return None if a is None else np.ascontiguousarray(np.broadcast_to(a, (R, T)), dtype=float)
 
+        from ..segments import hold_var
+
         return cls(profile.time_s, profile.dt, full(profile.current_a), full(profile.voltage_v),
-                   full(profile.temperature_c), profile.name, profile.meta.capacity_ah)
+                   full(profile.temperature_c), profile.name, profile.meta.capacity_ah, hold_var(profile))
 
     def slice(self, start: int, stop: int) -> Inputs:
         """Samples ``start:stop`` (a segment of the record)."""
         def cut(a):
             return None if a is None else np.ascontiguousarray(a[:, start:stop])
 
-        return Inputs(self.time_s[start:stop], self.dt[start:max(stop - 1, start)], cut(self.current),
-                      cut(self.voltage), cut(self.temp), self.name, self.capacity_ah)
+        steps = slice(start, max(stop - 1, start))
+        return Inputs(self.time_s[start:stop], self.dt[steps], cut(self.current), cut(self.voltage), cut(self.temp),
+                      self.name, self.capacity_ah, np.ascontiguousarray(self.hold_var[steps]))
 
 
 class Estimator:

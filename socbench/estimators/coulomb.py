@@ -23,6 +23,7 @@ import numpy as np
 from ..errors import ConfigError
 from .base import Estimator, restore
 from .estimate import Estimate
+from .noise import hold_cov
 from .safety import clamp_soc, diverged, symmetrise
 
 
@@ -84,8 +85,9 @@ class CoulombCounter(Estimator):
                 drift -= B[:, 0]  # −∂z⁺/∂I = η dt/(3600 Q_d)
                 if noise.Q_override is None:  # white part only: the offset is carried exactly by `drift`
                     Q = noise.sensor.process_cov(B, inputs.dt[k], noise.sensor.current_sd**2)
+                    Q += hold_cov(B, inputs.hold_var[k])
                 else:
-                    Q = noise.Q(B, inputs.dt[k])
+                    Q = noise.Q(B, inputs.dt[k], inputs.hold_var[k])
                 P = symmetrise(F @ P @ np.swapaxes(F, -1, -2) + Q)
                 np.copyto(x_good, x, where=~failed[:, None])
                 np.copyto(P_good, P, where=~failed[:, None, None])

@@ -22,8 +22,8 @@ draws a normal in ~5 ns instead of ~18 with libm's ``cos``/``sin``).
 :func:`absorb` and :func:`sin_cos_reduced` are the primitives: written with operators only, they run on numpy arrays
 here and are compiled as is by :mod:`socbench.kernels.pf` (the two implementations of the few lines that compose
 them are checked against each other by the tests). Streams of the particle filter (``pf.py`` docstring): the initial
-cloud, the resampling offset, the current noise, the additive process noise, the roughening, and two per tempering
-stage.
+cloud, the resampling offset, the current noise, the additive process noise, the roughening, the hold's noise across
+a logger pause, and two per tempering stage.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ SIN_C = tuple((-1.0) ** k / math.factorial(2 * k + 1) for k in range(8, -1, -1))
 COS_C = tuple((-1.0) ** k / math.factorial(2 * k) for k in range(9, -1, -1))
 
 #: stream numbers
-INITIAL, RESAMPLE, CURRENT, ADDITIVE, ROUGHEN = 0, 1, 2, 3, 4
+INITIAL, RESAMPLE, CURRENT, ADDITIVE, ROUGHEN, HOLD = 0, 1, 2, 3, 4, 5
 #: tempering stage s uses streams STAGE + 2s (its resampling offset) and STAGE + 2s + 1 (its kernel noise)
 STAGE = 16
 
@@ -113,8 +113,9 @@ class StepDraws:
     """The particle filter's numbers for the runs ``runs`` (indices into the batch; default ``0 … R − 1``).
 
     ``initial()`` the initial cloud ``(R, N, n)``; ``step(k)`` → ``(u (R,), ε_I (R, N) or None, ε_Q (R, N, n) or
-    None)``; ``roughening(k, rows)`` ``(rows, N, n)``; ``stage(k, s)`` → ``(u (R,), ε (R, N, n))``. A per-run reference
-    passes ``runs=[r]`` and gets exactly row ``r`` of the batch's numbers.
+    None)``; ``hold(k)`` ``(R, N, n)`` (the noise of the current the hold misses across a logger pause);
+    ``roughening(k, rows)`` ``(rows, N, n)``; ``stage(k, s)`` → ``(u (R,), ε (R, N, n))``. A per-run reference passes
+    ``runs=[r]`` and gets exactly row ``r`` of the batch's numbers.
     """
 
     def __init__(self, seed, n_runs: int, n_particles: int, n_states: int, perturb_current: bool, additive: bool,
@@ -146,6 +147,9 @@ class StepDraws:
         eps_i = self._normals(CURRENT, k, ()) if self.perturb_current else None
         eps_q = self._normals(ADDITIVE, k, (self.n,)) if self.additive else None
         return self._uniform(RESAMPLE, k), eps_i, eps_q
+
+    def hold(self, k: int) -> np.ndarray:
+        return self._normals(HOLD, k, (self.n,))
 
     def roughening(self, k: int, rows=None) -> np.ndarray:
         return self._normals(ROUGHEN, k, (self.n,), rows)

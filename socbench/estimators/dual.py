@@ -140,8 +140,8 @@ class JointEKF(JointParameters, EKF):
     def _run(self, inputs, x0, P0, seed=None) -> Estimate:
         return self.finish_joint(EKF._run(self, inputs, x0, P0, seed), inputs)
 
-    def process_cov(self, x, B, dt):
-        return self.noise.Q(B, dt) + self.param_cov(dt)
+    def process_cov(self, x, B, dt, hold_var=0.0):
+        return self.noise.Q(B, dt, hold_var) + self.param_cov(dt)
 
     def _run_compiled(self, job, seed=None):
         """The EKF kernel on the augmented model, the parameters' walk added to Q (:meth:`param_cov`)."""

@@ -72,7 +72,8 @@ class EKF(Estimator):
                 # ---------------------------------------------------------------- predict
                 x, F, B = m.step(x, ik, inputs.dt[k], tk, jac=True)
                 F = scheduled_jacobian(m, F)
-                P = symmetrise(F @ P @ np.swapaxes(F, -1, -2) + self.process_cov(x, B, inputs.dt[k]))
+                Q = self.process_cov(x, B, inputs.dt[k], inputs.hold_var[k])
+                P = symmetrise(F @ P @ np.swapaxes(F, -1, -2) + Q)
                 settle_predict(rec, k + 1, x, P, x_good, P_good)
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold})
 
@@ -82,9 +83,10 @@ class EKF(Estimator):
         x, P, _ = kalman_update(x, P, H, Rk, S, e, gated)
         return x, P
 
-    def process_cov(self, x, B, dt):
-        """``Q_k`` of the step from the posterior: the sensor model's (subclasses add their own terms)."""
-        return self.noise.Q(B, dt)
+    def process_cov(self, x, B, dt, hold_var=0.0):
+        """``Q_k`` of the step from the posterior: the sensor model's (subclasses add their own terms); ``hold_var``
+        the current variance the hold misses over the step (:class:`~.base.Inputs`)."""
+        return self.noise.Q(B, dt, hold_var)
 
     def _run_compiled(self, job, seed=None):
         from ..kernels.filters import VAR_EKF

@@ -110,7 +110,7 @@ class HInfinityFilter(Estimator):
                 # ---------------------------------------------------------------- predict
                 x, F, B = m.step(x, ik, inputs.dt[k], tk, jac=True)
                 F = scheduled_jacobian(m, F)
-                P = symmetrise(F @ P @ np.swapaxes(F, -1, -2) + noise.Q(B, inputs.dt[k]))
+                P = symmetrise(F @ P @ np.swapaxes(F, -1, -2) + noise.Q(B, inputs.dt[k], inputs.hold_var[k]))
                 settle_predict(rec, k + 1, x, P, x_good, P_good)
         return rec.finish(self.name, m, {"gate_threshold": gate.threshold, "theta": opt["theta"],
                                          "theta_capped": capped})

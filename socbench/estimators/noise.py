@@ -5,8 +5,15 @@ sensor with white noise ``v_k ~ N(0, σ_V²)`` enter the model through the input
 ``I_m = I + n`` the truth follows ``x_{k+1} = f(x_k, I_m − n_k) ≈ f(x_k, I_m) − B_k n_k`` and
 ``y_k = h(x_k, I_m − n_k) + v_k ≈ h(x_k, I_m) − D_k n_k + v_k`` with ``B = ∂f/∂I``, ``D = ∂h/∂I``. Hence::
 
-    Q_k = (σ_I² + σ_b²) · B_k B_kᵀ  +  diag(σ_walk²) · dt_k / dt          (process noise per step)
-    R_k = σ_V² + (σ_I² + σ_b²) · D_k²                                      (measurement noise)
+    Q_k = (σ_I² + σ_b²) · B_k B_kᵀ  +  σ_hold,k² · diag(B_k²)  +  diag(σ_walk²) · dt_k / dt   (process noise)
+    R_k = σ_V² + (σ_I² + σ_b²) · D_k²                                                          (measurement noise)
+
+``σ_hold,k²`` is zero at a sampled step; across a logger pause it is the variance of the current the zero-order hold
+did not see (:func:`socbench.segments.hold_var`), so the SOC band widens by what that current could have moved. It
+enters each state on its own (``diag``): over a pause much longer than the RC time constants, the charge that flowed
+(the SOC) and the current near its end (the RC voltages) are different unknowns. Entered as one (``B Bᵀ``), the
+first voltage after the pause would pin both from one number: the band collapsed at once around a SOC read through
+the polarisation, and missed the truth in a third of random paused drives (``tests/test_hold_var.py``).
 
 For every model ``B[0] = −η·dt/(3600 Q)`` (= −η κ), so the SOC entry is ``(κ σ_I)²`` per step: the random walk of
 coulomb counting; the RC entries are ``(b_j σ_I)²`` with ``b_j = R_j(1 − e^{−dt/τ_j})``, fully correlated with the SOC
@@ -121,6 +128,17 @@ class SensorNoise:
         return self.voltage_sd**2 + self.input_var * D * D
 
 
+def hold_cov(B, hold_var) -> np.ndarray:
+    """``σ_hold²·diag(B²)`` ``(…, n, n)``: the unknown current over a logger pause (module docstring), each state's
+    share independent of the others' (0 where ``hold_var`` is 0)."""
+    B = np.asarray(B, dtype=float)
+    out = np.zeros(B.shape + B.shape[-1:])
+    if np.any(hold_var):
+        idx = np.arange(B.shape[-1])
+        out[..., idx, idx] = hold_var * B * B
+    return out
+
+
 #: Used when an estimator is given no noise spec: a 10 mV voltage reading and a 0.1 A current reading.
 DEFAULT_NOISE = SensorNoise(voltage_sd=0.01, current_sd=0.1)
 
@@ -161,9 +179,12 @@ class NoiseModel:
     def needs_D(self) -> bool:
         return self.R_override is None or callable(self.R_override)
 
-    def Q(self, B, dt) -> np.ndarray:
+    def Q(self, B, dt, hold_var=0.0) -> np.ndarray:
+        """``Q_k`` of a step of length ``dt``; ``hold_var`` [A²] the current variance the zero-order hold misses over
+        it (:func:`socbench.segments.hold_var`: nonzero across a logger pause), added to the sensor's input variance
+        (an override is taken as given)."""
         if self.Q_override is None:
-            Q = self.sensor.process_cov(B, dt)
+            Q = self.sensor.process_cov(B, dt) + hold_cov(B, hold_var)
             if self.walk is not None:  # the model's own random walks (an effect state that may drift)
                 idx = np.arange(self.n)
                 Q[..., idx, idx] += self.walk * np.asarray(dt, dtype=float)[..., None]

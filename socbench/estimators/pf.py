@@ -14,7 +14,10 @@ Each run carries ``N`` particles ``X_j`` with weights ``w_j`` (Gordon, Salmond &
     resample  where N_eff = 1/Σ w_j² < threshold·N: systematic resampling, positions (u + i)/N with one uniform u
               per run, particle i ← the first j with cumsum(w)_j > (u + i)/N; then w_j = 1/N and roughening
               X_j += K·E·N^(−1/d)·ε  (E = per-state spread max − min of the particles, d = n; Gordon et al. 1993)
-    predict   X_j ← f(X_j, I_k + σ_I ε_j, dt_k)  (+ additive walk or Q-override noise);  z clamped to [0, 1]
+    predict   X_j ← f(X_j, I_k + σ_I ε_j, dt_k)  (+ additive walk or Q-override noise)
+              X_j ← X_j + σ_hold,k · B̄_k ⊙ ε'_j   across a logger pause (σ_hold,k² = ``Inputs.hold_var``, zero at a
+                                                    sampled step; B̄ = ∂f/∂I at the cloud's mean; each state on its
+                                                    own, as ``noise.hold_cov``);  z clamped to [0, 1]
 
 The current-noise draw ``ε_j`` makes the process noise exactly the one the sensor spec describes (no Gaussian
 approximation of B·σ_I). With a ``Q`` override the process noise is additive ``N(0, Q)`` instead.
@@ -139,6 +142,12 @@ def resample_degenerate(X, w, threshold: float, failed, u, h: float, K_rough: fl
     if rows.any():
         resample_rows(X, w, rows, u, h, K_rough, lambda: jitter(rows))
     return rows
+
+
+def hold_spread(model, mean, i, dt: float, temp, hold_var: float) -> np.ndarray:
+    """``σ_hold·B̄`` ``(R, n)``: each state's spread from the current the hold misses over a step (module docstring),
+    ``B̄ = ∂f/∂I`` at the cloud's mean ``mean (R, n)`` with the measured current ``i (R,)``."""
+    return np.sqrt(hold_var) * model.step(mean, i, dt, temp, jac=True)[2]
 
 
 def cloud_moments(w: np.ndarray, X: np.ndarray):
@@ -299,6 +308,8 @@ class ParticleFilter(Estimator):
                 X = m.step(X, i_p, inputs.dt[k], tk_p)[0]
                 if additive is not None:
                     X += np.einsum("ij,rpj->rpi", additive(inputs.dt[k]), eps_q)
+                if inputs.hold_var[k] > 0 and noise.Q_override is None:
+                    X += hold_spread(m, mean, ik, inputs.dt[k], tk, inputs.hold_var[k])[:, None, :] * draws.hold(k)
                 pending_clamp = _clamp_particles(X)
                 failed = rec.fail(k + 1, ~np.all(np.isfinite(X), axis=(1, 2)))
                 restore(X, X_good, failed)
@@ -327,9 +338,10 @@ class ParticleFilter(Estimator):
         L0 = np.ascontiguousarray(np.linalg.cholesky(job.P0))
         std0 = np.sqrt(job.P0[:, 0, 0])
         counts = np.zeros((job.R, 2), dtype=np.int64)
+        hold = job.hv if self.noise.Q_override is None else np.zeros_like(job.hv)  # an override is taken as given
         parallel_runs(kpf.pf, job.R, job.im, job.fm, job.x0, L0, std0, job.cur, job.volt, job.temp, job.has_temp,
-                      job.dts, job.nz, sensor_walk(self.noise.sensor, n), Qroot, job.opt, pfopt, seed_u64(draws.seed),
-                      *job.out_args, counts, min_runs=1)  # the particles' walk: the sensor's (process_noise)
+                      job.dts, hold, job.nz, sensor_walk(self.noise.sensor, n), Qroot, job.opt, pfopt,
+                      seed_u64(draws.seed), *job.out_args, counts, min_runs=1)  # the particles' walk: the sensor's
         return job.finish({"gate_threshold": job.threshold, "n_particles": N, "resampled": counts[:, 0].copy(),
                            "tempered": counts[:, 1].copy(), "seed": draws.seed})
 

@@ -22,8 +22,10 @@ the same for every particle and its conditional covariance ``P_L`` is one per ru
              resampling (Liu & West 2001: the cloud's mean, spread and SOC–state correlation kept, duplicates distinct)
     predict  I_j = I_k + σ_I ε_j                                     (the sensor's current noise, sampled per particle)
              [z̄ + Δz_j, m_j⁺] = f([z̄, m_j], I_j, dt_k)               (one step at the mean's parameters)
-             z_j ← z_j + Δz_j + √q_z ε'_j,   z_j clamped to [0, 1]
-             P_L ← A P_L Aᵀ + Q_L,   A = ∂f_L/∂x_L at [z̄, m̄]
+             z_j ← z_j + Δz_j + √q_z ε'_j (+ σ_hold·B̄_z ε''_j),   z_j clamped to [0, 1]
+             P_L ← A P_L Aᵀ + Q_L (+ σ_hold²·diag(B̄_L²)),   A = ∂f_L/∂x_L at [z̄, m̄]
+             (the bracketed terms across a logger pause only: the current the hold misses, σ_hold² =
+             ``Inputs.hold_var``, B̄ = ∂f/∂I at the mean; each state on its own, as ``noise.hold_cov``)
 
 Conditioned on the sampled current noise the linear states move deterministically (``m_j⁺ = A m_j + B_L I_j``), so
 ``Q_L`` holds only their own random walks (the recipe's coloured-error states); ``q_z`` is the SOC's walk. A ``Q``
@@ -50,6 +52,7 @@ from ..errors import ConfigError
 from .base import Estimator, equilibrium, restore
 from .draws import StepDraws
 from .estimate import Estimate
+from .noise import hold_cov
 from .pf import (
     _clamp_particles,
     cloud_moments,
@@ -187,12 +190,16 @@ class RaoBlackwellPF(Estimator):
                 Xs = X.copy()
                 Xs[..., 0] = zbar[:, None]
                 Xf = m.step(Xs, np.broadcast_to(i_p, (R, N)), inputs.dt[k], tk_p)[0]
-                _, F, _ = m.step(mean, ik, inputs.dt[k], tk, jac=True)
+                _, F, B = m.step(mean, ik, inputs.dt[k], tk, jac=True)
                 q_z, QL = self._walks(R, inputs.dt[k])
                 X[..., 1:] = Xf[..., 1:]
                 X[..., 0] += Xf[..., 0] - zbar[:, None]
                 if walk_z:
                     X[..., 0] += np.sqrt(q_z)[:, None] * eps_q[..., 0]
+                hold = inputs.hold_var[k] if noise.Q_override is None else 0.0
+                if hold > 0:  # the current the hold misses across a logger pause: the SOC and each state on its own
+                    X[..., 0] += np.sqrt(hold) * B[:, None, 0] * draws.hold(k)[..., 0]
+                    QL = QL + hold_cov(B[:, 1:], hold)
                 AL = F[:, 1:, 1:]
                 PL = symmetrise(AL @ PL @ np.swapaxes(AL, -1, -2) + QL)
                 pending_clamp = _clamp_particles(X)

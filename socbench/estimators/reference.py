@@ -38,7 +38,7 @@ from .base import Estimator, Inputs
 from .dual import JointParameters
 from .estimate import Estimate
 from .hinf import HInfinityFilter
-from .pf import ParticleFilter, log_likelihood, roughening_sd, shrink, weighted_mean_root
+from .pf import ParticleFilter, hold_spread, log_likelihood, roughening_sd, shrink, weighted_mean_root
 from .safety import diverged, project_soc, repair_psd, symmetrise
 from .ukf import UKF, merwe_weights
 
@@ -46,7 +46,7 @@ from .ukf import UKF, merwe_weights
 def _one_run(inputs: Inputs, r: int) -> Inputs:
     s = slice(r, r + 1)
     return Inputs(inputs.time_s, inputs.dt, inputs.current[s], inputs.voltage[s],
-                  None if inputs.temp is None else inputs.temp[s], inputs.name, inputs.capacity_ah)
+                  None if inputs.temp is None else inputs.temp[s], inputs.name, inputs.capacity_ah, inputs.hold_var)
 
 
 def _stack(parts: list[Estimate], info: dict) -> Estimate:
@@ -97,18 +97,18 @@ class _KalmanReference(Estimator):
 
 
 class _ModelEKF(ExtendedKalmanFilter):
-    """filterpy's EKF whose prediction is the model's nonlinear step; ``u = (I, dt, T)``."""
+    """filterpy's EKF whose prediction is the model's nonlinear step; ``u = (I, dt, T, hold_var)``."""
 
     def __init__(self, model, process_cov):
         super().__init__(dim_x=model.n_states, dim_z=1)
         self.model = model
-        self.process_cov = process_cov  # (B, dt) -> Q
+        self.process_cov = process_cov  # (B, dt, hold_var) -> Q
 
     def predict_x(self, u=0):
-        i, dt, temp = u
+        i, dt, temp, hold = u
         xn, F, B = self.model.step(self.x[:, 0], i, dt, temp, jac=True)
         self.F = F
-        self.Q = self.process_cov(B, dt)
+        self.Q = self.process_cov(B, dt, hold)
         self.x = xn[:, None]
 
 
@@ -143,15 +143,15 @@ class ReferenceEKF(_KalmanReference):
             rec.record(k, ekf.x[0], np.sqrt(ekf.P[0, 0])[None], np.atleast_1d(y), np.array([e]), np.array([S]),
                        clamped, gated, ekf.x[:, 0][None], np.diag(ekf.P)[None])
             if k + 1 < T:
-                ekf.predict(u=(i, inputs.dt[k], temp))
+                ekf.predict(u=(i, inputs.dt[k], temp, inputs.hold_var[k]))
                 ekf.P = symmetrise(ekf.P)
                 if not (np.all(np.isfinite(ekf.x)) and np.all(np.isfinite(ekf.P))):
                     rec.fail(k + 1, np.ones(1, bool))
                     self._freeze_rest(rec, k + 1, T)
                     return
 
-    def process_cov(self, B, dt):
-        return self.noise.Q(B, dt)
+    def process_cov(self, B, dt, hold_var=0.0):
+        return self.noise.Q(B, dt, hold_var)
 
 
 class ReferenceUKF(_KalmanReference):
@@ -194,7 +194,8 @@ class ReferenceUKF(_KalmanReference):
             rec.record(k, ukf.x[:1], np.sqrt(ukf.P[0, 0])[None], np.array([yhat]), np.array([e]), np.array([S]),
                        clamped, gated, ukf.x[None], np.diag(ukf.P)[None])
             if k + 1 < T:
-                ukf.Q = self.noise.Q(m.step(ukf.x, i, inputs.dt[k], temp, jac=True)[2], inputs.dt[k])
+                ukf.Q = self.noise.Q(m.step(ukf.x, i, inputs.dt[k], temp, jac=True)[2], inputs.dt[k],
+                                     inputs.hold_var[k])
                 ukf.predict(dt=inputs.dt[k], i=i, temp=temp)
                 ukf.P = repair_psd(symmetrise(ukf.P)[None], *floors)[0][0]
                 if not (np.all(np.isfinite(ukf.x)) and np.all(np.isfinite(ukf.P))):
@@ -267,6 +268,8 @@ class ReferencePF(ParticleFilter):
             X = m.step(X, i if sd_i is None else i + sd_i * eps_i[0], inputs.dt[k], temp)[0]
             if additive is not None:
                 X = X + eps_q[0] @ additive(inputs.dt[k]).T
+            if inputs.hold_var[k] > 0 and noise.Q_override is None:
+                X = X + hold_spread(m, mean, i, inputs.dt[k], temp, inputs.hold_var[k]) * draws.hold(k)[0]
             clamp = _clamp_one(X)
             if not np.all(np.isfinite(X)):
                 rec.fail(k + 1, np.ones(1, bool))
@@ -320,7 +323,8 @@ class ReferenceCKF(_KalmanReference):
             rec.record(k, ckf.x[0], np.sqrt(ckf.P[0, 0])[None], np.array([yhat]), np.array([e]), np.array([S]),
                        clamped, gated, ckf.x[:, 0][None], np.diag(ckf.P)[None])
             if k + 1 < T:
-                ckf.Q = self.noise.Q(m.step(ckf.x[:, 0], i, inputs.dt[k], temp, jac=True)[2], inputs.dt[k])
+                ckf.Q = self.noise.Q(m.step(ckf.x[:, 0], i, inputs.dt[k], temp, jac=True)[2], inputs.dt[k],
+                                     inputs.hold_var[k])
                 ckf.predict(dt=inputs.dt[k], fx_args=(i, temp))
                 ckf.P = repair_psd(symmetrise(ckf.P)[None], *floors)[0][0]
                 if not self._predicted_ok(rec, k + 1, T, ckf.x, ckf.P):
@@ -340,8 +344,8 @@ class ReferenceJointEKF(JointParameters, ReferenceEKF):
     def _run(self, inputs, x0, P0, seed=None) -> Estimate:
         return self.finish_joint(ReferenceEKF._run(self, inputs, x0, P0, seed), inputs)
 
-    def process_cov(self, B, dt):
-        return self.noise.Q(B, dt) + self.param_cov(dt)
+    def process_cov(self, B, dt, hold_var=0.0):
+        return self.noise.Q(B, dt, hold_var) + self.param_cov(dt)
 
 
 class ReferenceAEKF(_KalmanReference):
@@ -388,7 +392,7 @@ class ReferenceAEKF(_KalmanReference):
                 q_hat = (1.0 - d) * q_hat + d * np.outer(K * e, K * e)
             if k + 1 < T:
                 x, F, B = m.step(x, i, inputs.dt[k], temp, jac=True)
-                Q = self.noise.Q(B, inputs.dt[k]) + (q_hat if opt["adapt_q"] else 0.0)
+                Q = self.noise.Q(B, inputs.dt[k], inputs.hold_var[k]) + (q_hat if opt["adapt_q"] else 0.0)
                 P = symmetrise(F @ P @ F.T + Q)
                 if not self._predicted_ok(rec, k + 1, T, x, P):
                     return
@@ -431,7 +435,7 @@ class ReferenceHInf(_KalmanReference):
                        gated, x[None], np.diag(P)[None])
             if k + 1 < T:
                 x, F, B = m.step(x, i, inputs.dt[k], temp, jac=True)
-                P = symmetrise(F @ P @ F.T + self.noise.Q(B, inputs.dt[k]))
+                P = symmetrise(F @ P @ F.T + self.noise.Q(B, inputs.dt[k], inputs.hold_var[k]))
                 if not self._predicted_ok(rec, k + 1, T, x, P):
                     return
 
@@ -495,7 +499,7 @@ class ReferenceSRUKF(_KalmanReference):
             if k + 1 < T:
                 X = points(x, L)
                 Xf = np.array([m.step(p, i, inputs.dt[k], temp)[0] for p in X])
-                Q = self.noise.Q(m.step(x, i, inputs.dt[k], temp, jac=True)[2], inputs.dt[k])
+                Q = self.noise.Q(m.step(x, i, inputs.dt[k], temp, jac=True)[2], inputs.dt[k], inputs.hold_var[k])
                 x = Wm @ Xf
                 w, V = scipy.linalg.eigh(Q)
                 rows = np.vstack([np.sqrt(Wc[j]) * (Xf[j] - x) for j in range(1, 2 * n + 1)]

@@ -147,7 +147,7 @@ class SRUKF(UKF):
                 # ---------------------------------------------------------------- predict
                 X = sqrt_sigma_points(x, L, gamma)
                 Xf, _, B = scheduled_step(m, X, x, ik_s, inputs.dt[k], tk_s, noise.needs_B)
-                Q = noise.Q(None if B is None else B[:, 0], inputs.dt[k])
+                Q = noise.Q(None if B is None else B[:, 0], inputs.dt[k], inputs.hold_var[k])
                 x = np.einsum("s,rsi->ri", Wm, Xf)
                 dX = Xf - x[:, None, :]
                 rows = np.concatenate([w_rest[:, None] * dX[:, 1:],

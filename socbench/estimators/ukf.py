@@ -112,7 +112,7 @@ class UKF(Estimator):
                 # ---------------------------------------------------------------- predict
                 X = self.points(x, P)
                 Xf, _, B = scheduled_step(m, X, x, ik_s, inputs.dt[k], tk_s, noise.needs_B)
-                Q = noise.Q(None if B is None else B[:, 0], inputs.dt[k])
+                Q = noise.Q(None if B is None else B[:, 0], inputs.dt[k], inputs.hold_var[k])
                 x = np.einsum("s,rsi->ri", Wm, Xf)
                 dX = Xf - x[:, None, :]
                 P = np.einsum("rsi,rsj->rij", dX * Wc[:, None], dX) + Q

@@ -144,6 +144,7 @@ class Job:
         self.has_temp = inputs.temp is not None
         self.temp = np.ascontiguousarray(inputs.temp, dtype=float) if self.has_temp else np.zeros((R, T))
         self.dts = np.ascontiguousarray(inputs.dt, dtype=float)
+        self.hv = np.ascontiguousarray(inputs.hold_var, dtype=float)
         self.nz, self.walk, self.Qo = noise_arrays(estimator.noise, n)
         self.threshold = gate_threshold(opt["gate_alpha"])
         self.opt = np.array([self.threshold, float(opt["gate_release"]), float(opt["var_max"]), float(opt["nis_max"]),
@@ -175,7 +176,7 @@ class Job:
 
     @property
     def model_args(self) -> tuple:
-        return (self.im, self.fm, self.x0, self.P0, self.cur, self.volt, self.temp, self.has_temp, self.dts)
+        return (self.im, self.fm, self.x0, self.P0, self.cur, self.volt, self.temp, self.has_temp, self.dts, self.hv)
 
     @property
     def noise_args(self) -> tuple:

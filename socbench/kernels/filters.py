@@ -12,7 +12,8 @@ work arrays once and hands the evaluator and the linear algebra pointers to them
 Shared arguments (built by :mod:`socbench.kernels.engine`):
 
 * ``im, fm``     the lowered model (:mod:`socbench.kernels.lowering`);
-* ``x0 (R, n)``, ``P0 (R, n, n)``; ``cur, volt, temp (R, T)``, ``has_temp``; ``dts (T − 1,)``;
+* ``x0 (R, n)``, ``P0 (R, n, n)``; ``cur, volt, temp (R, T)``, ``has_temp``; ``dts (T − 1,)``; ``hv (T − 1,)``
+                 the current variance the zero-order hold misses over each step (``Inputs.hold_var``);
 * ``nz``         noise numbers (:data:`NOISE_FIELDS`), ``walk (n,)`` random-walk variances per ``nz[DT0]``,
                  ``Qo (n, n)`` a constant Q override (used when ``nz[Q_OVR] = 1``);
 * ``opt``        safety options (:data:`OPTION_FIELDS`);
@@ -24,7 +25,7 @@ Shared arguments (built by :mod:`socbench.kernels.engine`):
                  (``Estimate.info["psd_repairs"]``).
 
 Noise (:mod:`socbench.estimators.noise`): ``R_k = σ_V² + σ_in²·D_k²`` (or the override), ``Q_k = σ_in²·B_k B_kᵀ +
-diag(walk)·dt_k/dt0`` (or the override matrix).
+hv_k·diag(B_k²) + diag(walk)·dt_k/dt0`` (or the override matrix).
 """
 
 from __future__ import annotations
@@ -69,10 +70,11 @@ def equilibrium(im, fm, z, t, has_temp, jac, xe, He, n, work):
 
 
 @kernel(inline=True)
-def process_cov(nz, walk, Qo, B, n, dt, var, Q):
-    """``Q_k`` into ``Q`` (n × n): the sensor-noise form with input variance ``var`` (noise.SensorNoise.process_cov)
-    or the override matrix, plus ``diag(walk)·dt/dt0`` where ``nz[HAS_WALK]`` (the sensor's and the model's random
-    walks, or an estimator's own; engine.noise_arrays leaves it off under an override, as NoiseModel.Q does)."""
+def process_cov(nz, walk, Qo, B, n, dt, var, hold, Q):
+    """``Q_k`` into ``Q`` (n × n): the sensor-noise form with input variance ``var`` plus the hold's ``hold·diag(B²)``
+    (noise.NoiseModel.Q) or the override matrix, plus ``diag(walk)·dt/dt0`` where ``nz[HAS_WALK]`` (the sensor's and
+    the model's random walks, or an estimator's own; engine.noise_arrays leaves it off under an override, as
+    NoiseModel.Q does)."""
     if nz[Q_OVR] != 0.0:
         for a in range(n * n):
             Q[a] = Qo[a]
@@ -80,6 +82,7 @@ def process_cov(nz, walk, Qo, B, n, dt, var, Q):
         for a in range(n):
             for b in range(n):
                 Q[a * n + b] = var * B[a] * B[b]
+            Q[a * n + a] += hold * B[a] * B[a]
     if nz[HAS_WALK] != 0.0:
         for a in range(n):
             Q[a * n + a] += walk[a] * (dt / nz[DT0])
@@ -240,7 +243,7 @@ def joseph(P, K, H, Rk, n, A, M):
 
 
 @kernel
-def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, opt, variant, vopt, vout, outf, outb,
+def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, hv, nz, walk, Qo, opt, variant, vopt, vout, outf, outb,
         xs, pd, store, failed, failed_at, status, repairs):
     """The EKF family over runs ``r0 … r1 − 1``: linearised prediction and a scalar update that is the EKF's
     (estimators/ekf.py), the adaptive EKF's or the H∞ filter's (``variant``, see :data:`VAR_EKF`)."""
@@ -376,7 +379,7 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
                     F[a, 0] = 0.0
             for a in range(n):
                 x[a] = xn[a]
-            process_cov(nzp, walkp, Qop, Bp, n, dts[k], nz[IN_VAR], Qp)
+            process_cov(nzp, walkp, Qop, Bp, n, dts[k], nz[IN_VAR], hv[k], Qp)
             if aekf and vopt[4] != 0.0:
                 for a in range(n):
                     for b in range(n):
@@ -417,7 +420,7 @@ def sigma_points(x, P, n, lam, X, L, M, w, V, work):
 
 
 @kernel
-def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, opt, Wm, Wc, lam, needs_D, needs_B,
+def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, hv, nz, walk, Qo, opt, Wm, Wc, lam, needs_D, needs_B,
         outf, outb, xs, pd, store, failed, failed_at, status, repairs):
     """Unscented Kalman filter (estimators/ukf.py) over runs ``r0 … r1 − 1``."""
     T = cur.shape[1]
@@ -522,7 +525,7 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
             if st != 0:
                 status[r] = st
                 break
-            process_cov(nzp, walkp, Qop, Bp, n, dts[k], nz[IN_VAR], Qp)
+            process_cov(nzp, walkp, Qop, Bp, n, dts[k], nz[IN_VAR], hv[k], Qp)
             for a in range(n):
                 s_ = 0.0
                 for s in range(ns):
@@ -548,7 +551,7 @@ def ukf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, op
 
 # ================================================================================================ coulomb counting
 @kernel
-def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo, ratio, outf, outb, xs, pd, store,
+def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, hv, nz, walk, Qo, ratio, outf, outb, xs, pd, store,
             failed, failed_at, status, repairs):
     """Coulomb counting with the declared capacity (estimators/coulomb.py) over runs ``r0 … r1 − 1``."""
     T = cur.shape[1]
@@ -605,7 +608,7 @@ def coulomb(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, nz, walk, Qo
                 x[a] = xn[a]
             x[0] = z + (xn[0] - z) * ratio
             drift -= B[0]
-            process_cov(nzp, walkp, Qop, Bp, n, dts[k], nz[CUR_VAR], Qp)
+            process_cov(nzp, walkp, Qop, Bp, n, dts[k], nz[CUR_VAR], hv[k], Qp)
             propagate(Fp, Pp, Qp, n, Mp)
             symmetrise(Pp, n)
     keep_alive((x, H, B, w, P, F, Q, M, scratch, xn))

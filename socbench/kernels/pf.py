@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from ..estimators import draws as D
-from .evaluate import WORK_SIZE, keep_alive, model_output_points, model_step_points, points_scratch, ptr
+from .evaluate import WORK_SIZE, keep_alive, model_output_points, model_step, model_step_points, points_scratch, ptr
 from .filters import DT0, W_EXTRA, freeze, measurement_var, record
 from .jit import kernel
 from .linalg import diverged_var, eigh_jacobi, gate
@@ -243,9 +243,10 @@ def likelihoods(imp, fmp, X, v, i, temp, has_temp, nz, extra, N, Y, Rk, ll, Hp, 
 
 # ================================================================================================ the filter
 @kernel
-def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Qroot, opt, pfopt, seed,
+def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, hv, nz, walk, Qroot, opt, pfopt, seed,
        outf, outb, xs, pd, store, failed, failed_at, status, repairs, counts):
-    """Bootstrap particle filter (estimators/pf.py) over runs ``r0 … r1 − 1``."""
+    """Bootstrap particle filter (estimators/pf.py) over runs ``r0 … r1 − 1``; ``hv (T − 1,)`` the current variance
+    the hold misses over each step (``pf.hold_spread``; zeros under a Q override)."""
     T = cur.shape[1]
     n = x0.shape[1]
     N = int(pfopt[N_P])
@@ -262,6 +263,8 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
     stream_current = np.int64(D.CURRENT)
     stream_additive = np.int64(D.ADDITIVE)
     stream_roughen = np.int64(D.ROUGHEN)
+    stream_hold = np.int64(D.HOLD)
+    jac = n > 0  # run-time True (a literal would make numba compile a copy of every callee)
     X = np.empty((N, n))
     Xr = np.empty((N, n))
     w = np.empty(N)
@@ -280,6 +283,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
     mean = np.empty(n)
     var = np.empty(n)
     mean_r = np.empty(n)
+    x_mean = np.empty(n)  # the cloud mean stepped (for ∂f/∂I there across a logger pause)
     ev = np.empty(n)
     E = np.empty(N * n)  # normals of one stream
     Ei = np.empty(N)  # the current-noise normals
@@ -296,7 +300,7 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                                                        ptr(Rk), ptr(cum), ptr(idx))
     meanp, varp, mean_rp, evp, rootp, Vmp, Up, workp = (ptr(mean), ptr(var), ptr(mean_r), ptr(ev), ptr(root), ptr(Vm),
                                                         ptr(U), ptr(work))
-    Ep, Eip, Esp, nzp = ptr(E), ptr(Ei), ptr(Es), ptr(nz)
+    Ep, Eip, Esp, nzp, x_meanp = ptr(E), ptr(Ei), ptr(Es), ptr(nz), ptr(x_mean)
     outfp, outbp, xsp, pdp = ptr(outf), ptr(outb), ptr(xs), ptr(pd)
     R_all = outf.shape[1]
     for r in range(r0, r1):
@@ -453,6 +457,16 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                         for d in range(n):
                             s += Qroot[a, d] * E[p * n + d]
                         X[p, a] += s
+            if hv[k] > 0.0:  # the current the hold misses across a logger pause: each state on its own (pf.hold_spread)
+                st = model_step(imp, fmp, meanp, ik, dt, tk, has_temp, jac, x_meanp, Fp, Bp, sp)
+                if st != 0:
+                    status[r] = st
+                    break
+                normals_into(prefix(seed, stream_hold, k, r), Ep, N * n, Esp)
+                spread = math.sqrt(hv[k])
+                for p in range(N):
+                    for a in range(n):
+                        X[p, a] += spread * Bv[a] * E[p * n + a]
             pending_clamp = clamp_particles(Xp, N, n)
             bad = False
             for p in range(N):
@@ -464,5 +478,5 @@ def pf(r0, r1, im, fm, x0, L0, std0, cur, volt, temp, has_temp, dts, nz, walk, Q
                 failed_at[r] = k + 1
                 freeze(outf, outb, xs, pd, store, r, k + 1, T, n, x0[r, 0], std0[r], volt[r, 0])
                 break
-    keep_alive((X, Xr, w, lw, ll, tmp, Y, Rk, cum, idx, H, Xn, Ip, PW, Bv, mean, var, mean_r, ev, E, Ei, Es, F, root,
-                Vm, U, work, scratch))
+    keep_alive((X, Xr, w, lw, ll, tmp, Y, Rk, cum, idx, H, Xn, Ip, PW, Bv, mean, var, mean_r, x_mean, ev, E, Ei, Es, F,
+                root, Vm, U, work, scratch))
