@@ -184,18 +184,20 @@ def write_doc(path: Path, res: dict, before: dict | None, before_label: str) -> 
          "changes below were found on this data; the Panasonic HPPCs, on which the HPPC analysis grew up, start full "
          "and rest at their bottom, and are unchanged by them.",
          "",
-         "**What changed.** Earlier (68676ef), a fit learnt to leave out the samples before the test reaches full (the "
-         "charge from empty, whose SOC is counted back from full through a charge of unknown coulombic efficiency: "
-         "near empty a point of SOC is tens of mV of OCV) and those further than 0.02 in SOC beyond the OCV's rest "
-         "points (`socbench.identify.fit.OCV_FIT_MARGIN`), with a note saying how much. Now (stop 49; the numbers "
-         "before the arrows are the code before it) the OCV is continued below the lowest rest point, down to the "
-         "test's most discharged point, along its last step once the step's over-potential has settled (the voltage "
-         "plus the current times the lowest pulse set's pulse resistance, `socbench.identify.hppc.HPPCAnalysis."
-         "ocv_bottom_extension`), instead of along the line through the two lowest rest points (3.43 V at empty where "
-         "the cell reads 3.0 V under 10 A); the curve above the lowest rest point is held as the rest points give it, "
-         "and the samples below it stay out of the fit. What a record running there reads changes (section 4); the "
-         "fits above it change through the samples within 0.02 below the lowest rest point, which now see the "
-         "continued curve (sections 1–3).", "",
+         "**What changed.** Earlier (68676ef), a fit learnt to leave out the samples before the test reaches "
+         "full (the charge from empty, whose SOC is counted back from full through a charge of unknown "
+         "coulombic efficiency: near empty a point of SOC is tens of mV of OCV) and those further than 0.02 in"
+         " SOC beyond the OCV's rest points (`socbench.identify.fit.OCV_FIT_MARGIN`), with a note saying how "
+         "much. Since stop 49 the OCV is continued below the lowest rest point, down to the test's most "
+         "discharged point, along its last step once the step's over-potential has settled (the voltage plus "
+         "the current times the lowest pulse set's pulse resistance, "
+         "`socbench.identify.hppc.HPPCAnalysis.ocv_bottom_extension`), instead of along the line through the "
+         "two lowest rest points (3.43 V at empty where the cell reads 3.0 V under 10 A); the curve above the "
+         "lowest rest point is held as the rest points give it, and the samples below it stay out of the fit. "
+         "What a record running there reads changes (section 4); the fits above it change through the samples "
+         "within 0.02 below the lowest rest point, which now see the continued curve (sections 1–3). Since "
+         "stop 58 the filters widen their band across the steps these files log slowly while the current "
+         "changes (`socbench.segments.hold_var`): the EKF's SOC in section 4.", "",
          "## 1. Fit RMSE over the samples fitted [mV]", "",
          "| model | mode | 10 °C | 25 °C | 40 °C |", "|---|---|---|---|---|"]
     for model in MODELS:
