@@ -180,6 +180,16 @@ def hold_var(profile: Profile) -> np.ndarray:
     return out
 
 
+def pause_report(profile: Profile, capacity_ah: float, segments: Segments | None = None) -> dict:
+    """What the hold's variance did on ``profile`` (a filter's metrics): ``{"steps": the steps inside a segment with a
+    nonzero :func:`hold_var`, "soc_sd_max": the largest SOC SD one of them adds, ``σ_hold·Δt/(3600 Q)``}``."""
+    h = hold_var(profile)
+    if segments is not None:  # a boundary's step is never filtered: the segment after it restarts
+        h[[k - 1 for k in segments.starts[1:]]] = 0.0
+    sd = np.sqrt(h) * profile.dt / (3600.0 * capacity_ah)
+    return {"steps": int(np.count_nonzero(h)), "soc_sd_max": float(sd.max()) if sd.size else 0.0}
+
+
 def _var_next_to_step(current: np.ndarray) -> np.ndarray:
     """The variance of each row of ``current (R, m)`` (its first sample next to the step) up to its largest change of
     current (module docstring); 0 for fewer than 3 samples."""

@@ -162,3 +162,34 @@ def test_filterpy_reference_widens_the_same_way():
     np.testing.assert_allclose(ours.soc, ref.soc, atol=1e-9)
     np.testing.assert_allclose(ours.soc_std, ref.soc_std, atol=1e-9)
     assert ours.soc_std[0, 200] > 3.0 * ours.soc_std[0, 199]  # the band widened across the pause
+
+
+def test_estimate_reports_the_pauses_it_widened_across(tmp_path):
+    """`socbench estimate` on a paused drive written as a CSV: metrics.json says which steps widened and by how much,
+    and its band holds the truth; the same drive without the pause reports none."""
+    import json
+
+    import pandas as pd
+
+    from socbench.cli import main
+
+    model = make_model("thevenin", paper_params("thevenin"))
+    prof, a = paused_drive(np.random.default_rng(21), model)
+    runs = {"paused": prof, "whole": around_pause(prof, a, a, 0)}  # the samples before the pause only
+    for name, p in runs.items():
+        path = tmp_path / f"{name}.csv"
+        pd.DataFrame({"time_s": p.time_s, "current_a": p.current_a, "voltage_v": p.voltage_v,
+                      "soc_ref": p.soc_ref}).to_csv(path, index=False)
+        path.with_suffix(".json").write_text(json.dumps({"capacity_ah": model.capacity_ah, "n_series": 6}))
+        rc = main(["estimate", "--data", str(path), "--params", "paper:thevenin", "--estimator", "ekf",
+                   "--voltage-sd", str(NOISE.voltage_sd), "--current-sd", str(NOISE.current_sd),
+                   "--soc0", str(float(p.soc_ref[0])), "--soc0-sd", "0.001", "--no-segments",
+                   "--out", str(tmp_path / name)])
+        assert rc == 0
+        runs[name] = json.loads((tmp_path / name / "metrics.json").read_text())
+    pauses = runs["paused"]["logger_pauses"]
+    assert pauses["steps"] == 1
+    gap_s = prof.time_s[a] - prof.time_s[a - 1]
+    assert 0.0 < pauses["soc_sd_max"] <= np.abs(prof.current_a).max() * gap_s / (3600.0 * model.capacity_ah)
+    assert runs["whole"]["logger_pauses"] == {"steps": 0, "soc_sd_max": 0.0}
+    assert runs["paused"]["frac_within_3sigma"] >= 0.9

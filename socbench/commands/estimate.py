@@ -22,7 +22,8 @@ reference with a capacity (Panasonic, CALCE: :mod:`socbench.socaxis`); the filte
 
 A record of several discharges (battery swaps, recharges) is filtered segment by segment, each restarting the filter
 as at the record's start (:mod:`socbench.segments`); ``--no-segments`` filters it as one piece. ``metrics.json``
-also holds ``failed_reason`` (why each failed run diverged), ``segments``, ``domain``
+also holds ``failed_reason`` (why each failed run diverged), ``segments``, ``logger_pauses`` (the steps across which
+the band widened for the current the hold misses, :func:`socbench.segments.pause_report`), ``domain``
 (:func:`socbench.domain.estimate_domain`) and ``guard_fractions``; a warning line is printed when ≥ 1 % of the
 samples lie outside the model's domain.
 """
@@ -42,6 +43,7 @@ from ..estimators.scoring import LOST_MIN_S, LOST_SIGMA, error_state_excess, sco
 from ..identify.hppc import NO_KNEE
 from ..io import atomic_write_frame, atomic_write_text, output_dir
 from ..models import make_model
+from ..segments import pause_report
 from ..socaxis import run_on_data_axis, soc_axis
 from .simulate import fitted_at_c, params_block, resolve_params
 
@@ -130,6 +132,7 @@ def run(args) -> int:
                               "slow_share": slow_share},
                     "soc_axis": axis.to_dict(),
                     "failed_reason": est.failure_reasons(), "segments": est.segments.to_dict(),
+                    "logger_pauses": pause_report(profile, model.capacity_ah, est.segments),
                     "domain": {k: v for k, v in est.domain.items() if k != "seconds"},
                     "guard_fractions": guard_fractions(est.domain)})
     if profile.soc_ref is None:
