@@ -7,8 +7,8 @@ levels (1–30 s, a mean that takes 40–80 % of the charge over 0.5–2 h, spre
 0.1–5 s; the truth simulated over the whole load, then a window of 1–20 minutes dropped from the record (the load went
 on while the logger was off); voltage noise 1–5 mV, current noise 0–1 % C. Every filter starts at the true SOC with a
 small band (P0 = 1e-6), so what it gets wrong after the pause is the pause's. Scored over the 10 minutes after the
-pause: the fraction of samples whose SOC error lies within 3σ, and the SOC RMSE. "Before" is the same filter with the
-hold's variance zeroed (what every filter did before it existed). This generator is not the one
+pause: the fraction of samples whose SOC error lies within 3σ, and the SOC RMSE. "Before" is the same filter with
+``hold=False`` (the hold's variance zeroed: what every filter did before it existed). This generator is not the one
 tests/test_hold_var.py uses.
 
     python benchmarks/logger_pause.py --draws 60 --seed 2026 --md docs/logger_pauses.md
@@ -17,7 +17,6 @@ tests/test_hold_var.py uses.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import platform
 import sys
@@ -29,7 +28,6 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from socbench import segments  # noqa: E402
 from socbench.estimators import SensorNoise, make_estimator  # noqa: E402
 from socbench.models import make_model, paper_params  # noqa: E402
 from socbench.profile import Profile, ProfileMeta  # noqa: E402
@@ -66,17 +64,6 @@ def draw(rng):
     return model, prof, a, noise
 
 
-@contextlib.contextmanager
-def hold_zeroed():
-    """The filters as before the hold had a variance."""
-    saved = segments.hold_var
-    segments.hold_var = lambda p: np.zeros(p.n - 1)
-    try:
-        yield
-    finally:
-        segments.hold_var = saved
-
-
 def score(est, prof, a):
     k = (prof.time_s >= prof.time_s[a]) & (prof.time_s < prof.time_s[a] + WINDOW_S)
     err = est.soc[0, k] - prof.soc_ref[k]
@@ -98,8 +85,8 @@ def main(argv=None) -> int:
         for e in ESTIMATORS:
             opts = {"n_particles": 500} if e == "pf" else {}
             for hold in (True, False):
-                with contextlib.nullcontext() if hold else hold_zeroed():
-                    est = make_estimator(e, model, noise, **opts).run(prof, soc0=z0, P0=1e-6, seed=0, segments=False)
+                est = make_estimator(e, model, noise, hold=hold, **opts).run(prof, soc0=z0, P0=1e-6, seed=0,
+                                                                             segments=False)
                 rows[(e, hold)].append(score(est, prof, a))
     wall = time.perf_counter() - t0
     lines = [

@@ -196,8 +196,10 @@ def write_doc(path: Path, res: dict, before: dict | None, before_label: str) -> 
          "lowest rest point is held as the rest points give it, and the samples below it stay out of the fit. "
          "What a record running there reads changes (section 4); the fits above it change through the samples "
          "within 0.02 below the lowest rest point, which now see the continued curve (sections 1–3). Since "
-         "stop 58 the filters widen their band across the steps these files log slowly while the current "
-         "changes (`socbench.segments.hold_var`): the EKF's SOC in section 4.", "",
+         "stop 58 the filters widen their band across a step logged slowly while the current changes "
+         "(`socbench.segments.hold_var`); the diagnosis of section 4 filters each record on bins of at least 1"
+         " s and at most 4000 of them (`socbench.diagnose`), on which these files' 60 s steps are no longer "
+         "gaps, and the arrows (the same script on stop 57's code) show that nothing on this page moved.", "",
          "## 1. Fit RMSE over the samples fitted [mV]", "",
          "| model | mode | 10 °C | 25 °C | 40 °C |", "|---|---|---|---|---|"]
     for model in MODELS:

@@ -18,7 +18,8 @@ specific to one filter:
 
 Options common to all filters (all keyword): ``Q``, ``R`` (overrides, see :class:`~.noise.NoiseModel`),
 ``gate_alpha`` (χ² gate tail probability, None = off), ``gate_release``, ``var_max``, ``nis_max``, ``psd_floor``,
-``psd_rel_floor``, ``soc0_sd``, ``state0_sd``, ``store_states``, ``engine``.
+``psd_rel_floor``, ``soc0_sd``, ``state0_sd``, ``store_states``, ``engine``, ``hold`` (False: the filter ignores
+the current the hold misses across a logger pause, ``Inputs.hold_var`` all zero, as every filter did before it).
 
 Engines. ``engine="numpy"`` runs the filter's numpy loop (``_run``: batched over runs, the reference every other
 engine is tested against); ``engine="compiled"`` its compiled kernel (``_run_compiled``: numba, the time loop of every
@@ -55,6 +56,7 @@ COMMON_OPTIONS: dict = {
     "state0_sd": 0.01,
     "store_states": False,
     "engine": "auto",
+    "hold": True,
 }
 ENGINES = ("auto", "numpy", "compiled")
 
@@ -88,7 +90,7 @@ class Inputs:
         return None if self.temp is None else self.temp[:, k]
 
     @classmethod
-    def from_profile(cls, profile: Profile) -> Inputs:
+    def from_profile(cls, profile: Profile, hold: bool = True) -> Inputs:
         if not isinstance(profile, Profile):
             raise ConfigError(f"expected a Profile, got {type(profile).__name__}")
         profile.require("voltage_v")
@@ -101,7 +103,8 @@ class Inputs:
         from ..segments import hold_var
 
         return cls(profile.time_s, profile.dt, full(profile.current_a), full(profile.voltage_v),
-                   full(profile.temperature_c), profile.name, profile.meta.capacity_ah, hold_var(profile))
+                   full(profile.temperature_c), profile.name, profile.meta.capacity_ah,
+                   hold_var(profile) if hold else None)
 
     def slice(self, start: int, stop: int) -> Inputs:
         """Samples ``start:stop`` (a segment of the record)."""
@@ -163,7 +166,7 @@ class Estimator:
         from ..domain import estimate_domain
         from ..segments import resolve
 
-        inputs = Inputs.from_profile(profile)
+        inputs = Inputs.from_profile(profile, self.options["hold"])
         segs = resolve(segments, profile, self.model.ocv, self.model.capacity_ah)
         P0 = self.initial_cov(inputs.n_runs, P0)
         if x0 is not None:
