@@ -45,7 +45,7 @@ the larger of two readings of the record:
   starts or stops in the step, or a rest logged slowly, is steady on at least one side and is left to the first
   reading.
 
-The filters add it to the sensor's input variance at that step, each state on its own (``Q_k = σ_I² B_k B_kᵀ +
+The filters add it to their process noise at that step, each state on its own (``Q_k = σ_I² B_k B_kᵀ +
 σ_hold,k²·diag(B_k²)``, :mod:`socbench.estimators.noise`), so the SOC band widens by about
 ``σ_hold·Δt/(3600 Q)`` across the step instead of carrying the sensor's noise alone. A long step between equal,
 steady currents keeps zero (the Panasonic files write a sample a minute at rest, ten a second under load); so do

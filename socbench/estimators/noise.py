@@ -13,7 +13,8 @@ did not see (:func:`socbench.segments.hold_var`), so the SOC band widens by what
 enters each state on its own (``diag``): over a pause much longer than the RC time constants, the charge that flowed
 (the SOC) and the current near its end (the RC voltages) are different unknowns. Entered as one (``B Bᵀ``), the
 first voltage after the pause would pin both from one number: the band collapsed at once around a SOC read through
-the polarisation, and missed the truth in a third of random paused drives (``tests/test_hold_var.py``).
+the polarisation, and missed the truth after the pause on random paused drives (seen while writing
+``tests/test_hold_var.py``).
 
 For every model ``B[0] = −η·dt/(3600 Q)`` (= −η κ), so the SOC entry is ``(κ σ_I)²`` per step: the random walk of
 coulomb counting; the RC entries are ``(b_j σ_I)²`` with ``b_j = R_j(1 − e^{−dt/τ_j})``, fully correlated with the SOC
@@ -181,8 +182,8 @@ class NoiseModel:
 
     def Q(self, B, dt, hold_var=0.0) -> np.ndarray:
         """``Q_k`` of a step of length ``dt``; ``hold_var`` [A²] the current variance the zero-order hold misses over
-        it (:func:`socbench.segments.hold_var`: nonzero across a logger pause), added to the sensor's input variance
-        (an override is taken as given)."""
+        it (:func:`socbench.segments.hold_var`: nonzero across a logger pause), added as ``hold_var·diag(B²)``
+        (:func:`hold_cov`; an override is taken as given)."""
         if self.Q_override is None:
             Q = self.sensor.process_cov(B, dt) + hold_cov(B, hold_var)
             if self.walk is not None:  # the model's own random walks (an effect state that may drift)
