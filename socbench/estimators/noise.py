@@ -180,6 +180,12 @@ class NoiseModel:
     def needs_D(self) -> bool:
         return self.R_override is None or callable(self.R_override)
 
+    def hold(self, hold_var):
+        """The share of the hold's variance ``hold_var`` (scalar or array, :func:`socbench.segments.hold_var`) this
+        noise takes: all of it, or none under a ``Q`` override (taken as given). For the filters that do not build
+        ``Q`` through :meth:`Q` (the particle filters)."""
+        return hold_var if self.Q_override is None else np.zeros_like(hold_var)
+
     def Q(self, B, dt, hold_var=0.0) -> np.ndarray:
         """``Q_k`` of a step of length ``dt``; ``hold_var`` [A²] the current variance the zero-order hold misses over
         it (:func:`socbench.segments.hold_var`: nonzero across a logger pause), added as ``hold_var·diag(B²)``

@@ -308,8 +308,9 @@ class ParticleFilter(Estimator):
                 X = m.step(X, i_p, inputs.dt[k], tk_p)[0]
                 if additive is not None:
                     X += np.einsum("ij,rpj->rpi", additive(inputs.dt[k]), eps_q)
-                if inputs.hold_var[k] > 0 and noise.Q_override is None:
-                    X += hold_spread(m, mean, ik, inputs.dt[k], tk, inputs.hold_var[k])[:, None, :] * draws.hold(k)
+                hold = noise.hold(inputs.hold_var[k])
+                if hold > 0:
+                    X += hold_spread(m, mean, ik, inputs.dt[k], tk, hold)[:, None, :] * draws.hold(k)
                 pending_clamp = _clamp_particles(X)
                 failed = rec.fail(k + 1, ~np.all(np.isfinite(X), axis=(1, 2)))
                 restore(X, X_good, failed)
@@ -338,7 +339,7 @@ class ParticleFilter(Estimator):
         L0 = np.ascontiguousarray(np.linalg.cholesky(job.P0))
         std0 = np.sqrt(job.P0[:, 0, 0])
         counts = np.zeros((job.R, 2), dtype=np.int64)
-        hold = job.hv if self.noise.Q_override is None else np.zeros_like(job.hv)  # an override is taken as given
+        hold = np.ascontiguousarray(self.noise.hold(job.hv))
         parallel_runs(kpf.pf, job.R, job.im, job.fm, job.x0, L0, std0, job.cur, job.volt, job.temp, job.has_temp,
                       job.dts, hold, job.nz, sensor_walk(self.noise.sensor, n), Qroot, job.opt, pfopt,
                       seed_u64(draws.seed), *job.out_args, counts, min_runs=1)  # the particles' walk: the sensor's

@@ -196,7 +196,7 @@ class RaoBlackwellPF(Estimator):
                 X[..., 0] += Xf[..., 0] - zbar[:, None]
                 if walk_z:
                     X[..., 0] += np.sqrt(q_z)[:, None] * eps_q[..., 0]
-                hold = inputs.hold_var[k] if noise.Q_override is None else 0.0
+                hold = noise.hold(inputs.hold_var[k])
                 if hold > 0:  # the current the hold misses across a logger pause: the SOC and each state on its own
                     X[..., 0] += np.sqrt(hold) * B[:, None, 0] * draws.hold(k)[..., 0]
                     QL = QL + hold_cov(B[:, 1:], hold)

@@ -268,8 +268,9 @@ class ReferencePF(ParticleFilter):
             X = m.step(X, i if sd_i is None else i + sd_i * eps_i[0], inputs.dt[k], temp)[0]
             if additive is not None:
                 X = X + eps_q[0] @ additive(inputs.dt[k]).T
-            if inputs.hold_var[k] > 0 and noise.Q_override is None:
-                X = X + hold_spread(m, mean, i, inputs.dt[k], temp, inputs.hold_var[k]) * draws.hold(k)[0]
+            hold = noise.hold(inputs.hold_var[k])
+            if hold > 0:
+                X = X + hold_spread(m, mean, i, inputs.dt[k], temp, hold) * draws.hold(k)[0]
             clamp = _clamp_one(X)
             if not np.all(np.isfinite(X)):
                 rec.fail(k + 1, np.ones(1, bool))
