@@ -38,12 +38,14 @@ the larger of two readings of the record:
   moment uniform over the step, the mean current is ``I_k + u·ΔI`` (``u ~ U(0, 1)``) and the hold's error ``u·ΔI``
   has second moment ``ΔI²/3``;
 * **the load was varying on both sides**: the current's variance over ``HOLD_WINDOW_STEPS`` median steps (at least
-  ``HOLD_WINDOW_S``) before the step and over as long after it, the smaller of the two; each window cut at its
-  largest change of current and only the part touching the step kept, so that one change of mode there (a
-  constant-current discharge ending, a rest beginning) does not count as a varying load. A drive paused and resumed
-  varies on both sides, so its pause is seen even where its two ends happen to read the same current; a load that
-  starts or stops in the step, or a rest logged slowly, is steady on at least one side and is left to the first
-  reading.
+  ``HOLD_WINDOW_S``) before the step and over as long after it, the smaller of the two; each window cut at the
+  change nearest the step among those that stand out (more than ``DOMINANT_CHANGE`` times the window's third largest
+  change), and only the part touching the step kept, so that one change of mode there (a constant-current discharge
+  ending, a rest beginning) or one pulse (an HPPC's, whose two edges stand out together) does not count as a varying
+  load, while a load that switches between levels, whose large changes are many and alike, keeps the whole window.
+  A drive paused and resumed varies on both sides, so its pause is seen even where its two ends happen to read the
+  same current; a load that starts or stops in the step, or a rest logged slowly, is steady on at least one side and
+  is left to the first reading.
 
 The filters add it to their process noise at that step, each state on its own (``Q_k = σ_I² B_k B_kᵀ +
 σ_hold,k²·diag(B_k²)``, :mod:`socbench.estimators.noise`), so the SOC band widens by about
@@ -73,8 +75,15 @@ SOC_JUMP = 0.05
 SOC_JUMP_VOLTAGE = 0.10
 #: the load's variance either side of a long step is read over this many median steps ...
 HOLD_WINDOW_STEPS = 20
-#: ... and at least this long [s]
-HOLD_WINDOW_S = 30.0
+#: ... and at least this long [s]: long enough to hold several of a drive's or a flight's level changes (a 30 s
+#: window read a load held at one level for tens of seconds as steady; pauses cut into measured drive currents:
+#: ``python benchmarks/logger_pause.py --measured``, docs/logger_pauses.md)
+HOLD_WINDOW_S = 120.0
+#: a spread of the current below this [A] is the rounding of logged values, not a varying load
+ROUNDING_A = 1e-9
+#: a window is cut at a change of current that exceeds this many times its third largest change (one mode change or
+#: one pulse stands out; a varying load's changes do not)
+DOMINANT_CHANGE = 3.0
 #: |I| ≤ this C-rate counts as rest for the voltage rule
 REST_C_RATE = 0.2
 #: restart rules
@@ -159,10 +168,12 @@ def gap_steps(dt: np.ndarray) -> np.ndarray:
     return dt > GAP_FACTOR * float(np.median(dt))
 
 
-def hold_var(profile: Profile) -> np.ndarray:
+def hold_var(profile: Profile, *, window_s: float = HOLD_WINDOW_S, dominant: float = DOMINANT_CHANGE) -> np.ndarray:
     """``(T − 1,)`` variance [A²] of the current the zero-order hold does not know over each step (module docstring):
     over the :func:`gap_steps`, the larger of ``(I_{k+1} − I_k)²/3`` and the smaller of the current's variances just
-    before and just after the step (the largest over the runs); 0 elsewhere."""
+    before and just after the step (the largest over the runs); 0 elsewhere. ``window_s`` and ``dominant`` set the
+    windows' least length and their cut (``dominant = 0``: always at the largest change, the first rule); the
+    defaults are what the filters use, other values are for comparing rules (benchmarks/logger_pause.py)."""
     dt = profile.dt
     gaps = gap_steps(dt)
     out = np.zeros(gaps.size)
@@ -170,11 +181,11 @@ def hold_var(profile: Profile) -> np.ndarray:
         return out
     cur = np.reshape(profile.current_a, (-1, profile.n))
     t = profile.time_s
-    window = max(HOLD_WINDOW_STEPS * float(np.median(dt)), HOLD_WINDOW_S)
+    window = max(HOLD_WINDOW_STEPS * float(np.median(dt)), window_s)
     for k in np.flatnonzero(gaps):
         before = cur[:, np.searchsorted(t, t[k] - window):k + 1]
         after = cur[:, k + 1:np.searchsorted(t, t[k + 1] + window, side="right")]
-        steady = np.minimum(_var_next_to_step(before[:, ::-1]), _var_next_to_step(after))
+        steady = np.minimum(_var_next_to_step(before[:, ::-1], dominant), _var_next_to_step(after, dominant))
         change = (cur[:, k + 1] - cur[:, k]) ** 2 / 3.0
         out[k] = float(np.max(np.maximum(change, steady)))
     return out
@@ -190,16 +201,26 @@ def pause_report(profile: Profile, capacity_ah: float, segments: Segments | None
     return {"steps": int(np.count_nonzero(h)), "soc_sd_max": float(sd.max()) if sd.size else 0.0}
 
 
-def _var_next_to_step(current: np.ndarray) -> np.ndarray:
-    """The variance of each row of ``current (R, m)`` (its first sample next to the step) up to its largest change of
-    current (module docstring); 0 for fewer than 3 samples."""
+def _var_next_to_step(current: np.ndarray, dominant: float) -> np.ndarray:
+    """The variance of each row of ``current (R, m)`` (its first sample next to the step) up to the change nearest
+    the step among those that stand out (module docstring), over the whole row where none does; 0 for fewer than 3
+    samples. A change stands out when it exceeds ``dominant`` × the third largest: one change of mode (a CC
+    discharge ending) or one pulse's two edges, not one of a varying load's many alike. ``dominant = 0``: every
+    row cut at its largest change."""
     out = np.zeros(current.shape[0])
     if current.shape[1] < 3:
         return out
-    jump = np.argmax(np.abs(np.diff(current, axis=1)), axis=1)  # the largest change is between jump and jump + 1
-    for r, j in enumerate(jump):
-        part = current[r, :j + 1]
-        out[r] = part.var() if part.size >= 3 else 0.0
+    change = np.abs(np.diff(current, axis=1))
+    third = np.sort(change, axis=1)[:, -3] if change.shape[1] >= 3 else np.zeros(current.shape[0])
+    for r in range(current.shape[0]):
+        if dominant > 0:
+            stand_out = np.flatnonzero(change[r] > dominant * third[r])
+            cut = int(stand_out[0]) if stand_out.size else change.shape[1]
+        else:
+            cut = int(np.argmax(change[r]))
+        part = current[r, :cut + 1]
+        # a spread of a nanoampere is the rounding of a logged constant (the Leaf files' CC steps), not a load
+        out[r] = part.var() if part.size >= 3 and np.ptp(part) > ROUNDING_A else 0.0
     return out
 
 
