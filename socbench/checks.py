@@ -42,6 +42,25 @@ def check_voltage_level(profile: Profile, params: ModelParams, params_name: str 
         )
 
 
+def check_same_cell(profile: Profile, fitted_on, role: str) -> None:
+    """Refuse a record that cannot come from the cell or pack the fit records ``fitted_on`` measured (``role``: what
+    the record is for, e.g. "a --validation record"): its median voltage outside the fit records' voltage range
+    widened by 30 %, as :func:`check_voltage_level` widens an OCV range. A 4-cell pack's drive beside a single cell's
+    HPPC would otherwise be scored at errors of volts, which a model-error recipe or a diagnosis takes for the
+    model's."""
+    volts = [p.voltage_v for p in fitted_on if p.voltage_v is not None]
+    if profile.voltage_v is None or not volts:
+        return
+    lo, hi = min(float(np.min(v)) for v in volts), max(float(np.max(v)) for v in volts)
+    med = float(np.median(profile.voltage_v))
+    if not (0.7 * lo <= med <= 1.3 * hi):
+        names = ", ".join(f"'{p.meta.source or p.name}'" for p in fitted_on)
+        raise DataError(
+            f"measured voltage (median {med:.2f} V) cannot come from the cell or pack of the fit record {names} "
+            f"({lo:.2f}–{hi:.2f} V) it is {role} for: cells in series (n_series) or another file?",
+            file=profile.meta.source or profile.meta.name, column="voltage_v")
+
+
 def check_capacity(profile: Profile, params: ModelParams, params_name: str = "parameters") -> float | None:
     """Warn (one line) when the record declares a capacity far from the parameter set's.
 

@@ -162,7 +162,9 @@ class Profile:
         if far.any():
             row = _first_bad_row(far)
             value = float(z[..., row - 1].ravel()[0])
-            hint = ("percent values must be divided by 100" if 1 + SOC_WARN_MARGIN < hi <= 100 and lo >= 0
+            # percent when most of the column lies above 1 (a count that overshoots once is not in percent)
+            percent = 1 + SOC_WARN_MARGIN < hi <= 100 and lo >= 0 and float(np.mean(z > 1 + SOC_WARN_MARGIN)) > 0.5
+            hint = ("percent values must be divided by 100" if percent
                     else f"more than {100 * SOC_WARN_MARGIN:g} points outside [0, 1]")
             error = DataError(f"SOC must be a fraction in [0, 1] (got {value:g}; {hint})", file=src,
                               column="soc_ref", row=row)
@@ -172,7 +174,7 @@ class Profile:
             return
         worst = lo if -lo > hi - 1 else hi
         row = _first_bad_row(z == worst)  # where it is furthest out
-        warnings.warn(f"{src}, column 'soc_ref', row {row}: reference SOC reaches {worst:.4g}, outside [0, 1] by "
+        warnings.warn(f"{src}, column 'soc_ref', row {row}: reference SOC reaches {worst:.10g}, outside [0, 1] by "
                       f"less than {100 * SOC_WARN_MARGIN:g} points (as a count from a nominal capacity does): "
                       "kept as is",
                       SocbenchWarning, stacklevel=4)

@@ -193,12 +193,28 @@ def hold_var(profile: Profile, *, window_s: float = HOLD_WINDOW_S, dominant: flo
 
 def pause_report(profile: Profile, capacity_ah: float, segments: Segments | None = None) -> dict:
     """What the hold's variance did on ``profile`` (a filter's metrics): ``{"steps": the steps inside a segment with a
-    nonzero :func:`hold_var`, "soc_sd_max": the largest SOC SD one of them adds, ``σ_hold·Δt/(3600 Q)``}``."""
+    nonzero :func:`hold_var`, "soc_sd_max": the largest SOC SD one of them adds, ``σ_hold·Δt/(3600 Q)``, "gaps": how
+    many of them are also gaps (at least ``MIN_GAP_S``), "longest_gap_s" and "longest_gap_row" (the row after it,
+    from 1 as the data file counts; None without gaps)}``."""
     h = hold_var(profile)
     if segments is not None:  # a boundary's step is never filtered: the segment after it restarts
         h[[k - 1 for k in segments.starts[1:]]] = 0.0
     sd = np.sqrt(h) * profile.dt / (3600.0 * capacity_ah)
-    return {"steps": int(np.count_nonzero(h)), "soc_sd_max": float(sd.max()) if sd.size else 0.0}
+    gaps = np.flatnonzero((h > 0) & (profile.dt >= MIN_GAP_S))
+    longest = int(gaps[np.argmax(profile.dt[gaps])]) if gaps.size else None
+    return {"steps": int(np.count_nonzero(h)), "soc_sd_max": float(sd.max()) if sd.size else 0.0,
+            "gaps": int(gaps.size), "longest_gap_s": None if longest is None else float(profile.dt[longest]),
+            "longest_gap_row": None if longest is None else longest + 2}
+
+
+def pause_message(report: dict, what: str, held: str) -> str | None:
+    """One line for the user where :func:`pause_report` found gaps inside a segment across which the current changed
+    or the load varied (``held``: what the command does there), else None: a gap is reported, never passed silently."""
+    if not report.get("gaps"):
+        return None
+    return (f"{what}: {report['gaps']} gap(s) in the time stamps across which the current changed or the load varied "
+            f"(longest {report['longest_gap_s']:.0f} s, before row {report['longest_gap_row']}), inside a segment (no "
+            f"reference SOC or rest voltage to restart from): {held}")
 
 
 def _var_next_to_step(current: np.ndarray, dominant: float) -> np.ndarray:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import warnings
 
-from ..checks import check_current_against_reference
+from ..checks import check_current_against_reference, check_same_cell
 from ..datasets import load
 from ..diagnose import diagnose
 from ..diagnose.core import COARSE_OCV_GAP
@@ -67,15 +67,17 @@ def run(args) -> int:
             raise ConfigError(f"unknown effect '{bad[0]}'; known: {', '.join(effect_names())}")
     if not 2 <= args.folds <= 20:
         raise ConfigError(f"--folds must be in [2, 20], got {args.folds}")
-    if not args.dt > 0:
-        raise ConfigError(f"--dt must be > 0, got {args.dt}")
-    if args.capacity is not None and not args.capacity > 0:
-        raise ConfigError(f"--capacity must be positive, got {args.capacity}")
+    if not 0 < args.dt < float("inf"):
+        raise ConfigError(f"--dt must be a positive, finite number of seconds, got {args.dt}")
+    if args.capacity is not None and not 0 < args.capacity < float("inf"):
+        raise ConfigError(f"--capacity must be a positive, finite number of Ah, got {args.capacity}")
     if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
         raise ConfigError(f"--soc0 must be a fraction in [0, 1], got {args.soc0}")
     output_dir(args.out, "--out")
     fit = [load(p, args.format) for p in args.fit]
     evals = [load(p, args.format) for p in args.eval]
+    for e in evals:
+        check_same_cell(e, fit, "an --eval record")
     diag = diagnose(args.model, fit, evals, mode=args.mode, dt=args.dt, folds=args.folds, candidates=candidates,
                     slow_ocv=args.slow_ocv, soc=not args.no_soc, base_refit=not args.no_base_refit,
                     refine_ocv={"coarse": "coarse", "always": True, "never": False}[args.refine_ocv],

@@ -43,7 +43,7 @@ from ..estimators.scoring import LOST_MIN_S, LOST_SIGMA, error_state_excess, sco
 from ..identify.hppc import NO_KNEE
 from ..io import atomic_write_frame, atomic_write_text, output_dir
 from ..models import make_model
-from ..segments import pause_report
+from ..segments import pause_message, pause_report
 from ..socaxis import run_on_data_axis, soc_axis
 from .simulate import fitted_at_c, params_block, resolve_params
 
@@ -123,6 +123,11 @@ def run(args) -> int:
     est = run_on_data_axis(make_estimator(args.estimator, run_model, noise, **options), profile, axis,
                            soc0=args.soc0, soc0_sd=args.soc0_sd, seed=args.seed,
                            segments=False if args.no_segments else None)
+    pauses = pause_report(profile, model.capacity_ah, est.segments)
+    message = pause_message(pauses, f"{args.estimator} on {profile.name}", "the last current is held across each and "
+                            f"the band widened by up to {100 * pauses['soc_sd_max']:.2g} SOC points (SD)")
+    if message:
+        warnings.warn(message, SocbenchWarning, stacklevel=1)
     s = score(est, profile)
     metrics = {k: v for k, v in s.items() if k != "runs"}
     metrics.update({"estimator": args.estimator, "model": name, "data": str(args.data),
@@ -132,7 +137,7 @@ def run(args) -> int:
                               "slow_share": slow_share},
                     "soc_axis": axis.to_dict(),
                     "failed_reason": est.failure_reasons(), "segments": est.segments.to_dict(),
-                    "logger_pauses": pause_report(profile, model.capacity_ah, est.segments),
+                    "logger_pauses": pauses,
                     "domain": {k: v for k, v in est.domain.items() if k != "seconds"},
                     "guard_fractions": guard_fractions(est.domain)})
     if profile.soc_ref is None:

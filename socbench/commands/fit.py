@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..checks import check_same_cell
 from ..datasets import load
 from ..domain import warn_outside
 from ..errors import ConfigError, DataError, SocbenchWarning
@@ -128,8 +129,8 @@ def _load_single(path: str, fmt: str):
 
 
 def run(args) -> int:
-    if args.capacity is not None and not args.capacity > 0:
-        raise ConfigError(f"--capacity must be positive, got {args.capacity}")
+    if args.capacity is not None and not 0 < args.capacity < float("inf"):
+        raise ConfigError(f"--capacity must be a positive, finite number of Ah, got {args.capacity}")
     if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
         raise ConfigError(f"--soc0 must be in [0, 1], got {args.soc0}")
     several = len(args.data) > 1
@@ -154,9 +155,10 @@ def run(args) -> int:
     records = [_load_single(p, args.format) for p in args.data]
     validation = [_load_single(p, args.format) for p in args.validation]
     for v in validation:
-        if v.soc_ref is None:
+        if v.get("soc_ref") is None:  # a reference given but refused raises its own error
             raise DataError("a validation record needs a reference SOC (the model error is measured at the true "
                             "SOC)", file=v.meta.source or v.name, column="soc_ref")
+        check_same_cell(v, records, "a --validation record")
     if several:
         if auto:
             sel = select_temperature_fit(args.model, records, validation, capacity_ah=args.capacity)

@@ -15,6 +15,7 @@ shares of samples). A warning line is printed when ≥ 1 % of the samples lie ou
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import pandas as pd
@@ -22,10 +23,11 @@ import pandas as pd
 from ..checks import check_capacity, check_current_against_reference, check_temperature_range, check_voltage_level
 from ..datasets import load
 from ..domain import warn_outside
-from ..errors import DataError
+from ..errors import DataError, SocbenchWarning
 from ..io import atomic_write_frame, atomic_write_text, output_file
 from ..metrics import voltage_error_stats
 from ..models import load_params, make_model, paper_params
+from ..segments import pause_message, pause_report
 from ..socaxis import soc_axis
 
 
@@ -88,8 +90,12 @@ def run(args) -> int:
     sim = model.simulate(profile, soc0=None if soc0 is None else float(axis.to_model(soc0)),
                          segments=False if args.no_segments else None)
     stats = voltage_error_stats(profile.voltage_v, sim.voltage_v)
+    pauses = pause_report(profile, params.capacity_ah, sim.segments)
     stats.update({"model": name, "data": str(args.data), "guard_fractions": sim.domain_fractions,
-                  "segments": sim.segments.to_dict(), "domain": sim.domain})
+                  "segments": sim.segments.to_dict(), "logger_pauses": pauses, "domain": sim.domain})
+    message = pause_message(pauses, f"{name} on {profile.name}", "the simulation holds the last current across each")
+    if message:
+        warnings.warn(message, SocbenchWarning, stacklevel=1)
     if temperature:
         stats["temperature_range"] = temperature
     if capacity_ratio is not None:

@@ -47,6 +47,10 @@ def detect_format(path) -> str:
                 hits.append(fmt)
         except OSError as exc:
             raise DataError(f"cannot read ({exc.strerror or exc})", file=str(path)) from None
+    if len(hits) == 2 and "canonical" in hits:
+        # the canonical names match in any case; a format that knows this exact header (the Leaf files' time_s …
+        # current_A, …) is the more specific reading
+        hits.remove("canonical")
     if len(hits) == 1:
         return hits[0]
     if not hits:

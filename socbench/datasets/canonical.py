@@ -16,6 +16,7 @@ it refuses, with a :class:`DataError` naming the file, the column and the first 
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 from pathlib import Path
@@ -55,14 +56,20 @@ def sniff(path) -> bool:
     if path.suffix.lower() != ".csv":
         return False
     try:
-        with open(path, encoding="utf-8-sig", errors="replace") as fh:  # -sig: a spreadsheet's byte-order mark
-            header = fh.readline()
+        cols = {c.lower() for c in _header(path)}
     except OSError:
         return False
-    cols = {c.strip().lower() for c in header.split(",")}
-    # the unit variants (time_ms, current_ma) are the canonical loader's too: it names the unit to convert
-    return ({"time_s", "time_ms"} & cols) != set() and ({"current_a", "current_ma"} & cols) != set() \
-        and "current_A" not in header
+    # the unit variants (time_ms, current_ma) are the canonical loader's too: it names the unit to convert; names in
+    # any case (TIME_S, Current_A): a header a specific format knows exactly (the Leaf files' time_s … current_A)
+    # goes to that format (socbench.datasets.detect_format)
+    return ({"time_s", "time_ms"} & cols) != set() and ({"current_a", "current_ma"} & cols) != set()
+
+
+def _header(path: Path) -> list[str]:
+    """The first line's column names, stripped, quotes removed (RFC 4180: a spreadsheet may quote every field)."""
+    with open(path, encoding="utf-8-sig", errors="replace", newline="") as fh:  # -sig: a byte-order mark
+        line = fh.readline()
+    return [c.strip() for c in next(csv.reader([line]), [])]
 
 
 def _read_meta(path: Path) -> dict:
@@ -222,16 +229,30 @@ def load_canonical(path) -> Profile:
     for name, why in WRONG_UNIT_NAMES.items():
         if name in cols_lower:
             raise DataError(why, file=src, column=cols_lower[name])
+    # the canonical names in any case (TIME_S, Current_A): a column named twice in two cases is refused below
+    df.columns = [c.lower() if c.lower() in REQUIRED + OPTIONAL else c for c in df.columns]
     for c in REQUIRED:
         if c not in df.columns:
+            if len(df.columns) == 1 and (sep := next((s for s in ";\t|" if s in df.columns[0]), None)):
+                raise DataError(f"the columns are separated by {sep!r}; a canonical CSV is comma-separated",
+                                file=src)
             raise DataError("missing column", file=src, column=c)
     if len(df) == 0:
         raise DataError("no data rows", file=src)
-    cols = {c: _numeric(df, c, src) for c in REQUIRED + OPTIONAL if c in df.columns}
+    cols = {c: _numeric(df, c, src) for c in REQUIRED + OPTIONAL if c in df.columns and c != "soc_ref"}
+    soc_error = None
+    if "soc_ref" in df.columns:
+        # a reference SOC with a hole is kept as its error, raised where the reference is used (Profile.get): a
+        # command that does not use it runs (the temperature is read by every temperature-aware model: refused here)
+        try:
+            cols["soc_ref"] = _numeric(df, "soc_ref", src)
+        except DataError as exc:
+            soc_error = exc
     meta = _meta(path)
     _check_units(cols, meta, src)
     check_current_sign(cols["time_s"], cols["current_a"], cols["voltage_v"], cols.get("soc_ref"), src=src,
                        n_series=meta.n_series)
     return Profile(
-        cols["time_s"], cols["current_a"], cols["voltage_v"], cols.get("temperature_c"), cols.get("soc_ref"), meta
+        cols["time_s"], cols["current_a"], cols["voltage_v"], cols.get("temperature_c"), cols.get("soc_ref"), meta,
+        soc_ref_error=soc_error,
     )

@@ -22,6 +22,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..errors import DataError
 from ..profile import Profile
 from ..segments import find_segments
 
@@ -32,6 +33,9 @@ MIN_PIECE_SAMPLES, MIN_PIECE_S = 10, 60.0
 #: BMS's 1 % steps): the diagnosis compares voltages, and one point of SOC is 5–15 mV on a sloped OCV, several times
 #: the noise (a 10-minute pause in a 1C drive whose last sample's current held over it: 3 points off, 13.5 -> 22 mV)
 GAP_SOC_JUMP = 0.01
+#: each block of the blocked cross-validation holds at least this many samples (over the records): a fold with
+#: nothing to score, or a handful, is no held-out test
+MIN_BLOCK_SAMPLES = 10
 
 
 def split_at_gaps(profiles, model) -> tuple[list, list]:
@@ -143,4 +147,10 @@ def make_folds(profiles, k: int = 4) -> Folds:
     for p in profiles:
         frac = (p.time_s - p.time_s[0]) / max(p.duration_s, 1e-12)
         blocks.append(np.minimum((frac * k).astype(int), k - 1))
+    per_block = np.bincount(np.concatenate(blocks), minlength=k) if blocks else np.zeros(k, dtype=int)
+    if per_block.min() < MIN_BLOCK_SAMPLES:
+        names = ", ".join(p.meta.source or p.name for p in profiles)
+        raise DataError(f"the evaluation data holds {int(per_block.sum())} samples as the diagnosis reads it (bins of "
+                        f"--dt seconds); its {k} blocks of held-out time need at least {MIN_BLOCK_SAMPLES} each "
+                        f"(fewest: {int(per_block.min())}): give a longer record or a smaller --dt", file=names)
     return Folds(profiles, int(k), blocks)

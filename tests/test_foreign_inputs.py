@@ -1,0 +1,170 @@
+"""Records shaped the way other people's tools write them (found by feeding the CLI files no socbench generator
+made): headers in another case or quoted, another separator, a hole in a column the command does not use, a pack's
+record beside a cell's fit, a record too short to cross-validate, a gap with no reference to restart from. Each is
+read, or refused in one line with exit code 2 — never a traceback, never numbers of volts passed off as a model's
+error."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from socbench.cli import main
+from socbench.datasets import detect_format, load
+from socbench.models import make_model, paper_params
+from socbench.profile import Profile, ProfileMeta
+
+HEADER = ("time_s", "current_a", "voltage_v", "temperature_c", "soc_ref")
+
+
+def paper_record(n: int = 1200, dt: float = 1.0, seed: int = 0, gap: tuple[int, int] | None = None):
+    """The paper pack (thevenin, its own parameters: 6 cells in series) under a varying load, with sensor noise:
+    ``(columns dict, sidecar dict)``;
+    ``gap = (a, b)`` drops samples ``a … b − 1`` (the load went on, the logger did not)."""
+    rng = np.random.default_rng(seed)
+    params = paper_params("thevenin")
+    q = params.capacity_ah
+    t = np.arange(n) * dt
+    cur = q * (0.8 + 0.6 * np.sin(t / 47.0) + 0.3 * rng.standard_normal(n).cumsum() / np.sqrt(n))
+    sim = make_model("thevenin", params).simulate(Profile(t, cur, meta=ProfileMeta(capacity_ah=q)), soc0=0.95,
+                                                  segments=False)
+    cols = {"time_s": t, "current_a": cur + rng.normal(0, 0.01 * q, n),
+            "voltage_v": sim.voltage_v + rng.normal(0, 0.005, n), "temperature_c": np.full(n, 25.0),
+            "soc_ref": sim.soc}
+    if gap is not None:
+        keep = np.r_[0:gap[0], gap[1]:n]
+        cols = {k: v[keep] for k, v in cols.items()}
+    return cols, {"capacity_ah": q, "n_series": 6}
+
+
+def write(path: Path, cols: dict, header=None, sep: str = ",", quote: bool = False, meta: dict | None = None,
+          cells: dict | None = None) -> Path:
+    """A CSV of ``cols`` under ``header`` (default: their names); ``cells`` = {(row from 1, column): text}."""
+    names = list(header or cols)
+    rows = [[f"{v:.6f}" for v in vals] for vals in zip(*cols.values())]
+    for (row, col), text in (cells or {}).items():
+        rows[row - 1][list(cols).index(col)] = text
+
+    def fmt(fields):
+        return sep.join(f'"{f}"' if quote else f for f in fields)
+
+    path.write_text("\n".join([fmt(names)] + [fmt(r) for r in rows]) + "\n")
+    if meta is not None:
+        path.with_suffix(".json").write_text(json.dumps(meta))
+    return path
+
+
+def cli(capsys, *argv) -> tuple[int, str, str]:
+    rc = main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
+@pytest.mark.parametrize("case", ["upper", "mixed", "quoted"])
+def test_canonical_headers_in_another_case_or_quoted_are_read(tmp_path, case):
+    cols, meta = paper_record()
+    header = {"upper": [c.upper() for c in HEADER], "mixed": [c.capitalize() for c in HEADER],
+              "quoted": HEADER}[case]
+    path = write(tmp_path / f"{case}.csv", cols, header=header, quote=case == "quoted", meta=meta)
+    assert detect_format(path) == "canonical"
+    p = load(path)
+    np.testing.assert_allclose(p.voltage_v, np.round(cols["voltage_v"], 6))
+    np.testing.assert_allclose(p.soc_ref, np.round(cols["soc_ref"], 6))
+
+
+def test_a_header_another_format_knows_exactly_stays_with_that_format(tmp_path):
+    """The ORNL Leaf files' header holds time_s and current_A: it is theirs, not a canonical CSV in another case."""
+    leaf = ("time_s,cycle,step,step_time_s,current_A,voltage_V,power_W,capacity_Ah,energy_Wh,mode,flag\n"
+            "0,1,1,0,0,3.9,0,0,0,R,0\n1,1,1,1,0,3.9,0,0,0,R,0\n")
+    path = tmp_path / "leaf.csv"
+    path.write_text(leaf)
+    assert detect_format(path) == "nissan-leaf"
+
+
+@pytest.mark.parametrize("sep", [";", "\t"])
+def test_another_separator_is_named_in_one_line(tmp_path, capsys, sep):
+    cols, meta = paper_record(n=50)
+    path = write(tmp_path / "semi.csv", cols, sep=sep, meta=meta)
+    rc, _, err = cli(capsys, "simulate", "--data", path, "--format", "canonical", "--params", "paper:thevenin")
+    assert rc == 2 and len(err.strip().splitlines()) == 1
+    assert repr(sep) in err and "comma-separated" in err and str(path) in err
+
+
+def test_a_hole_in_the_reference_fails_only_where_the_reference_is_used(tmp_path, capsys):
+    cols, meta = paper_record()
+    path = write(tmp_path / "hole.csv", cols, meta=meta, cells={(101, "soc_ref"): ""})
+    rc, out, err = cli(capsys, "simulate", "--data", path, "--params", "paper:thevenin", "--soc0", "0.95")
+    assert rc == 0 and "RMS" in out, err
+    rc, _, err = cli(capsys, "estimate", "--data", path, "--params", "paper:thevenin", "--estimator", "coulomb",
+                     "--soc0", "0.95", "--out", tmp_path / "est")
+    assert rc == 2 and "'soc_ref'" in err and "row 101" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_reference_that_overshoots_once_is_not_called_percent(tmp_path, capsys):
+    cols, meta = paper_record()
+    spike = write(tmp_path / "spike.csv", cols, meta=meta, cells={(300, "soc_ref"): "1.5"})
+    rc, _, err = cli(capsys, "estimate", "--data", spike, "--params", "paper:thevenin", "--estimator", "coulomb",
+                     "--soc0", "0.95", "--out", tmp_path / "e1")
+    assert rc == 2 and "row 300" in err and "percent" not in err
+    cols_pct = dict(cols, soc_ref=100 * cols["soc_ref"])
+    pct = write(tmp_path / "pct.csv", cols_pct, meta=meta)
+    rc, _, err = cli(capsys, "estimate", "--data", pct, "--params", "paper:thevenin", "--estimator", "coulomb",
+                     "--soc0", "0.95", "--out", tmp_path / "e2")
+    assert rc == 2 and "percent" in err
+
+
+@pytest.mark.parametrize("command", ["fit", "diagnose"])
+def test_a_pack_record_beside_a_cell_fit_is_refused_before_any_fit(tmp_path, capsys, command):
+    """A 4-series pack's drive given as the validation (fit) or evaluation (diagnose) record of a single cell's test:
+    before, the model error came out at volts and the EKF built on it counted coulombs."""
+    cell, meta = paper_record(seed=1)
+    cell = dict(cell, voltage_v=cell["voltage_v"] / 6.0)  # one cell of the 6-series paper pack
+    pack = dict(cell, voltage_v=4.0 * cell["voltage_v"])
+    fit = write(tmp_path / "cell.csv", cell, meta=dict(meta, n_series=1))
+    other = write(tmp_path / "pack4.csv", pack, meta=dict(meta, n_series=4))
+    if command == "fit":
+        argv = ["fit", "--data", fit, "--model", "thevenin", "--validation", other, "--out", tmp_path / "p.json"]
+    else:
+        argv = ["diagnose", "--fit", fit, "--eval", other, "--model", "thevenin", "--out", tmp_path / "d"]
+    rc, _, err = cli(capsys, *argv)
+    assert rc == 2 and len(err.strip().splitlines()) == 1
+    assert "pack4.csv" in err and "'voltage_v'" in err and "n_series" in err
+
+
+def test_an_evaluation_record_too_short_to_cross_validate_is_refused(tmp_path, capsys):
+    cols, meta = paper_record(n=600)
+    fit = write(tmp_path / "fit.csv", cols, meta=meta)
+    short = write(tmp_path / "short.csv", {k: v[:1] for k, v in cols.items()}, meta=meta)
+    for argv in (["--eval", short], ["--eval", fit, "--dt", "100000"]):
+        rc, _, err = cli(capsys, "diagnose", "--fit", fit, *argv, "--model", "thevenin", "--out", tmp_path / "d")
+        assert rc == 2 and "blocks of held-out time" in err and len(err.strip().splitlines()) == 1
+    for value in ("inf", "nan", "-1"):
+        rc, _, err = cli(capsys, "diagnose", "--fit", fit, "--eval", fit, "--model", "thevenin", "--out",
+                         tmp_path / "d", "--capacity", value)
+        assert rc == 2 and "--capacity" in err
+
+
+def test_a_gap_with_nothing_to_restart_from_is_reported(tmp_path, capsys):
+    """No reference SOC, the load on both sides of a 10-minute gap: the run holds the last current across it, and
+    says so (stderr and the JSON), where before it said nothing."""
+    cols, meta = paper_record(n=2400, gap=(1200, 1800))
+    cols.pop("soc_ref")
+    path = write(tmp_path / "gap.csv", cols, meta=meta)
+    rc, _, err = cli(capsys, "simulate", "--data", path, "--params", "paper:thevenin", "--soc0", "0.95",
+                     "--json", tmp_path / "m.json")
+    assert rc == 0
+    assert "1 gap(s)" in err and "601 s" in err and "row 1201" in err
+    report = json.loads((tmp_path / "m.json").read_text())["logger_pauses"]
+    assert report["gaps"] == 1 and report["longest_gap_row"] == 1201
+    rc, _, err = cli(capsys, "estimate", "--data", path, "--params", "paper:thevenin", "--estimator", "ekf",
+                     "--soc0", "0.95", "--out", tmp_path / "e")
+    assert rc == 0 and "1 gap(s)" in err
+    # the same record without the gap: nothing said
+    whole, meta = paper_record(n=2400)
+    whole.pop("soc_ref")
+    rc, _, err = cli(capsys, "simulate", "--data", write(tmp_path / "whole.csv", whole, meta=meta),
+                     "--params", "paper:thevenin", "--soc0", "0.95")
+    assert rc == 0 and "gap" not in err
