@@ -168,3 +168,13 @@ def test_a_gap_with_nothing_to_restart_from_is_reported(tmp_path, capsys):
     rc, _, err = cli(capsys, "simulate", "--data", write(tmp_path / "whole.csv", whole, meta=meta),
                      "--params", "paper:thevenin", "--soc0", "0.95")
     assert rc == 0 and "gap" not in err
+
+
+@pytest.mark.parametrize("option", [("--soc0-sd", "10"), ("--particles", "2")])
+def test_estimate_options_that_give_no_band_are_refused(tmp_path, capsys, option):
+    """Before: --soc0-sd 10 exited 0 with every run failed; --particles 2 exited 0 with a NEES of 1e15."""
+    cols, meta = paper_record(n=100)
+    path = write(tmp_path / "r.csv", cols, meta=meta)
+    rc, _, err = cli(capsys, "estimate", "--data", path, "--params", "paper:thevenin", "--estimator", "pf",
+                     *option, "--out", tmp_path / "e")
+    assert rc == 2 and option[0] in err and len(err.strip().splitlines()) == 1

@@ -47,6 +47,9 @@ from ..segments import pause_message, pause_report
 from ..socaxis import run_on_data_axis, soc_axis
 from .simulate import fitted_at_c, params_block, resolve_params
 
+#: the fewest particles ``--particles`` takes (2 gave an SD of ~0 and a NEES of 1e15 with exit code 0)
+MIN_PARTICLES = 50
+
 
 def add_arguments(parser) -> None:
     parser.add_argument("--data", required=True, help="profile file, or builtin:hppc / builtin:1c")
@@ -85,8 +88,11 @@ def run(args) -> int:
     estimator_class(args.estimator)  # an unknown name fails before any file is read
     if args.soc0 is not None and not 0.0 <= args.soc0 <= 1.0:
         raise DataError(f"--soc0 must be in [0, 1], got {args.soc0}")
-    if not args.soc0_sd > 0:
-        raise ConfigError(f"--soc0-sd must be > 0, got {args.soc0_sd}")
+    if not 0 < args.soc0_sd <= 1:  # an SD wider than the whole SOC range is no prior; the filters' runs fail on it
+        raise ConfigError(f"--soc0-sd must be in (0, 1] (a fraction of full charge), got {args.soc0_sd}")
+    if args.estimator == "pf" and args.particles < MIN_PARTICLES:
+        raise ConfigError(f"--particles must be at least {MIN_PARTICLES} (the band is read from the cloud's spread, "
+                          f"which a handful of particles collapses), got {args.particles}")
     out = output_dir(args.out, "--out")
     sensor = SensorNoise(voltage_sd=args.voltage_sd, current_sd=args.current_sd)
     profile = load(args.data, args.format)
