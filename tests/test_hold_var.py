@@ -274,5 +274,8 @@ def test_estimate_reports_the_pauses_it_widened_across(tmp_path):
     assert pauses["steps"] == 1
     gap_s = prof.time_s[a] - prof.time_s[a - 1]
     assert 0.0 < pauses["soc_sd_max"] <= np.abs(prof.current_a).max() * gap_s / (3600.0 * model.capacity_ah)
-    assert runs["whole"]["logger_pauses"] == {"steps": 0, "soc_sd_max": 0.0}
+    assert pauses["gaps"] == 1 and pauses["longest_gap_s"] == pytest.approx(gap_s)
+    assert pauses["longest_gap_row"] == a + 1  # the file's row (from 1) of the first sample after the pause
+    assert runs["whole"]["logger_pauses"] == {"steps": 0, "soc_sd_max": 0.0, "gaps": 0, "longest_gap_s": None,
+                                              "longest_gap_row": None}
     assert runs["paused"]["frac_within_3sigma"] >= 0.9
