@@ -178,3 +178,15 @@ def test_estimate_options_that_give_no_band_are_refused(tmp_path, capsys, option
     rc, _, err = cli(capsys, "estimate", "--data", path, "--params", "paper:thevenin", "--estimator", "pf",
                      *option, "--out", tmp_path / "e")
     assert rc == 2 and option[0] in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("stamp", ["2024-03-01 12:00:00", "2024-03-01T12:00:00Z", "03/01/2024 12:00"])
+def test_date_time_stamps_in_the_seconds_column_are_named_as_such(tmp_path, capsys, stamp):
+    cols, meta = paper_record(n=20)
+    path = write(tmp_path / "dt.csv", cols, meta=meta, cells={(1, "time_s"): stamp})
+    rc, _, err = cli(capsys, "simulate", "--data", path, "--params", "paper:thevenin")
+    assert rc == 2 and "'time_s'" in err and "row 1" in err and "date and time" in err
+    assert len(err.strip().splitlines()) == 1
+    junk = write(tmp_path / "junk.csv", cols, meta=meta, cells={(1, "time_s"): "n/a"})
+    rc, _, err = cli(capsys, "simulate", "--data", junk, "--params", "paper:thevenin")
+    assert rc == 2 and "not a finite number" in err

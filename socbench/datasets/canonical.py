@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -137,8 +138,24 @@ def _numeric(df: pd.DataFrame, c: str, src: str) -> np.ndarray:
     bad = ~np.isfinite(values)
     if bad.any():
         row = int(np.argmax(bad)) + 1
-        raise DataError(f"not a finite number ({col.iloc[row - 1]!r})", file=src, column=c, row=row)
+        text = col.iloc[row - 1]
+        if c == "time_s" and _is_date_time(text):
+            raise DataError(f"a date and time ({text!r}), not seconds: write the seconds since the record's start",
+                            file=src, column=c, row=row)
+        raise DataError(f"not a finite number ({text!r})", file=src, column=c, row=row)
     return values
+
+
+def _is_date_time(text) -> bool:
+    """Whether ``text`` reads as a calendar date and time (a logger's stamp written where seconds belong)."""
+    if not isinstance(text, str) or not any(ch in text for ch in "-/:T"):
+        return False
+    try:
+        with warnings.catch_warnings():  # pandas warns when it guesses a format: only the yes/no matters here
+            warnings.simplefilter("ignore")
+            return not pd.isna(pd.to_datetime(text, errors="coerce"))
+    except (ValueError, TypeError, OverflowError):
+        return False
 
 
 def _check_units(cols: dict, meta: ProfileMeta, src: str) -> None:
