@@ -213,8 +213,8 @@ def pause_message(report: dict, what: str, held: str) -> str | None:
     if not report.get("gaps"):
         return None
     return (f"{what}: {report['gaps']} gap(s) in the time stamps across which the current changed or the load varied "
-            f"(longest {report['longest_gap_s']:.0f} s, before row {report['longest_gap_row']}), inside a segment "
-            f"(nothing in the record marks a restart there): {held}")
+            f"(longest {report['longest_gap_s']:.0f} s, before row {report['longest_gap_row']}) inside a segment, "
+            f"not a restart: {held}")
 
 
 def _var_next_to_step(current: np.ndarray, dominant: float) -> np.ndarray:
