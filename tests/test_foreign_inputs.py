@@ -151,6 +151,10 @@ def test_a_gap_with_nothing_to_restart_from_is_reported(tmp_path, capsys):
     """No reference SOC, the load on both sides of a 10-minute gap: the run holds the last current across it, and
     says so (stderr and the JSON), where before it said nothing."""
     cols, meta = paper_record(n=2400, gap=(1200, 1800))
+    # with its reference (which falls across the gap as the held current counts: no restart) and run as one piece
+    referenced = write(tmp_path / "referenced.csv", cols, meta=meta)
+    rc, _, err = cli(capsys, "simulate", "--data", referenced, "--params", "paper:thevenin", "--no-segments")
+    assert rc == 0 and "1 gap(s)" in err
     cols.pop("soc_ref")
     path = write(tmp_path / "gap.csv", cols, meta=meta)
     rc, _, err = cli(capsys, "simulate", "--data", path, "--params", "paper:thevenin", "--soc0", "0.95",
