@@ -29,6 +29,7 @@ from ..errors import DataError
 from ..profile import Profile, ProfileMeta
 from .canonical import check_current_sign
 from .counting import soc_between_full_charges
+from .header import header_columns
 from .units import check_cell_units
 
 CAPACITY_AH = 1.0652
@@ -48,11 +49,6 @@ LAYOUTS = {
 TIME_COLUMN = {"drive": "Test_Time_s", "sequence": "Test_Time_s", "ocv": "time_s_reconstructed"}
 
 
-def _header(path: Path) -> list[str]:
-    with open(path, encoding="utf-8-sig", errors="replace") as fh:
-        return [c.strip() for c in fh.readline().split(",")]
-
-
 def _layout(columns) -> str | None:
     cols = list(columns)
     for name, expected in LAYOUTS.items():
@@ -66,7 +62,7 @@ def sniff(path) -> bool:
     if path.suffix.lower() != ".csv":
         return False
     try:
-        return _layout(_header(path)) is not None
+        return _layout(header_columns(path)) is not None
     except OSError:
         return False
 

@@ -16,7 +16,6 @@ it refuses, with a :class:`DataError` naming the file, the column and the first 
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import warnings
@@ -27,6 +26,7 @@ import pandas as pd
 
 from ..errors import DataError
 from ..profile import Profile, ProfileMeta, gap_steps
+from .header import header_columns
 
 REQUIRED = ("time_s", "current_a", "voltage_v")
 OPTIONAL = ("temperature_c", "soc_ref")
@@ -57,20 +57,13 @@ def sniff(path) -> bool:
     if path.suffix.lower() != ".csv":
         return False
     try:
-        cols = {c.lower() for c in _header(path)}
+        cols = {c.lower() for c in header_columns(path)}
     except OSError:
         return False
     # the unit variants (time_ms, current_ma) are the canonical loader's too: it names the unit to convert; names in
     # any case (TIME_S, Current_A): a header a specific format knows exactly (the Leaf files' time_s … current_A)
     # goes to that format (socbench.datasets.detect_format)
     return ({"time_s", "time_ms"} & cols) != set() and ({"current_a", "current_ma"} & cols) != set()
-
-
-def _header(path: Path) -> list[str]:
-    """The first line's column names, stripped, quotes removed (RFC 4180: a spreadsheet may quote every field)."""
-    with open(path, encoding="utf-8-sig", errors="replace", newline="") as fh:  # -sig: a byte-order mark
-        line = fh.readline()
-    return [c.strip() for c in next(csv.reader([line]), [])]
 
 
 def _read_meta(path: Path) -> dict:

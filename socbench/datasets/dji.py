@@ -30,6 +30,7 @@ import pandas as pd
 
 from ..errors import DataError
 from ..profile import Profile, ProfileMeta
+from .header import header_columns
 
 TELEMETRY = "battery_telemetry_all_flights.csv"
 EVENTS = "flight_mode_events_all_flights.csv"
@@ -83,9 +84,7 @@ def sniff(path) -> bool:
     path = Path(path)
     if path.suffix.lower() != ".csv":
         return False
-    with open(path, encoding="utf-8", errors="replace") as fh:
-        header = {c.strip() for c in fh.readline().split(",")}
-    return {"voltage_V", "current_A", "remain_percent_bms"} <= header
+    return {"voltage_V", "current_A", "remain_percent_bms"} <= set(header_columns(path))
 
 
 def _telemetry_path(path) -> Path:

@@ -24,6 +24,7 @@ from ..errors import DataError
 from ..profile import Profile, ProfileMeta
 from ..socaxis import REFERENCE_CAPACITY_KEY
 from .counting import soc_between_full_charges
+from .header import header_columns
 from .units import check_cell_units
 
 CAPACITY_AH = 33.1
@@ -37,17 +38,12 @@ NUMERIC = ("time_s", "current_A", "voltage_V", "capacity_Ah")
 MODES = {"CHRG", "DCHG", "REST"}
 
 
-def _header(path: Path) -> list[str]:
-    with open(path, encoding="utf-8-sig", errors="replace") as fh:
-        return [c.strip() for c in fh.readline().split(",")]
-
-
 def sniff(path) -> bool:
     path = Path(path)
     if path.suffix.lower() != ".csv":
         return False
     try:
-        return tuple(_header(path)) == COLUMNS
+        return tuple(header_columns(path)) == COLUMNS
     except OSError:
         return False
 
