@@ -20,6 +20,14 @@ AXIS_MISMATCH = 0.03
 #: record / parameter-set capacity ratios :func:`check_capacity` lets pass (wider than a cell's capacity change between
 #: 25 and −20 °C, so a temperature-aware set never trips it)
 CAPACITY_RATIO_OK = (0.75, 1.0 / 0.75)
+#: factors a voltage range is widened by before a record's median voltage is called another cell or pack's
+VOLTAGE_LEVEL_SLACK = (0.7, 1.3)
+
+
+def _level_matches(median_v: float, lo: float, hi: float) -> bool:
+    """Whether a record's median voltage can belong to a cell or pack spanning ``lo … hi`` V: within the range widened
+    by :data:`VOLTAGE_LEVEL_SLACK` (room for any realistic over-potential, none for another cell count)."""
+    return VOLTAGE_LEVEL_SLACK[0] * lo <= median_v <= VOLTAGE_LEVEL_SLACK[1] * hi
 
 
 def check_voltage_level(profile: Profile, params: ModelParams, params_name: str = "parameters") -> None:
@@ -33,7 +41,7 @@ def check_voltage_level(profile: Profile, params: ModelParams, params_name: str 
         return
     lo, hi = float(params.ocv(0.0)), float(params.ocv(1.0))
     med = float(np.median(profile.voltage_v))
-    if not (0.7 * lo <= med <= 1.3 * hi):
+    if not _level_matches(med, lo, hi):
         raise DataError(
             f"measured voltage (median {med:.2f} V) does not match {params_name} (OCV {lo:.2f}–{hi:.2f} V): "
             "use parameters fitted for this cell or pack (socbench fit)",
@@ -53,7 +61,7 @@ def check_same_cell(profile: Profile, fitted_on, role: str) -> None:
         return
     lo, hi = min(float(np.min(v)) for v in volts), max(float(np.max(v)) for v in volts)
     med = float(np.median(profile.voltage_v))
-    if not (0.7 * lo <= med <= 1.3 * hi):
+    if not _level_matches(med, lo, hi):
         names = ", ".join(f"'{p.meta.source or p.name}'" for p in fitted_on)
         raise DataError(
             f"measured voltage (median {med:.2f} V) cannot come from the cell or pack of the fit record {names} "
