@@ -684,7 +684,7 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
     evals = [_coarse(p, dt, max_samples) for p in eval_profiles]
     for p in evals:
         p.require("voltage_v")
-    make_folds(evals, folds)  # too little evaluation data: said before the base fit's seconds are spent
+    cv = make_folds(evals, folds)  # too little evaluation data: said before the base fit's seconds are spent
     base, fit_info = fit_base(model_name, fit_profiles, mode, slow_ocv, validation=evals, refine_ocv=refine_ocv,
                               relax_ocv=relax_ocv, capacity_ah=capacity_ah, soc0=soc0)
     # cut after the base fit, whose OCV and capacity the cut reads where a record has no reference or capacity (the
@@ -693,8 +693,8 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
     if cut:
         fit_info["evaluation_records_cut"] = cut
         evals = [_coarse(p, dt, max_samples) for p in eval_profiles]
+        cv = make_folds(evals, folds)
     t_fit = _time.perf_counter()
-    cv = make_folds(evals, folds)
     # the voltage noise of the averaged records: the sensor's (measured on the records as recorded) over √(samples
     # averaged per bin), pooled over the records
     sigma = residual_noise(base, eval_profiles)
