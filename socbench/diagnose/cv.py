@@ -29,7 +29,7 @@ from scipy.optimize import least_squares
 
 from ..errors import ConfigError, ModelError
 from ..identify.compress import compress_profile
-from ..identify.lsq import MAX_SOC_STEP, NONFINITE_RESIDUAL, simulate_voltage
+from ..identify.lsq import MAX_SOC_STEP, NONFINITE_RESIDUAL, one_blas_thread, simulate_voltage
 from .data import Folds
 
 
@@ -141,8 +141,9 @@ def fit_folds(build, folds: Folds, theta0, lower, upper, soc0s, *, groups=None, 
             rv = residuals(theta[None] + np.diag(h), [g] * P)
             return ((rv - r0[None]) / h[:, None]).T
 
-        sol = least_squares(fun, th0[g], jac=jac, bounds=(lower, upper), method="trf", x_scale="jac", ftol=1e-6,
-                            xtol=1e-6, gtol=1e-8, max_nfev=max_nfev)
+        with one_blas_thread():  # the optimiser's SVD of a (samples × P) Jacobian every iteration
+            sol = least_squares(fun, th0[g], jac=jac, bounds=(lower, upper), method="trf", x_scale="jac",
+                                ftol=1e-6, xtol=1e-6, gtol=1e-8, max_nfev=max_nfev)
         out[g] = sol.x
     return FoldFit(out, groups, names, counts["nfev"], counts["njev"], _time.perf_counter() - t0)
 

@@ -78,6 +78,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..identify.fit import branch_time_constants
+from ..identify.lsq import one_blas_thread
 from ..models import Lookup, ModelParams, make_model
 from ..models.effects import EFFECTS, augment, make_effect, n_cells
 from ..models.scaling import refittable_params, scaled_model
@@ -563,8 +564,9 @@ def footprint_beyond_base(case: Case, dt: float = 1.0, max_samples: int = 4000, 
         return np.where(np.isfinite(e), e, 1.0)  # a variant driven out of its domain: 1 V a sample
 
     lo = np.r_[np.full(n_p, -BASE_SCALE), np.full(n_r, -v_max)]
-    fit = least_squares(residual, np.zeros(n_p + n_r), bounds=(lo, -lo), max_nfev=BEYOND_BASE_NFEV,
-                        x_scale=np.r_[np.ones(n_p), np.full(n_r, 0.01)])
+    with one_blas_thread():
+        fit = least_squares(residual, np.zeros(n_p + n_r), bounds=(lo, -lo), max_nfev=BEYOND_BASE_NFEV,
+                            x_scale=np.r_[np.ones(n_p), np.full(n_r, 0.01)])
     return float(np.sqrt(np.mean(fit.fun * fit.fun)) / case.draws["v_sd"])
 
 

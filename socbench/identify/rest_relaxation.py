@@ -44,7 +44,7 @@ from ..models.scaling import branch_params, scaled_model
 from ..profile import Profile
 from .fit import FitResult, branch_time_constants, setup_fit
 from .hppc import analyze_hppc, quantisation_step
-from .lsq import fitting_view, simulate_voltage
+from .lsq import fitting_view, one_blas_thread, simulate_voltage
 
 #: the shortest rest read [s]; shorter ones hold few samples beside their mean
 MIN_REST_S = 60.0
@@ -181,8 +181,9 @@ class _Rests:
                     rows = self.residual(np.vstack([x, x[None] + np.diag(h)]), extra)
                     return ((rows[1:] - rows[:1]) / h[:, None]).T
 
-                sol = least_squares(lambda x: self.residual(x, extra)[0], s, jac=jac, bounds=(lo, hi), method="trf",
-                                    x_scale="jac", max_nfev=MAX_NFEV)
+                with one_blas_thread():
+                    sol = least_squares(lambda x: self.residual(x, extra)[0], s, jac=jac, bounds=(lo, hi),
+                                        method="trf", x_scale="jac", max_nfev=MAX_NFEV)
                 if best is None or sol.cost < best.cost:
                     best = sol
             x, cost = best.x, float(best.cost)
