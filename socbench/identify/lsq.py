@@ -26,6 +26,7 @@ confidence intervals.
 from __future__ import annotations
 
 import contextlib
+import functools
 import time as _time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -84,10 +85,21 @@ def one_blas_thread():
     → 1.4 s at load 8, benchmarks/default_leaderboard.py and docs/performance.md).
     """
     try:
-        from threadpoolctl import threadpool_limits
+        controller = _blas_controller()
     except ImportError:  # pragma: no cover - a declared dependency
         return contextlib.nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
+    return controller.limit(limits=1, user_api="blas")
+
+
+@functools.cache
+def _blas_controller():
+    """The process's BLAS thread pools, found once (``threadpoolctl.ThreadpoolController``): ``threadpool_limits``
+    scans the loaded libraries on every call (0.5 ms, more than a small fit's SVD; the diagnosis enters
+    :func:`one_blas_thread` for each of its ~200 fold fits a case), the controller's ``limit`` does not (0.02 ms).
+    Created at the first fit, when numpy's and scipy's BLAS are loaded (this module imports scipy.optimize)."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
 
 
 def simulate_voltage(model, time_s, current, temp=None, x0=None, soc_jumps=None, restarts=None,
