@@ -22,6 +22,14 @@ The reference SOC is the one column checked leniently, because a reference count
 * further out (a percent column, a wrong capacity): ``soc_ref`` is ``None`` — for every caller the record simply has
   no reference — and the :class:`~socbench.errors.DataError` is kept in ``soc_ref_error``. It is raised, with its
   file, column and row, only where the reference is used: :meth:`Profile.require` and :meth:`Profile.get`.
+
+The temperature has one leniency too, for a thermocouple that drops out for a moment (a loose junction, a logger that
+skips a channel): a hole of NaN samples in a one-dimensional ``temperature_c`` spanning at most
+:data:`TEMPERATURE_HOLE_S` (60 s, from the last reading before it to the first after it) is filled by linear
+interpolation in time (held at the record's ends), with one :class:`~socbench.errors.SocbenchWarning` naming the first
+row and the longest hole. A cell's temperature moves over minutes (an 18650's thermal time constant is several
+minutes), so a minute's interpolation stays within the sensor's own accuracy; a longer hole is an error naming its row,
+as infinite values are.
 """
 
 from __future__ import annotations
@@ -40,6 +48,9 @@ SOC_TOLERANCE = 1e-6
 #: A reference SOC at most this far outside [0, 1] is kept with a warning; further out it is an error where used.
 SOC_WARN_MARGIN = 0.05
 
+
+#: a hole of NaN in the temperature column spanning at most this [s] is filled by interpolation (module docstring)
+TEMPERATURE_HOLE_S = 60.0
 
 #: a sample step longer than this many median steps is a gap in the record (a logger that paused), not a sample
 GAP_FACTOR = 5.0
@@ -95,6 +106,29 @@ def _first_bad_row(mask: np.ndarray) -> int:
     return int(np.argmax(flat)) + 1
 
 
+def _fill_temperature_holes(temp: np.ndarray, t: np.ndarray, src: str) -> np.ndarray:
+    """``temp`` with its NaN holes of at most :data:`TEMPERATURE_HOLE_S` filled (module docstring); a longer hole
+    raises. A batched column, one with no reading at all or without NaN comes back as it is (the finite check
+    follows)."""
+    hole = np.isnan(temp)
+    if temp.ndim != 1 or not hole.any() or hole.all():
+        return temp
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], hole.astype(np.int8), [0]])))
+    first, after = edges[::2], edges[1::2]  # each hole: samples first … after − 1
+    # the time the sensor was silent: from the last reading before the hole to the first after it
+    span = t[np.minimum(after, t.size - 1)] - t[np.maximum(first - 1, 0)]
+    k = int(np.argmax(span))
+    if span[k] > TEMPERATURE_HOLE_S:
+        raise DataError(f"NaN for {span[k]:.4g} s (a temperature hole longer than {TEMPERATURE_HOLE_S:g} s is not "
+                        "filled)", file=src, column="temperature_c", row=int(first[k]) + 1)
+    filled = temp.copy()
+    filled[hole] = np.interp(t[hole], t[~hole], temp[~hole])
+    warnings.warn(f"{src}, column 'temperature_c', row {int(first[0]) + 1}: {int(hole.sum())} NaN sample(s) in "
+                  f"{first.size} hole(s) of at most {span[k]:.4g} s, filled by linear interpolation in time",
+                  SocbenchWarning, stacklevel=5)
+    return filled
+
+
 @dataclass(frozen=True, eq=False)
 class Profile:
     """A validated battery time series (see the module docstring for units and shapes)."""
@@ -138,6 +172,8 @@ class Profile:
                 )
             if arr.ndim > 2:
                 raise DataError(f"expected (T,) or (runs, T), got shape {arr.shape}", file=src, column=name)
+            if name == "temperature_c":
+                arr = _fill_temperature_holes(arr, t, src)
             self._check_finite(arr, name, src)
             object.__setattr__(self, name, arr)
         self._check_soc_ref(src)

@@ -194,3 +194,83 @@ def test_date_time_stamps_in_the_seconds_column_are_named_as_such(tmp_path, caps
     junk = write(tmp_path / "junk.csv", cols, meta=meta, cells={(1, "time_s"): "n/a"})
     rc, _, err = cli(capsys, "simulate", "--data", junk, "--params", "paper:thevenin")
     assert rc == 2 and "not a finite number" in err
+
+
+def test_short_temperature_holes_are_interpolated_and_long_ones_refused_over_random_records():
+    """A thermocouple that drops out: 200 random records (0.1–10 s sampling, jittered stamps, 1–4 holes each, some at
+    the record's ends). Holes silent for at most TEMPERATURE_HOLE_S are filled by linear interpolation in time — each
+    filled value equal to the line between the readings around it (or the nearest reading at an end) — with one
+    warning; where the longest silence is longer, a DataError names the column and that hole's first row."""
+    import warnings
+
+    from socbench.errors import DataError, SocbenchWarning
+    from socbench.profile import TEMPERATURE_HOLE_S
+
+    rng = np.random.default_rng(2029)
+    filled_cases = refused_cases = 0
+    for _ in range(200):
+        dt = float(np.exp(rng.uniform(np.log(0.1), np.log(10.0))))
+        n = int(rng.integers(200, 3000))
+        t = np.cumsum(dt * rng.uniform(0.8, 1.2, n))
+        temp = 25.0 + 10.0 * np.sin(t / rng.uniform(300.0, 3000.0)) + rng.normal(0.0, 0.05, n)
+        holes = []
+        for _ in range(int(rng.integers(1, 5))):
+            length = int(rng.integers(1, max(2, min(n // 4, int(1.5 * TEMPERATURE_HOLE_S / dt)))))
+            a = int(rng.integers(0, n - length)) if rng.random() > 0.15 else (0 if rng.random() < 0.5 else n - length)
+            holes.append((a, a + length))
+        given = temp.copy()
+        for a, b in holes:
+            given[a:b] = np.nan
+        hole = np.isnan(given)
+        runs = np.flatnonzero(np.diff(np.r_[0, hole.astype(int), 0])).reshape(-1, 2)
+        silent = [t[min(b, n - 1)] - t[max(a - 1, 0)] for a, b in runs]
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                p = Profile(t, np.ones(n), 3.7 * np.ones(n), given, meta=ProfileMeta(name="logger"))
+            except DataError as exc:
+                k = int(np.argmax(silent))
+                assert silent[k] > TEMPERATURE_HOLE_S, (silent, str(exc))
+                assert exc.column == "temperature_c" and exc.row == runs[k][0] + 1, (str(exc), runs)
+                refused_cases += 1
+                continue
+        assert max(silent) <= TEMPERATURE_HOLE_S
+        msgs = [str(w.message) for w in caught if issubclass(w.category, SocbenchWarning)]
+        assert len(msgs) == 1 and "temperature_c" in msgs[0] and f"row {runs[0][0] + 1}" in msgs[0], msgs
+        good = ~hole
+        np.testing.assert_array_equal(p.temperature_c[good], given[good])
+        for a, b in runs:
+            lo, hi = a - 1, b  # the readings around the hole
+            for k in range(a, b):
+                if lo < 0:
+                    want = given[hi]
+                elif hi >= n:
+                    want = given[lo]
+                else:
+                    w = (t[k] - t[lo]) / (t[hi] - t[lo])
+                    want = (1.0 - w) * given[lo] + w * given[hi]
+                assert p.temperature_c[k] == pytest.approx(want, abs=1e-9)
+        filled_cases += 1
+    assert filled_cases >= 40 and refused_cases >= 40, (filled_cases, refused_cases)  # both sides drawn often
+
+
+def test_a_thermocouple_dropout_in_a_csv_is_filled_or_refused_in_one_line(tmp_path, capsys):
+    """The CLI on a canonical CSV whose temperature has empty cells: a 20 s hole (and an 'NA') is filled with a warning
+    and the simulation runs; a 5 min hole exits 2 naming the file, column and row; a word in the column is still an
+    error, and so is an empty voltage cell."""
+    cols, meta = paper_record(n=1200)
+    cells = {(r, "temperature_c"): "" for r in range(301, 321)}
+    cells[900, "temperature_c"] = "NA"
+    short = write(tmp_path / "short.csv", cols, meta=meta, cells=cells)
+    rc, out, err = cli(capsys, "simulate", "--data", short, "--params", "paper:thevenin", "--soc0", "0.95",
+                       "--out", tmp_path / "sim.csv")
+    assert rc == 0 and "temperature_c" in err and "row 301" in err and "interpolation" in err, err
+    assert "Traceback" not in err
+    long_ = write(tmp_path / "long.csv", cols, meta=meta, cells={(r, "temperature_c"): "" for r in range(501, 801)})
+    rc, _, err = cli(capsys, "simulate", "--data", long_, "--params", "paper:thevenin", "--soc0", "0.95")
+    assert rc == 2 and "long.csv" in err and "temperature_c" in err and "row 501" in err, err
+    assert len(err.strip().splitlines()) == 1
+    for col, text in (("temperature_c", "open"), ("voltage_v", "")):
+        bad = write(tmp_path / "bad.csv", cols, meta=meta, cells={(700, col): text})
+        rc, _, err = cli(capsys, "simulate", "--data", bad, "--params", "paper:thevenin", "--soc0", "0.95")
+        assert rc == 2 and col in err and "row 700" in err, err

@@ -123,12 +123,18 @@ def _read_frame(path: Path) -> pd.DataFrame:
     return df
 
 
+#: what a logger writes for a reading it did not take (the temperature column only: see :mod:`socbench.profile`)
+MISSING_TEXT = ("", "nan", "na", "n/a", "null", "none")
+
+
 def _numeric(df: pd.DataFrame, c: str, src: str) -> np.ndarray:
     col = df[c]
     if isinstance(col, pd.DataFrame):
         raise DataError("column appears more than once", file=src, column=c)
     values = pd.to_numeric(col, errors="coerce").to_numpy(dtype=float, na_value=np.nan)
     bad = ~np.isfinite(values)
+    if c == "temperature_c" and bad.any():  # empty cells are a sensor's holes: the Profile fills short ones or refuses
+        bad &= ~col.isna().to_numpy() & ~col.astype(str).str.strip().str.lower().isin(MISSING_TEXT).to_numpy()
     if bad.any():
         row = int(np.argmax(bad)) + 1
         text = col.iloc[row - 1]
