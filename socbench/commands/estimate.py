@@ -157,6 +157,9 @@ def run(args) -> int:
         for k in (key, f"{key}_3sigma"):
             v = [float(a) for a in est.info[k]]
             metrics[k] = v[0] if len(v) == 1 else v
+    moved = est.info.get("soc0_moved_out_of_held_ocv")
+    if moved is not None:
+        metrics["soc0_moved_out_of_held_ocv"] = moved
     excess = error_state_excess(est)
     metrics["error_state_beyond_s"] = {k: v[0] for k, v in excess.items()}
     frame = est.to_frame(0)[["time_s", "soc", "soc_std", "v_pred", "innovation", "innovation_var"]]
@@ -179,6 +182,11 @@ def run(args) -> int:
           f"noise {noise_mode}  failed runs {s['failed_runs']}  out of domain "
           f"{100 * est.domain['outside_fraction']:.1f} %  -> {out}")
     warn_outside(est.domain, f"{args.estimator} on {model.name}, {profile.name}")
+    if moved is not None:
+        warnings.warn(f"{args.estimator} on {model.name}, {profile.name}: the initial SOC {moved['from']:.4g} lies "
+                      f"where the OCV curve is held flat (no gain on the SOC there); the filter starts at "
+                      f"{moved['to']:.4g}, the edge of its extrapolation band, within the initial SOC's SD",
+                      SocbenchWarning, stacklevel=2)
     held = {k: v for k, v in excess.items() if v[0] >= LOST_MIN_S}
     if held:
         k, (d, t0) = max(held.items(), key=lambda kv: kv[1][0])

@@ -65,6 +65,7 @@ class AdaptiveEKF(Estimator):
     """Batched EKF with fading-memory Sage–Husa estimation of R and Q."""
 
     name = "aekf"
+    linearises_output = True  # a prior mean where the OCV is held flat is moved (base.out_of_held_ocv)
     defaults = {"forgetting": 0.99, "adapt_r": True, "adapt_q": False, "r_min_ratio": 0.1, "r_max_ratio": 1e4}
 
     def __init__(self, model, noise=None, **options):

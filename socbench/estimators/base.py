@@ -13,7 +13,10 @@ specific to one filter:
                     first voltage with the first current flowing, ``Model.soc_from_voltage``);
                     ``P0`` scalar (SOC variance), ``(n,)`` diagonal, ``(n, n)`` or ``(R, n, n)``; by default
                     ``diag(model.initial_sd(soc0_sd, state0_sd)²)`` (``soc0_sd²``, ``state0_sd²``, …; an augmented
-                    model's effect states declare their own);
+                    model's effect states declare their own); a filter that reads the SOC through the
+                    output's slope (the EKF family, ``linearises_output``) whose prior mean lies where the OCV curve
+                    is held flat (beyond its extrapolation band, :mod:`socbench.ocv`) has it moved to the band's edge
+                    when that lies within one prior SD (:func:`out_of_held_ocv`);
 * :class:`Recorder` preallocated outputs, with the freeze of failed runs (outputs repeat their last finite values).
 
 Options common to all filters (all keyword): ``Q``, ``R`` (overrides, see :class:`~.noise.NoiseModel`),
@@ -125,6 +128,9 @@ class Estimator:
     #: how the noise recipe's model error enters this filter (:func:`socbench.estimators.model_error.apply`):
     #: "states" (coloured-noise states in the model) or "inflated" (one white R)
     model_error_form: ClassVar[str] = "states"
+    #: the filter reads the SOC through the linearised output (∂h/∂z): a prior mean where the OCV curve is held flat
+    #: gets no gain there and never leaves (:func:`out_of_held_ocv`)
+    linearises_output: ClassVar[bool] = False
 
     def __init__(self, model, noise: SensorNoise | None = None, **options):
         for attr in ("step", "output", "n_states", "x0"):
@@ -171,15 +177,24 @@ class Estimator:
         P0 = self.initial_cov(inputs.n_runs, P0)
         if x0 is not None:
             x0 = np.ascontiguousarray(np.broadcast_to(np.asarray(x0, dtype=float), (inputs.n_runs, self.n)))
+        moved = None
+        if x0 is None:
+            start = self.initial_state(inputs, soc0)
+            if self.linearises_output:
+                start, moved = out_of_held_ocv(self.model, start, np.sqrt(P0[:, 0, 0]), inputs.temp_at(0))
+        else:
+            start = x0
         if segs.count == 1:
-            est = self._run_engine(inputs, self.initial_state(inputs, soc0) if x0 is None else x0, P0, seed)
+            est = self._run_engine(inputs, start, P0, seed)
         else:
             parts = []
             for s, (a, b) in enumerate(segs.spans()):
-                part = inputs.slice(a, b)
-                first = self.initial_state(part, soc0 if s == 0 else None) if s or x0 is None else x0
+                part = inputs.slice(a, b)  # a later segment starts where its first voltage reads: never held
+                first = self.initial_state(part, None) if s else start
                 parts.append(self._run_engine(part, first, P0, segment_seed(seed, s)))
             est = Estimate.join(parts, inputs.time_s, segs)
+        if moved is not None:
+            est.info["soc0_moved_out_of_held_ocv"] = moved
         t0 = time.perf_counter()
         domain = estimate_domain(self.model, est, profile)
         domain["segments"] = segs.count
@@ -253,6 +268,31 @@ class Estimator:
             sd = np.full(self.n, self.options["state0_sd"])
             sd[0] = self.options["soc0_sd"]
         return initial_cov(R, P0, self.n, sd)
+
+
+def out_of_held_ocv(model, x0: np.ndarray, sd: np.ndarray, temp) -> tuple[np.ndarray, dict | None]:
+    """``(x0, moved)``: the initial states ``x0 (R, n)`` with each SOC mean that lies where ``model``'s OCV curve is
+    held flat (more than :data:`~socbench.ocv.EXCURSION_FLAG` beyond its rest points at the temperature ``temp``)
+    moved to the edge of the extrapolation band, where the curve still slopes, when that is at most the run's prior
+    SD ``sd (R,)`` away; ``moved`` says how many runs and how far (None: none).
+
+    Why: there ``∂h/∂z = 0``, so a filter linearised at the mean (the EKF family) gets no gain on the SOC, gates every
+    innovation and counts coulombs from the guess for the whole record however wide its prior (``--soc0 0 --soc0-sd
+    0.5`` on a curve whose lowest rest point is at 10 %: an EKF held at 0 through a drive from 80 %, while the UKF's
+    sigma points, spread into the curve, found the SOC in seconds). Within one SD the prior allows the edge as well
+    as the guess; a prior surer than that of an SOC the model cannot read is the user's and is kept."""
+    from ..ocv import EXCURSION_FLAG
+
+    z = x0[:, 0]
+    exc = np.asarray(model.ocv.excursion(z, temp), dtype=float)
+    move = exc - EXCURSION_FLAG
+    held = (move > 0.0) & (move <= sd)
+    if not held.any():
+        return x0, None
+    below = np.asarray(model.ocv.excursion(z + exc, temp)) < exc  # stepping up by the excursion reaches the curve
+    x0 = x0.copy()
+    x0[:, 0] = np.where(held, np.where(below, z + move, z - move), z)
+    return x0, {"runs": int(held.sum()), "from": float(z[held][0]), "to": float(x0[held, 0][0])}
 
 
 def initial_cov(R: int, P0, n: int, default_sd) -> np.ndarray:

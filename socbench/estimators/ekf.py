@@ -45,6 +45,7 @@ class EKF(Estimator):
     """Batched extended Kalman filter on any :class:`~socbench.models.base.Model`."""
 
     name = "ekf"
+    linearises_output = True  # a prior mean where the OCV is held flat is moved (base.out_of_held_ocv)
     #: methods the compiled kernel implements: a subclass overriding one runs numpy (kernels.engine.plan)
     kernel_hooks = ("process_cov", "measurement_update")
 

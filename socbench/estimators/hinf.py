@@ -69,6 +69,7 @@ class HInfinityFilter(Estimator):
     """Batched extended H∞ filter with a per-step Riccati feasibility check."""
 
     name = "hinf"
+    linearises_output = True  # a prior mean where the OCV is held flat is moved (base.out_of_held_ocv)
     defaults = {"theta": 1e2, "feasibility_margin": 0.5}
 
     def __init__(self, model, noise=None, **options):

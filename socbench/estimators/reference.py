@@ -116,6 +116,7 @@ class ReferenceEKF(_KalmanReference):
     """Per-run EKF on ``filterpy.kalman.ExtendedKalmanFilter``."""
 
     name = "ekf"
+    linearises_output = True  # a prior mean where the OCV is held flat is moved (base.out_of_held_ocv)
 
     def _filter(self, inputs, x0, P0, rec):
         m, T = self.model, inputs.n
@@ -354,6 +355,7 @@ class ReferenceAEKF(_KalmanReference):
     code, one trajectory at a time."""
 
     name = "aekf"
+    linearises_output = True  # a prior mean where the OCV is held flat is moved (base.out_of_held_ocv)
     defaults = AdaptiveEKF.defaults
 
     def _filter(self, inputs, x0, P0, rec):
@@ -404,6 +406,7 @@ class ReferenceHInf(_KalmanReference):
     inverted with ``numpy.linalg.inv``, ``K = P A⁻¹ Hᵀ R⁻¹``, ``P⁺ = P A⁻¹``; θ capped per step as in :mod:`.hinf`."""
 
     name = "hinf"
+    linearises_output = True  # a prior mean where the OCV is held flat is moved (base.out_of_held_ocv)
     defaults = HInfinityFilter.defaults
 
     def _filter(self, inputs, x0, P0, rec):
