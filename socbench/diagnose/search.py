@@ -712,7 +712,7 @@ class Search:
             names = [n for n, _ in steps[-1].layout]
             best = steps[-1]
             for d in SOC_DRIFT:
-                if d in names or self.applicable(d) is not None:
+                if d in names or d not in self.candidates or self.applicable(d) is not None:
                     continue
                 cand = self._try(d, rest, thetas, empty, None, best.rmse_after, n_eff)
                 if np.isfinite(cand.score) and cand.rmse_after <= (1.0 - self.min_gain) * best.rmse_after:
