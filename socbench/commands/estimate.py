@@ -67,6 +67,9 @@ def add_arguments(parser) -> None:
                              "sensor: the sensor noise alone")
     parser.add_argument("--particles", type=int, default=500, help="particles of the pf (default 500)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the pf (default 0)")
+    parser.add_argument("--gate-widen", action="store_true",
+                        help="EKF family: where the innovation gate releases after rejecting the measurement ten "
+                             "samples running, widen the SOC variance first so the filter re-acquires (default off)")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--no-segments", action="store_true",
                         help="filter the record as one piece, through its gaps (default: restart each segment)")
@@ -90,6 +93,9 @@ def run(args) -> int:
         raise DataError(f"--soc0 must be in [0, 1], got {args.soc0}")
     if not 0 < args.soc0_sd <= 1:  # an SD wider than the whole SOC range is no prior; the filters' runs fail on it
         raise ConfigError(f"--soc0-sd must be in (0, 1] (a fraction of full charge), got {args.soc0_sd}")
+    if args.gate_widen and "gate_widen" not in estimator_class(args.estimator).defaults:
+        raise ConfigError(f"--gate-widen applies to the EKF family (ekf, iekf, aekf, hinf, dual), not "
+                          f"'{args.estimator}'")
     if args.estimator == "pf" and args.particles < MIN_PARTICLES:
         raise ConfigError(f"--particles must be at least {MIN_PARTICLES} (the band is read from the cloud's spread, "
                           f"which a handful of particles collapses), got {args.particles}")
@@ -124,6 +130,8 @@ def run(args) -> int:
     options = {"soc0_sd": args.soc0_sd, "store_states": True}  # states: the domain report counts guards along them
     if args.estimator == "pf":
         options["n_particles"] = args.particles
+    if args.gate_widen:
+        options["gate_widen"] = True
     axis = soc_axis(params, profile)
     check_reference_axis(profile, params, axis, f"the '{args.params}' parameter set")
     est = run_on_data_axis(make_estimator(args.estimator, run_model, noise, **options), profile, axis,

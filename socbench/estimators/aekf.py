@@ -50,7 +50,7 @@ from ..errors import ConfigError
 from .base import Estimator, scheduled_jacobian, scheduled_output, settle_predict, settle_update
 from .ekf import innovation_var, kalman_update
 from .estimate import Estimate
-from .safety import symmetrise
+from .safety import symmetrise, widen_on_release
 
 
 def sage_husa_r(r_hat, e, HPHt, d, r_nom, r_min_ratio, r_max_ratio):
@@ -66,7 +66,8 @@ class AdaptiveEKF(Estimator):
 
     name = "aekf"
     linearises_output = True  # a prior mean where the OCV is held flat is moved (base.out_of_held_ocv)
-    defaults = {"forgetting": 0.99, "adapt_r": True, "adapt_q": False, "r_min_ratio": 0.1, "r_max_ratio": 1e4}
+    defaults = {"forgetting": 0.99, "adapt_r": True, "adapt_q": False, "r_min_ratio": 0.1, "r_max_ratio": 1e4,
+                "gate_widen": False}
 
     def __init__(self, model, noise=None, **options):
         super().__init__(model, noise, **options)
@@ -100,6 +101,8 @@ class AdaptiveEKF(Estimator):
                 S = innovation_var(P, H, Rk)
                 nis = e * e / S
                 gated = gate(nis)
+                if opt["gate_widen"]:
+                    P, S = widen_on_release(P, H, S, e, nis, gated, gate.threshold)
                 HPHt = S - Rk
                 x, P, K = kalman_update(x, P, H, Rk, S, e, gated)
                 x, P = settle_update(rec, k, x, P, x_good, P_good, y, e, S, nis, gated, opt)

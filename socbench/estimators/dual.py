@@ -132,7 +132,7 @@ class JointEKF(JointParameters, EKF):
     """Batched joint EKF on ``[x, cap, ΔR0]`` (registered as ``dual``)."""
 
     name = "dual"
-    defaults = JointParameters.defaults
+    defaults = {**JointParameters.defaults, **EKF.defaults}
 
     def __init__(self, model, noise=None, **options):
         self.setup_joint(model, noise, options)

@@ -22,7 +22,7 @@ import numpy as np
 
 from .base import Estimator, scheduled_jacobian, scheduled_output, settle_predict, settle_update
 from .estimate import Estimate
-from .safety import symmetrise
+from .safety import symmetrise, widen_on_release
 
 
 def kalman_update(x, P, H, Rk, S, e, gated):
@@ -45,6 +45,9 @@ class EKF(Estimator):
     """Batched extended Kalman filter on any :class:`~socbench.models.base.Model`."""
 
     name = "ekf"
+    #: ``gate_widen``: where the gate releases, the SOC variance is widened first (:func:`~.safety.widen_on_release`;
+    #: numpy only for now, so the engine runs numpy when it is on)
+    defaults = {"gate_widen": False}
     linearises_output = True  # a prior mean where the OCV is held flat is moved (base.out_of_held_ocv)
     #: methods the compiled kernel implements: a subclass overriding one runs numpy (kernels.engine.plan)
     kernel_hooks = ("process_cov", "measurement_update")
@@ -66,6 +69,8 @@ class EKF(Estimator):
                 S = innovation_var(P, H, Rk)
                 nis = e * e / S
                 gated = gate(nis)
+                if opt["gate_widen"]:
+                    P, S = widen_on_release(P, H, S, e, nis, gated, gate.threshold)
                 x, P = self.measurement_update(x, P, H, Rk, S, e, gated, inputs.voltage[:, k], ik, tk)
                 x, P = settle_update(rec, k, x, P, x_good, P_good, y, e, S, nis, gated, opt)
                 if k + 1 == T:

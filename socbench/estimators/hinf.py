@@ -53,7 +53,7 @@ from ..errors import ConfigError
 from .base import Estimator, scheduled_jacobian, scheduled_output, settle_predict, settle_update
 from .ekf import innovation_var, kalman_update
 from .estimate import Estimate
-from .safety import symmetrise
+from .safety import symmetrise, widen_on_release
 
 
 def hinf_posterior(PK, theta: float, margin: float):
@@ -70,7 +70,7 @@ class HInfinityFilter(Estimator):
 
     name = "hinf"
     linearises_output = True  # a prior mean where the OCV is held flat is moved (base.out_of_held_ocv)
-    defaults = {"theta": 1e2, "feasibility_margin": 0.5}
+    defaults = {"theta": 1e2, "feasibility_margin": 0.5, "gate_widen": False}
 
     def __init__(self, model, noise=None, **options):
         super().__init__(model, noise, **options)
@@ -98,6 +98,8 @@ class HInfinityFilter(Estimator):
                 S = innovation_var(P, H, Rk)
                 nis = e * e / S
                 gated = gate(nis)
+                if opt["gate_widen"]:
+                    P, S = widen_on_release(P, H, S, e, nis, gated, gate.threshold)
                 no_gate = np.zeros(R, dtype=bool)
                 _, PK, _ = kalman_update(x, P, H, Rk, S, e, no_gate)
                 Pp, th = hinf_posterior(symmetrise(PK), opt["theta"], opt["feasibility_margin"])

@@ -30,7 +30,7 @@ class IteratedEKF(EKF):
     """The EKF with an iterated (re-linearised) measurement update."""
 
     name = "iekf"
-    defaults = {"iterations": 5, "iteration_tol": 1e-9}
+    defaults = {**EKF.defaults, "iterations": 5, "iteration_tol": 1e-9}
 
     def __init__(self, model, noise=None, **options):
         super().__init__(model, noise, **options)

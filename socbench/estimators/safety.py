@@ -144,6 +144,28 @@ class Gate:
         return gated
 
 
+def widen_on_release(P, H, S, e, nis, gated, threshold: float):
+    """``(P, S)`` with the SOC variance widened on the runs whose gate released: where an innovation beyond the gate
+    is taken after ``gate_release`` rejections in a row (``nis > threshold`` and not gated), ``P_zz`` grows by
+    ``d = max(0, e²/threshold − S)/H_z²`` so that the innovation lies on the gate (``S + H_z² d = e²/threshold``);
+    ``S`` (R,) comes back widened too. Batched: ``P (R, n, n)``, ``H (R, n)``, ``S, e, nis, gated (R,)``.
+
+    Why: a first update from a wide prior where the output is steep (the paper pack's OCV climbs 61 V per unit SOC
+    over its first tenth) leaves a linearised filter sure of a wrong SOC (SD 0.5 → 0.0002); every later innovation is
+    gated and each release, with that S, moves it nowhere: an EKF stayed 39 points off for an hour. A release means
+    the filter has rejected the measurement ten samples running: its band no longer holds the cell, and it re-acquires
+    by admitting as much. A run the gate never holds back is not touched.
+    """
+    released = ~gated & (nis > threshold) & (H[:, 0] != 0.0)
+    if not released.any():
+        return P, S
+    h2 = np.where(released, H[:, 0] * H[:, 0], 1.0)
+    d = np.where(released, np.maximum(e * e / threshold - S, 0.0) / h2, 0.0)
+    P = P.copy()
+    P[:, 0, 0] += d
+    return P, S + H[:, 0] * H[:, 0] * d
+
+
 #: why a run diverged: code -> text (codes in ``Estimate.failed_reason``; 0 = did not fail)
 DIVERGENCE_REASONS = {
     0: "",

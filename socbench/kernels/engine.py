@@ -116,6 +116,8 @@ def plan(estimator) -> tuple[Lowered | None, str]:
         if getattr(cls, hook) is not getattr(owner, hook):
             return None, (f"estimator '{estimator.name}' overrides {hook}() of {owner.__name__}, whose compiled "
                           "kernel does not follow it")
+    if estimator.options.get("gate_widen"):
+        return None, "option gate_widen has no compiled form yet"
     lowered, why = try_lower(estimator.model)
     if lowered is None:
         return None, why
