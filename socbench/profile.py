@@ -27,9 +27,9 @@ The temperature has one leniency too, for a thermocouple that drops out for a mo
 skips a channel): a hole of NaN samples in a one-dimensional ``temperature_c`` spanning at most
 :data:`TEMPERATURE_HOLE_S` (60 s, from the last reading before it to the first after it) is filled by linear
 interpolation in time (held at the record's ends), with one :class:`~socbench.errors.SocbenchWarning` naming the first
-row and the longest hole. A cell's temperature moves over minutes (an 18650's thermal time constant is several
-minutes), so a minute's interpolation stays within the sensor's own accuracy; a longer hole is an error naming its row,
-as infinite values are.
+row and the longest hole. A cell's heat capacity makes its temperature move over minutes, not seconds, so a minute's
+interpolation stays close to what the sensor would have read; a longer hole is an error naming its row, as infinite
+values are.
 """
 
 from __future__ import annotations

@@ -5,6 +5,8 @@ For each sample k (prior ``x⁻, P⁻``; the first prior is ``x0, P0``)::
     update   ŷ = h(x⁻, I_k)            H = ∂h/∂x,  D = ∂h/∂I        (one model.output(jac=True))
              R_k = σ_V² + σ_I² D²       S = H P⁻ Hᵀ + R_k            e = v_k − ŷ,  NIS = e²/S
              K = P⁻ Hᵀ / S               (K := 0 when the χ² gate rejects the sample)
+             [gate_widen: where the gate releases (NIS > χ²_gate taken after gate_release rejections in a row),
+              first P⁻_zz += max(0, e²/χ²_gate − S)/H_z² and S = e²/χ²_gate: safety.widen_on_release]
              x⁺ = x⁻ + K e
              P⁺ = (I − K H) P⁻ (I − K H)ᵀ + K R_k Kᵀ                 (Joseph form: PSD for any K)
              symmetrise, PSD repair, SOC bound (project_soc), divergence check
