@@ -10,11 +10,10 @@ import warnings
 import numpy as np
 import pytest
 
+from benchmarks.reacquire import draw  # the benchmark's draw: a paper pack driven, the filter started far off
 from socbench.cli import main
 from socbench.estimators import make_estimator
 from socbench.estimators.safety import widen_on_release
-from socbench.models import make_model, paper_params
-from socbench.profile import Profile, ProfileMeta
 
 
 def test_the_widening_puts_a_released_innovation_on_the_gate_and_touches_nothing_else():
@@ -42,20 +41,6 @@ def test_the_widening_puts_a_released_innovation_on_the_gate_and_touches_nothing
         assert not changed.any()  # only the SOC variance moves
 
 
-def _wrong_start(rng, n=1800):
-    """A paper pack (Thevenin, DP or Rint) driven from 40–95 % with 20 mV voltage noise: ``(model, profile, true SOC,
-    filter start 0–20 %)``."""
-    name = rng.choice(["thevenin", "dp", "rint"])
-    m = make_model(name, paper_params(name))
-    t = np.arange(n) * 1.0
-    q = m.capacity_ah
-    cur = q * np.clip(0.3 + 0.5 * np.sin(t / rng.uniform(60, 400)) + 0.2 * rng.standard_normal(n), -0.5, 1.5)
-    sim = m.simulate(Profile(t, cur, meta=ProfileMeta(capacity_ah=q)), soc0=rng.uniform(0.4, 0.95), segments=False)
-    prof = Profile(t, cur, sim.voltage_v + rng.normal(0, 0.02, n), soc_ref=sim.soc,
-                   meta=ProfileMeta(capacity_ah=q, name="drive"))
-    return m, prof, sim.soc, rng.uniform(0.0, 0.2)
-
-
 @pytest.mark.parametrize("name", ["ekf", "hinf", "dual"])
 def test_a_filter_that_lost_the_soc_reacquires_with_the_widening(name):
     """Ten random draws, the filter started 20–95 points off with SD 0.5: with ``gate_widen`` the final SOC error is
@@ -64,7 +49,7 @@ def test_a_filter_that_lost_the_soc_reacquires_with_the_widening(name):
     rng = np.random.default_rng(sum(map(ord, name)))
     on, off = [], []
     for _ in range(10):
-        m, prof, z, s0 = _wrong_start(rng)
+        m, prof, z, s0 = draw(rng)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             for widen, out in ((True, on), (False, off)):
@@ -78,7 +63,7 @@ def test_a_run_the_gate_never_releases_is_the_same_with_the_widening():
     """From the right SOC nothing is rejected ten samples running: the widened filter is the plain one, number for
     number (both on the numpy engine)."""
     rng = np.random.default_rng(5)
-    m, prof, z, _ = _wrong_start(rng)
+    m, prof, z, _ = draw(rng)
     a = make_estimator("ekf", m, soc0_sd=0.05, engine="numpy").run(prof, soc0=float(z[0]), segments=False)
     b = make_estimator("ekf", m, soc0_sd=0.05, gate_widen=True).run(prof, soc0=float(z[0]), segments=False)
     assert b.info["engine"] == "numpy"
@@ -88,7 +73,7 @@ def test_a_run_the_gate_never_releases_is_the_same_with_the_widening():
 
 def test_the_cli_option_is_for_the_ekf_family(tmp_path, capsys):
     rng = np.random.default_rng(8)
-    m, prof, z, s0 = _wrong_start(rng, n=600)
+    m, prof, z, s0 = draw(rng, n=600)
     path = tmp_path / "drive.csv"
     path.write_text("time_s,current_a,voltage_v,soc_ref\n" + "\n".join(
         f"{t:.1f},{i:.6f},{v:.6f},{s:.6f}" for t, i, v, s in zip(prof.time_s, prof.current_a, prof.voltage_v, z)))
