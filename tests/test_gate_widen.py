@@ -14,6 +14,7 @@ from benchmarks.reacquire import draw  # the benchmark's draw: a paper pack driv
 from socbench.cli import main
 from socbench.estimators import make_estimator
 from socbench.estimators.safety import widen_on_release
+from socbench.profile import Profile
 
 
 def test_the_widening_puts_a_released_innovation_on_the_gate_and_touches_nothing_else():
@@ -61,14 +62,38 @@ def test_a_filter_that_lost_the_soc_reacquires_with_the_widening(name):
 
 def test_a_run_the_gate_never_releases_is_the_same_with_the_widening():
     """From the right SOC nothing is rejected ten samples running: the widened filter is the plain one, number for
-    number (both on the numpy engine)."""
+    number, on either engine."""
     rng = np.random.default_rng(5)
     m, prof, z, _ = draw(rng)
-    a = make_estimator("ekf", m, soc0_sd=0.05, engine="numpy").run(prof, soc0=float(z[0]), segments=False)
-    b = make_estimator("ekf", m, soc0_sd=0.05, gate_widen=True).run(prof, soc0=float(z[0]), segments=False)
-    assert b.info["engine"] == "numpy"
-    np.testing.assert_array_equal(a.soc, b.soc)
-    np.testing.assert_array_equal(a.soc_std, b.soc_std)
+    for engine in ("numpy", "compiled"):
+        a = make_estimator("ekf", m, soc0_sd=0.05, engine=engine).run(prof, soc0=float(z[0]), segments=False)
+        b = make_estimator("ekf", m, soc0_sd=0.05, gate_widen=True, engine=engine).run(prof, soc0=float(z[0]),
+                                                                                       segments=False)
+        assert b.info["engine"] == engine
+        np.testing.assert_array_equal(a.soc, b.soc)
+        np.testing.assert_array_equal(a.soc_std, b.soc_std)
+
+
+@pytest.mark.parametrize("name", ["ekf", "aekf", "hinf", "dual"])
+def test_the_compiled_kernel_widens_as_numpy_does(name):
+    """The kernel's widening (kernels/filters.py) against the numpy engine's, on batches of starts far off where the
+    gate releases: equal to 1e-9 (relative, + 1e-9) in SOC, its SD and the gate flags; and the widening acts there (the
+    runs differ from the unwidened filter's), so the comparison is not of two filters that never widened."""
+    rng = np.random.default_rng(sum(map(ord, name)) + 1)
+    for _ in range(3):
+        m, one, z, _ = draw(rng, n=900)
+        soc0 = rng.uniform(0.0, 0.2, 4)
+        prof = Profile(one.time_s, np.tile(one.current_a, (4, 1)), np.tile(one.voltage_v, (4, 1)), meta=one.meta)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            a, b, off = (make_estimator(name, m, soc0_sd=0.5, gate_widen=w, engine=e).run(prof, soc0=soc0,
+                                                                                            segments=False)
+                         for w, e in ((True, "numpy"), (True, "compiled"), (False, "compiled")))
+        assert (a.info["engine"], b.info["engine"]) == ("numpy", "compiled")
+        np.testing.assert_allclose(b.soc, a.soc, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(b.soc_std, a.soc_std, rtol=1e-9, atol=1e-9)
+        np.testing.assert_array_equal(b.gated, a.gated)
+        assert np.abs(off.soc - b.soc).max() > 0.01
 
 
 def test_the_cli_option_is_for_the_ekf_family(tmp_path, capsys):

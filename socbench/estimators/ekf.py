@@ -48,7 +48,7 @@ class EKF(Estimator):
 
     name = "ekf"
     #: ``gate_widen``: where the gate releases, the SOC variance is widened first (:func:`~.safety.widen_on_release`;
-    #: numpy only for now, so the engine runs numpy when it is on)
+    #: the compiled kernel does the same, kernels/filters.py)
     defaults = {"gate_widen": False}
     linearises_output = True  # a prior mean where the OCV is held flat is moved (base.out_of_held_ocv)
     #: methods the compiled kernel implements: a subclass overriding one runs numpy (kernels.engine.plan)

@@ -116,8 +116,6 @@ def plan(estimator) -> tuple[Lowered | None, str]:
         if getattr(cls, hook) is not getattr(owner, hook):
             return None, (f"estimator '{estimator.name}' overrides {hook}() of {owner.__name__}, whose compiled "
                           "kernel does not follow it")
-    if estimator.options.get("gate_widen"):
-        return None, "option gate_widen has no compiled form yet"
     lowered, why = try_lower(estimator.model)
     if lowered is None:
         return None, why
@@ -151,7 +149,8 @@ class Job:
         self.threshold = gate_threshold(opt["gate_alpha"])
         self.opt = np.array([self.threshold, float(opt["gate_release"]), float(opt["var_max"]), float(opt["nis_max"]),
                              float(opt["psd_floor"]), float(opt["psd_rel_floor"]),
-                             1.0 if getattr(estimator.model, "schedule_soc", False) else 0.0])
+                             1.0 if getattr(estimator.model, "schedule_soc", False) else 0.0,
+                             1.0 if opt.get("gate_widen") else 0.0])
         self.store = bool(opt["store_states"])
         self.outf = np.empty((5, R, T))
         self.outb = np.zeros((2, R, T), dtype=np.bool_)

@@ -43,8 +43,9 @@ NOISE_FIELDS = ("voltage_var", "input_var", "r_override", "dt0", "has_walk", "q_
                 "weight_extra_var")
 V_VAR, IN_VAR, R_OVR, DT0, HAS_WALK, Q_OVR, CUR_VAR, BIAS_VAR, W_EXTRA = range(9)
 #: opt slots
-OPTION_FIELDS = ("gate_threshold", "gate_release", "var_max", "nis_max", "psd_floor", "psd_rel_floor", "schedule_soc")
-G_THR, G_REL, VAR_MAX, NIS_MAX, PSD_ABS, PSD_REL, SCHEDULE = range(7)
+OPTION_FIELDS = ("gate_threshold", "gate_release", "var_max", "nis_max", "psd_floor", "psd_rel_floor", "schedule_soc",
+                 "gate_widen")
+G_THR, G_REL, VAR_MAX, NIS_MAX, PSD_ABS, PSD_REL, SCHEDULE, WIDEN = range(8)
 
 
 # ================================================================================================ shared pieces
@@ -217,7 +218,7 @@ def load_run(x0, P0, r, n, x, P):
 #:   AEKF  the EKF with fading-memory Sage–Husa R̂ (and Q̂) (estimators/aekf.py)     vopt [d, r_min_ratio, r_max_ratio,
 #:                                                                                  adapt_r, adapt_q]
 #:                                                                                  vout [r̂, q̂_zz] per run
-#:   HINF  the extended H∞ posterior with the feasibility cap (estimators/hinf.py)  vopt [θ, margin]
+#:   HINF  the extended H∞ posterior with the feasibility cap (estimators/hinf.py)  vopt [θ, margin, prior_cap]
 #:                                                                                  vout [samples with θ capped]
 VAR_EKF, VAR_AEKF, VAR_HINF = 0, 1, 2
 
@@ -308,6 +309,13 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, hv, nz, walk, Qo
             e = volt[r, k] - y
             nis = e * e / S
             gated, consecutive = gate(nis, opt[G_THR], consecutive, opt[G_REL])
+            if opt[WIDEN] != 0.0 and not gated and nis > opt[G_THR] and H[0] != 0.0:
+                # the gate released: P_zz += max(0, e²/χ² − S)/H_z², so the innovation lies on the gate
+                # (safety.widen_on_release); P H and S follow from the widened P
+                dz = max(e * e / opt[G_THR] - S, 0.0) / (H[0] * H[0])
+                P[0, 0] = P[0, 0] + dz
+                PHt[0] = PHt[0] + dz * H[0]
+                S = S + H[0] * H[0] * dz
             if hinf:  # the Kalman posterior P_K (ungated), then P⁺ = (P_K⁻¹ − θ_k e_z e_zᵀ)⁻¹ (Sherman–Morrison)
                 for a in range(n):
                     K[a] = PHt[a] / S
@@ -319,6 +327,12 @@ def ekf(r0, r1, im, fm, x0, P0, cur, volt, temp, has_temp, dts, hv, nz, walk, Qo
                 th = vopt[1] / pzz
                 if not (th < vopt[0] or th != th):  # np.minimum(θ, ρ / P_zz): NaN propagates
                     th = vopt[0]
+                if vopt[2] != 0.0:  # the prior cap, np.minimum(θ_k, np.maximum(1/P_zz − 1/P⁻_zz, 0)) (G: the prior)
+                    lim = 1.0 / pzz - 1.0 / G[0, 0]
+                    if not (lim > 0.0 or lim != lim):
+                        lim = 0.0
+                    if not (th < lim or th != th):
+                        th = lim
                 if th < vopt[0] and not gated:
                     capped += 1
                 c = th / (1.0 - th * pzz)
