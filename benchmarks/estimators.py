@@ -217,7 +217,8 @@ def main(argv=None):
     w("| `srukf` | square-root UKF (van der Merwe & Wan 2001): QR + rank-one Cholesky up/downdates | per-run "
       "textbook `ReferenceSRUKF`; equals `ukf` to 1e-9 when well conditioned |")
     w("| `hinf` | extended H∞ filter (Simon 2006 §11.3), SOC-weighted, θ = 1e2 capped per step by the Riccati "
-      "feasibility margin | per-run `ReferenceHInf` (Simon's printed form) |")
+      "feasibility margin and by the sample's SOC information (no update widens the SOC) | per-run "
+      "`ReferenceHInf` (Simon's printed form) |")
     w("| `dual` | joint EKF on `[x, cap, ΔR0]` (Plett 2004, Part 3): capacity and R0 with 3σ | filterpy "
       "`ExtendedKalmanFilter` on the joint model |")
     w("| `iekf` | iterated EKF (Bell & Cathey 1993): the update re-linearised at the corrected state until it stops "

@@ -11,7 +11,7 @@ For each sample k
 (``H, D`` and ``F, B`` the model's Jacobians at the prior and the posterior, like the EKF)::
 
     update   e = v_k − h(x⁻, I_k),   R_k = σ_V² + σ_I² D²,   S = H P⁻ Hᵀ + R_k,   NIS = e²/S   (χ² gate as the EKF)
-             A = I − θ_k S̄ P⁻ + Hᵀ R_k⁻¹ H P⁻,   P⁺ = P⁻ A⁻¹      (θ_k ≤ θ: the feasibility cap below)
+             A = I − θ_k S̄ P⁻ + Hᵀ R_k⁻¹ H P⁻,   P⁺ = P⁻ A⁻¹      (θ_k ≤ θ: the feasibility and prior caps below)
              K = P⁻ A⁻¹ Hᵀ R_k⁻¹ = P⁺ Hᵀ / R_k  (0 when gated),   x⁺ = x⁻ + K e
              symmetrise, PSD repair, SOC bound (project_soc), divergence check   (the EKF's safety tail)
     predict  x⁻ = f(x⁺, I_k, dt_k),   P⁻ = F P⁺ Fᵀ + Q_k                   (Q_k from the sensor model, as the EKF)
@@ -30,13 +30,22 @@ counted per run in ``info["theta_capped"]``. Then (Sherman–Morrison for the ra
     P⁺ = (P_K⁺⁻¹ − θ_k s sᵀ)⁻¹ = P_K⁺ + θ_k P_K⁺ s sᵀ P_K⁺ / (1 − θ_k P_K⁺[z, z])
     K  = P⁺ Hᵀ / R_k      (= P⁻ A⁻¹ Hᵀ R_k⁻¹ above)
 
+**The prior cap** (option ``prior_cap``, default on). The margin alone lets every capped update double the SOC's
+term, ``P⁺_zz = P_K,zz / (1 − ρ)``, however little the sample said about the SOC. At a fast rate (the Panasonic US06 at
+10 Hz) or where the output is flat in SOC, one sample shrinks ``P_zz`` by far less than half, so the Riccati term, and
+with it the gain, grows sample after sample: on the 15 Panasonic US06 runs of docs/real_data.md's three 5-temperature
+fits (the noise recipe) every run failed (SOC variance above ``var_max``), from the true SOC as from 20 points off. So
+each step also takes ``θ_k ≤ max(0, 1/P_K,zz − 1/P⁻_zz)``: the worst-case weight is at most the information the sample
+brought on the SOC, and ``P⁺_zz ≤ P⁻_zz`` — an update may hold the SOC's spread where it was, never widen it
+(between samples it grows by ``Q`` as in the EKF). With ``H_z = 0`` the step is the EKF's.
+
 Default ``θ = 1e2`` (per SOC²). With the noise recipe's three error states, θ = 1e3 was stable on the flight scenarios
 and 3e3 already destabilised the ``harsh`` case (docs/estimators.md). The recipe's fourth state (the slow error at a
 mid period, :mod:`~socbench.estimators.model_error`) leaves more of the voltage to explain in the SOC's direction, and
 θ = 1e3 then drove every run away: ``socbench leaderboard --models thevenin,dp --estimators hinf --scenarios
 flight-10kg,flight-0kg,dji-m100-replay --seeds 2``, run with the default set to each θ, gave SOC RMSE 11–29 % at θ =
 1e3, 0.2–1.5 % at 3e2 and 0.1–0.7 % at 1e2 (the EKF: 0.1–0.5 %) — the larger gain drives the states away while the SOC
-sits at its clamp, so the default buys robustness only within that range.
+sits at its clamp, so the default buys robustness only within that range. (These θ runs predate the prior cap.)
 
 ``P`` here is not a covariance but the Riccati matrix of the game; the reported ``soc_std = √P[0, 0]`` is therefore an
 upper-bound-style spread, and the NEES is read with that in mind.
@@ -56,11 +65,14 @@ from .estimate import Estimate
 from .safety import symmetrise, widen_on_release
 
 
-def hinf_posterior(PK, theta: float, margin: float):
-    """``(P⁺, θ_k (R,))`` from the Kalman posteriors ``P_K⁺ (R, n, n)``: ``θ_k = min(θ, ρ / P_K⁺[z, z])`` and
+def hinf_posterior(PK, theta: float, margin: float, prior_zz=None):
+    """``(P⁺, θ_k (R,))`` from the Kalman posteriors ``P_K⁺ (R, n, n)``: ``θ_k = min(θ, ρ / P_K⁺[z, z])``, and with
+    the priors' SOC variances ``prior_zz (R,)`` also ``θ_k ≤ max(0, 1/P_K⁺[z, z] − 1/P⁻[z, z])`` (the prior cap); then
     ``P⁺ = (P_K⁺⁻¹ − θ_k e_z e_zᵀ)⁻¹`` by Sherman–Morrison (module docstring)."""
     pzz = PK[:, 0, 0]
     th = np.minimum(theta, margin / pzz)
+    if prior_zz is not None:
+        th = np.minimum(th, np.maximum(1.0 / pzz - 1.0 / prior_zz, 0.0))
     col = PK[:, :, 0]
     return PK + (th / (1.0 - th * pzz))[:, None, None] * (col[:, :, None] * col[:, None, :]), th
 
@@ -70,7 +82,9 @@ class HInfinityFilter(Estimator):
 
     name = "hinf"
     linearises_output = True  # a prior mean where the OCV is held flat is moved (base.out_of_held_ocv)
-    defaults = {"theta": 1e2, "feasibility_margin": 0.5, "gate_widen": False}
+    #: ``prior_cap``: θ_k ≤ 1/P_K⁺[z, z] − 1/P⁻[z, z], so that an update never leaves the SOC wider than its prior
+    #: (module docstring, "The prior cap")
+    defaults = {"theta": 1e2, "feasibility_margin": 0.5, "prior_cap": True, "gate_widen": False}
 
     def __init__(self, model, noise=None, **options):
         super().__init__(model, noise, **options)
@@ -102,7 +116,8 @@ class HInfinityFilter(Estimator):
                     P, S = widen_on_release(P, H, S, e, nis, gated, gate.threshold)
                 no_gate = np.zeros(R, dtype=bool)
                 _, PK, _ = kalman_update(x, P, H, Rk, S, e, no_gate)
-                Pp, th = hinf_posterior(symmetrise(PK), opt["theta"], opt["feasibility_margin"])
+                Pp, th = hinf_posterior(symmetrise(PK), opt["theta"], opt["feasibility_margin"],
+                                        P[:, 0, 0] if opt["prior_cap"] else None)
                 capped += (th < opt["theta"]) & ~gated & ~rec.failed  # a failed run is frozen: it counts nothing more
                 K = np.where(gated[:, None], 0.0, np.einsum("rij,rj->ri", Pp, H) / Rk[:, None])
                 x = x + K * e[:, None]
@@ -122,6 +137,6 @@ class HInfinityFilter(Estimator):
         from ..kernels.filters import VAR_HINF
 
         o = self.options
-        vout = job.kalman(VAR_HINF, (o["theta"], o["feasibility_margin"]))
+        vout = job.kalman(VAR_HINF, (o["theta"], o["feasibility_margin"], 1.0 if o["prior_cap"] else 0.0))
         return job.finish({"gate_threshold": job.threshold, "theta": o["theta"],
                            "theta_capped": vout[:, 0].astype(int)})

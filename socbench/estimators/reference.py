@@ -427,6 +427,8 @@ class ReferenceHInf(_KalmanReference):
             if not gated[0]:
                 pzz_kalman = P[0, 0] - PH[0] * PH[0] / S  # the Kalman posterior's SOC variance
                 theta = min(opt["theta"], opt["feasibility_margin"] / pzz_kalman)
+                if opt["prior_cap"]:  # the update leaves the SOC no wider than its prior P[0, 0]
+                    theta = min(theta, max(1.0 / pzz_kalman - 1.0 / P[0, 0], 0.0))
                 A = np.eye(n) - theta * Sbar @ P + np.outer(H, H) @ P / Rk
                 P_new = P @ np.linalg.inv(A)
                 x = x + P_new @ H / Rk * e
