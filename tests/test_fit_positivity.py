@@ -55,16 +55,17 @@ def test_positivity_residual_is_zero_above_the_floor_and_grows_below_it():
 @pytest.mark.slow
 def test_paper_fits_stay_positive_and_predict_a_drive_no_worse(monkeypatch):
     lowest, drive_rmse = [], {"held": [], "free": []}
-    weight_held = fit_module.POSITIVITY_WEIGHT
     for k in range(DRAWS):
         rng, cell, lay, ins = H.random_setup(90_000 + k)
         rec = H.hppc_record(cell, lay, ins, seed=k, with_soc_ref=lay.gaps)
         drive = H.drive_record(cell, dataclasses.replace(ins, dt=max(ins.dt, 1.0)), seed=k, duration_s=5400.0,
                                soc0=0.95).profile
         for name in ("thevenin", "dp"):
-            for key, weight in (("held", weight_held), ("free", 0.0)):
-                monkeypatch.setattr(fit_module, "POSITIVITY_WEIGHT", weight)
-                res = fit_model(name, rec.profile, mode="paper", capacity_ah=cell.capacity_ah)
+            for key in ("held", "free"):
+                with monkeypatch.context() as mp:
+                    if key == "free":  # no positivity term at all (nor its refit)
+                        mp.setattr(fit_module.FitProblem, "positive_polynomials", property(lambda self: []))
+                    res = fit_model(name, rec.profile, mode="paper", capacity_ah=cell.capacity_ah)
                 if key == "held":
                     lowest.append(_lowest_share(res.params))
                 model = make_model(name, res.params)
@@ -75,3 +76,27 @@ def test_paper_fits_stay_positive_and_predict_a_drive_no_worse(monkeypatch):
     # what holding them costs out of the fit: a drive record of the same cell predicted about as well (25 draws of
     # this generator: mean 22.2 mV held against 22.4 mV free; lower in 23 fits of 50, higher in 13)
     assert np.mean(drive_rmse["held"]) <= 1.1 * np.mean(drive_rmse["free"]), drive_rmse
+
+
+@pytest.mark.slow
+def test_a_fit_whose_curve_the_soft_term_let_through_zero_is_refitted_positive(monkeypatch):
+    """Where the finished fit still has a positive parameter at or below zero somewhere on [0, 1], it is refitted with
+    the term ``POSITIVITY_REFIT_WEIGHT`` heavy and says so. Exercised by a term 1e4 times lighter than the default
+    on random draws of the tests' generator (dp fits: with that term, 8 of 8 draws crossed zero and were refitted,
+    all positive after; thevenin 1 of 8) — every fit comes out positive — and on the case that found it:
+    improved_rc on the harsh scenario's noisy HPPC, whose R2 the default term left at −2.4e-5 Ω near SOC 0.013
+    (the noise recipe's open loop then refused the model)."""
+    from socbench.scenarios import load_scenario
+
+    res = fit_model("improved_rc", load_scenario("harsh").characterisation(), mode="paper")
+    assert any("R2 fell to zero or below" in w and "positive now" in w for w in res.warnings), res.warnings
+    assert _lowest_share(res.params) > 0.0
+    monkeypatch.setattr(fit_module, "POSITIVITY_WEIGHT", 1e-4)
+    refitted = 0
+    for k in (1, 2, 4):  # three of those eight draws (draws 0 and 3 take 10–20 s to fit)
+        rng, cell, lay, ins = H.random_setup(91_000 + k)
+        rec = H.hppc_record(cell, lay, ins, seed=k, with_soc_ref=lay.gaps)
+        res = fit_model("dp", rec.profile, mode="paper", capacity_ah=cell.capacity_ah)
+        refitted += any("refitted with a heavier positivity term" in w for w in res.warnings)
+        assert _lowest_share(res.params) > 0.0, (k, res.warnings[-1:])
+    assert refitted >= 2  # the light term did leave curves through zero: the refit ran
