@@ -299,6 +299,19 @@ def markdown(an: dict, command: str) -> str:
         "|I| ≤ 0.5 % of the peak current (0.12 A), found none, and every fit stopped with \"the record has no HPPC "
         "rest points\". Fixed by the HPPC analysis that sets its rest level from the record's own noise and offset "
         "(socbench/identify/hppc.py, issue 13).",
+        "- **hinf, above all on harsh (94 failed runs, every failed run of the sweep of 2026-11-25: SOC variance "
+        "above `var_max`).** The feasibility margin let each capped update double the SOC's Riccati term, "
+        "`P⁺_zz = P_K,zz/(1 − ρ)`, however little the sample said about the SOC; where one sample shrinks `P_zz` by "
+        "less than half (noisy sensors, a flat OCV, a fast rate) it grew until the run failed (on the measured "
+        "Panasonic US06 at 10 Hz: 30 of 30 runs, docs/measured_starts.md). Fixed by the prior cap "
+        "(socbench/estimators/hinf.py): `θ_k ≤ 1/P_K,zz − 1/P⁻_zz`, so that no update widens the SOC beyond its "
+        "prior.",
+        "- **improved_rc on harsh, every filter's cell (found by the rerun for the prior cap).** Fitted on the harsh "
+        "scenario's noisy HPPC, its R2 polynomial dipped to −2.4e-5 Ω near SOC 0.013 between two positive nodes "
+        "(the positivity term is soft), and the noise recipe's open loop refused the model (`R1 + R2 ≤ 0`); the "
+        "dp, gnl, thevenin and pngv fits of that HPPC also had a resistance below zero there, on a part of the SOC "
+        "axis their runs did not reach. Fixed in socbench/identify/fit.py: a finished fit with a positive SOC "
+        "polynomial at or below zero is refitted with the term 1000× heavier, and says so.",
         "",
         "## Reproduce",
         "",
