@@ -586,20 +586,19 @@ def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
             theta0[sl] = ct
         theta0[prob.n_base:] = cres.theta[const.n_base:]  # the effects' parameters: constants in both
         theta0 = np.clip(theta0, prob.lower, prob.upper)
-    res = fit_parameters(prob.build, profile, theta0, prob.lower, prob.upper, names=prob.labels, soc0=prob.soc0,
-                         soc_jumps=prob.soc_jumps, weights=prob.weights, compress=compress, max_nfev=max_nfev,
-                         time_weighted=time_weighted, loss=loss, segments=segments,
-                         penalty=prob.positivity if prob.positive_polynomials else None)
+    def solve(start, penalty):
+        return fit_parameters(prob.build, profile, start, prob.lower, prob.upper, names=prob.labels, soc0=prob.soc0,
+                              soc_jumps=prob.soc_jumps, weights=prob.weights, compress=compress, max_nfev=max_nfev,
+                              time_weighted=time_weighted, loss=loss, segments=segments, penalty=penalty)
+
+    res = solve(theta0, prob.positivity if prob.positive_polynomials else None)
     negative = prob.negative_polynomials(res.theta) if prob.positive_polynomials else []
     if negative:
         # the soft term let a curve through zero between its nodes: a resistance or capacitance that is none there,
         # and a model that refuses to run across that SOC (seen: improved_rc's R2 at -2.4e-5 Ω near SOC 0.013 on the
         # harsh scenario's noisy HPPC, which failed the noise recipe's open loop). Refit from there with the term
         # heavier; a fit that stays positive never comes here, so its path does not move (POSITIVITY_WEIGHT).
-        res = fit_parameters(prob.build, profile, res.theta, prob.lower, prob.upper, names=prob.labels,
-                             soc0=prob.soc0, soc_jumps=prob.soc_jumps, weights=prob.weights, compress=compress,
-                             max_nfev=max_nfev, time_weighted=time_weighted, loss=loss, segments=segments,
-                             penalty=lambda th: prob.positivity(th, POSITIVITY_REFIT_WEIGHT))
+        res = solve(res.theta, lambda th: prob.positivity(th, POSITIVITY_REFIT_WEIGHT))
     params = prob.params(res.theta, clamp=True)
     values, stderr = {}, {}
     for (lab, s), th, se in zip(prob.label_specs(), res.theta, res.stderr):
