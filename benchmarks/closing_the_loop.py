@@ -276,7 +276,9 @@ HOW = (
     "when it fits that record 10 % better (in constant mode, or where that falls short in the chosen SOC-lookup form: "
     "a constant-mode base's own error, the SOC shape of its resistances, can hide what the effect adds) with no "
     "parameter at a bound, and predicts the evaluation records, nothing "
-    "fitted on them, 10 % better (a branch also within the record and clear of the base's own by ×3). One that "
+    "fitted on them, 10 % better (a branch also within the record and clear of the base's own by ×3), whether or "
+    "not the base already lies within the search's noise floor there (below): nothing of it but a state's initial "
+    "value is fitted on those records, so what it explains there is not base-fit error taken up. One that "
     "fails only that last test, where the search then adds an effect and still ends above its noise floor, is tried "
     "again beside it: the search runs again from it, and that run is kept when it ends 10 % lower (another effect, a "
     "fade or a sensor offset, can dominate the evaluation records' error and hide the branch's share). A branch is "
@@ -454,7 +456,9 @@ WHY_WEAK = {
                   "gaps of 4–16 mV are of the order of the noise, and a record that stays on one branch shows it as "
                   "an offset, which the base refit absorbs. Beside a slow OCV test (a third of the cases) the HPPC's "
                   "rest points lie half a gap below its mean branch, and it is looked for there first "
-                  "(`socbench.identify.fit_test_effect`); an HPPC alone, taken after discharge steps, shows it little.",
+                  "(`socbench.identify.fit_test_effect`), and named where it predicts the evaluation records 10 % "
+                  "better, even where the base already lies within the search's noise floor there; an HPPC alone, "
+                  "taken after discharge steps, shows it little.",
     "capacity": "the SOC drifts leave nearly the same residual on a steadily discharging record, and a fade comes "
                 "with grown resistances here; on a flat LFP curve the drift shows only in the end-of-discharge knee.",
     "current_bias": "without rests in the record nothing measures the offset directly, and its drift is then "

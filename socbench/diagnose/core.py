@@ -20,8 +20,10 @@
    cell's properties that the fit test shows best (a slow branch in an HPPC's rests, a hysteresis beside a slow test's
    mean branch) are looked for there first: the base fitted again on its record with the effect beside it, kept when
    that record and the evaluation records (nothing fitted on them) are both fitted 10 % better. A kept effect is the
-   search's first step, the same in every fold, scored against the base fitted without it; the search goes on from
-   the refitted base with it. A branch the HPPC's rests show (:mod:`socbench.identify.rest_relaxation`: fitted on
+   search's first step, the same in every fold, scored against the base fitted without it (held to the search's
+   10 % held-out gain, not to its noise floor: no parameter of it but a state's initial value is fitted on the
+   evaluation records, :data:`~socbench.diagnose.search.FIT_TEST_FLOORED`); the search goes on from the refitted base
+   with it. A branch the HPPC's rests show (:mod:`socbench.identify.rest_relaxation`: fitted on
    the relaxation alone, no OCV error enters) is a first step where the evaluation records are predicted no worse:
    a measurement on the test, whose share of their error the OCV's can hide. One that fails only the evaluation
    records' gain is tried again beside what the search adds (:func:`search_beside`): another effect can dominate

@@ -146,6 +146,16 @@ PARSIMONY = 0.10
 PARSIMONY_ACCEPTED = True
 #: an extra RC branch whose time constant lies within this factor of one of the base model's is that branch misfitted
 TWIN_TAU = 3.0
+#: whether a step the fit test found (:meth:`Search.fit_test_step`) is held to the noise floor like the effects the
+#: search fits on the evaluation data. It is not: the floor is set for the base model's own error, which an effect
+#: fitted on the evaluation records can take up near the noise; a fit-test step has no parameter fitted there but a
+#: state's initial value (the same row in every fold), so a 10 % held-out gain of it is the fit test's evidence
+#: confirmed, not base-fit error taken up. On the randomised benchmark's development seeds, against the floor held
+#: (stop 62): hidden effect named first 2026 80 → 81 of 120, 31 48 → 49 of 72, 47 unchanged, 777 81 → 82 of 120,
+#: 4242 78 → 80 of 120 (every one a hysteresis beside a slow OCV test, 0.3–1.1 × the noise beyond the base, its
+#: held-out SOC error lower too), one pair more with its hysteresis named (777 case 83), nulls and effects named that
+#: are not there unchanged
+FIT_TEST_FLOORED = False
 #: a measured temperature this far from the fit's [K] is evidence of a temperature effect (Search._choose)
 T_EVIDENCE_K = 5.0
 #: effects fitted again beside the base refit in the round after it was adopted (the best-scoring ones)
@@ -548,15 +558,15 @@ class Search:
         """The effect ``name`` at ``values``, fitted with the base on the fit test (:mod:`~socbench.identify.
         fit_test_effect`), as a step: the same row in every fold, so no parameter of it is fitted on the evaluation
         data and every block is held out. Scored against ``plain``, the base model fitted without it. None when the
-        search would not add it: short of ``bar``, ``plain`` within the noise floor (but for ``"not worse"``), or a
-        branch the search refuses (:meth:`twin_branch`). ``bar``: ``"gain"``, the search's score and cut; ``"not
-        worse"``, the held-out RMSE not above ``plain``'s — for a branch the fit test's rests show
+        search would not add it: short of ``bar``, or a branch the search refuses (:meth:`twin_branch`); ``plain``
+        within the noise floor does not stop it (:data:`FIT_TEST_FLOORED`). ``bar``: ``"gain"``, the search's score
+        and cut; ``"not worse"``, the held-out RMSE not above ``plain``'s — for a branch the fit test's rests show
         (:mod:`socbench.identify.rest_relaxation`), a measurement on the test that the evaluation records need only
         not contradict, which no later step then drops (:meth:`_prune`); None, not held to either (the
         caller judges it beside later steps, :func:`socbench.diagnose.core.search_beside`)."""
         r_before, sse_before, _ = cv_residual(plain, self.folds, self.soc0s)
         rmse_before = float(np.sqrt(np.mean(r_before * r_before)))
-        if rmse_before <= self.floor() and bar != "not worse":  # a measurement on the test needs no eval gain
+        if FIT_TEST_FLOORED and rmse_before <= self.floor() and bar != "not worse":
             return None
         build, layout, lo, hi = self.builder([name])
         pnames = layout[0][1]
