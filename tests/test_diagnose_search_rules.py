@@ -314,9 +314,10 @@ def test_an_effect_the_fit_test_measures_is_named_within_the_noise_floor(monkeyp
     """Case 5 of the development seed 31: an LFP cell with a hysteresis (half-gap M = 10.6 mV) beside a C/20 slow OCV
     test, and a mission day whose voltage noise (5 mV) leaves the base model within 2.5 × the noise of its averaged
     records (the search's floor). The fit test measures the hysteresis (its slow test's branches; M within 15 % of
-    the truth) and it predicts the day 10 % better held-out, no parameter of it fitted there but its state's start:
-    it is named first, what the search's floor holds back being base-fit error the evaluation records' fits take up.
-    Held to the floor (``FIT_TEST_FLOORED = True``, as before stop 62) nothing is named."""
+    the truth) and it predicts the day 10 % better held-out, no parameter of it fitted there but its state's start.
+    It is named first: the floor guards against base-fit error that effects fitted on the evaluation records take
+    up, and this one has none fitted there. Held to the floor (``FIT_TEST_FLOORED = True``, as before stop 62)
+    nothing is named."""
     import socbench.diagnose.search as search
 
     case = draw_case(5, 31)

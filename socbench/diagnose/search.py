@@ -154,7 +154,8 @@ TWIN_TAU = 3.0
 #: (stop 62): hidden effect named first 2026 80 → 81 of 120, 31 48 → 49 of 72, 47 unchanged, 777 81 → 82 of 120,
 #: 4242 78 → 80 of 120 (every one a hysteresis beside a slow OCV test, 0.3–1.1 × the noise beyond the base, its
 #: held-out SOC error lower too), one pair more with its hysteresis named (777 case 83), nulls and effects named that
-#: are not there unchanged
+#: are not there unchanged; held-out seeds 5150 and 6007 every rate unchanged; offered alone (``--oracle``, seed
+#: 2026) the hidden effect added in 84 → 85 of 120
 FIT_TEST_FLOORED = False
 #: a measured temperature this far from the fit's [K] is evidence of a temperature effect (Search._choose)
 T_EVIDENCE_K = 5.0
