@@ -489,17 +489,23 @@ def test_an_hppc_in_the_charge_direction_is_analysed_and_fitted():
 RECHARGE_DRAWS = 12
 
 
-def test_a_charge_back_to_full_after_the_test_is_not_part_of_it():
+@pytest.mark.parametrize("overshoot", [False, True])
+def test_a_charge_back_to_full_after_the_test_is_not_part_of_it(overshoot):
     """A cycler script that charges the cell back to full after the HPPC (and rests): the test still ends at the rest
     after its most discharged point, whose OCV point is kept (the record's last rest is then at full, and was taken
     for the final point), and the fit leaves the charge back out. Random cells, layouts and instruments (seeds
     32 000 +); the yardstick is the same test recorded without the charge back (its own noise draw): the same OCV
     points (each within half a SOC point and 3 σ of the voltage noise plus its ADC step and 1 mV), a fit's RMSE within
-    25 % and its R0 within 3 %."""
+    25 % and its R0 within 3 %. ``overshoot``: the charge back counts 3–10 % of the capacity more than the test took
+    out (the charge a cell takes beyond what it gave, a count's drift over a day-long test), so the record's most
+    charged point is the charge back's end, not the test's start: full is still where the test started (a foreign
+    record drawn by ``benchmarks/foreign_records.py --cases 1 --seed 3036``, 4.7 % beyond, was refused as "no pulse
+    found")."""
     worst = []
     for k in range(RECHARGE_DRAWS):
         rng, cell, lay, ins = H.random_setup(32_000 + k)
-        lay = dataclasses.replace(lay, gaps=False, precharge_c=float(rng.uniform(0.2, 1.0)))
+        lay = dataclasses.replace(lay, gaps=False, precharge_c=float(rng.uniform(0.2, 1.0)),
+                                  precharge_loss=float(rng.uniform(0.03, 0.10)) if overshoot else 0.0)
         plain = H.hppc_record(cell, lay, ins, seed=32_000 + k, with_soc_ref=False)
         rec = H.hppc_record(cell, dataclasses.replace(lay, recharge_after=True), ins, seed=32_000 + k,
                             with_soc_ref=False)
@@ -514,6 +520,8 @@ def test_a_charge_back_to_full_after_the_test_is_not_part_of_it():
             warnings.simplefilter("ignore")
             name = "dp" if len(cell.branches) == 2 else "thevenin"
             fit, yard = (fit_model(name, r.profile, mode="constant") for r in (rec, plain))
+            if overshoot:  # the paper mode sets up a constant fit again from the start SOC the analysis read
+                assert any("after the test" in n for n in fit_model(name, rec.profile).params.notes), k
         assert any("after the test" in n for n in fit.params.notes), k
         worst.append((fit.rmse_v / yard.rmse_v, abs(fit.values["R0"] / yard.values["R0"] - 1.0)))
     ratio, r0 = np.max(worst, axis=0)

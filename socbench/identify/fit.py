@@ -375,7 +375,8 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
     analysis_error = None
     try:
         analysis = analyze_hppc(profile, capacity_ah=capacity_ah, soc_start=soc0)
-        top = float(np.max(analysis.soc))
+        # up to the test's end: a charge back after it (post-conditioning) may go beyond where the test started
+        top = float(np.max(analysis.soc[:analysis.end_index]))
         # within FULL_TOL of full the count's own noise (a start at full whose first seconds read a charge) is no error
         if soc0 is not None and top > 1.0 + FULL_TOL:
             raise ConfigError(f"soc0 = {soc0:g} puts the record's most charged point at SOC {top:.4g} > 1 (the record "

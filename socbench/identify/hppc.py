@@ -31,7 +31,10 @@ or a fixed duration where the record can tell. The analysis
    first sample: ``I − b`` integrated under zero-order hold or, when the record has gaps whose charge only the
    reference SOC knows, that reference (:func:`discharged_ah`). ``Ah_full`` is its minimum, the most charged point:
    an HPPC starts full, and the ORNL Leaf files first discharge to empty and charge to full — phases before the
-   record first comes within :data:`FULL_TOL` of full are pre-conditioning, not part of the test. An HPPC in the
+   record first comes within :data:`FULL_TOL` of full are pre-conditioning, not part of the test; where most held
+   phases lie before that point, it is a charge back after the test that went beyond where the test started (a
+   count's drift over a day-long test, the charge a cell takes beyond what it gave), and full is the most charged
+   point before the first of them. An HPPC in the
    *charge direction* (its levels reached by charge steps, up to full: the SOC of its held phases rises over the
    record) is the whole record up to full (``steps = "charge"``: its rest points lie on the charge branch). ``Q`` is the
    capacity (default: the charge discharged from full to the most discharged point — ECM_SPEC §2 recommends the
@@ -932,6 +935,18 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
     # test). Decided by the SOC of the held phases over time, the steps among them
     ascending = len(candidates) >= 2 and float(np.polyfit(t[[c[0] for c in candidates]],
                                                           soc[[c[0] for c in candidates]], 1)[0]) > 0.0
+    if not ascending and 2 * sum(c[1] <= k_full for c in candidates) > len(candidates):
+        # most held phases lie before the record's most charged point: that point is a charge back after the test
+        # to beyond where the test started (a count that drifts over a day-long test, the charge a cell takes beyond
+        # what it gave, a test started a little below full). The test down from full starts at the most charged
+        # point before its first held phase; what follows it is post-conditioning (_test_end)
+        head = candidates[0][0]
+        ah_full = float(np.min(ah[:head + 1]))
+        k_full = _first_approach(ah[:head + 1], ah_full, ah)
+        q = float(capacity_ah) if capacity_ah else float(np.max(ah[k_full:]) - ah_full)
+        soc = _soc_axis(ah, ah_full, q, soc_start)
+        notes.append(f"the record charges back {float(ah_full - np.min(ah)):.3g} Ah beyond where its test started: "
+                     "full is the most charged point before the test, not the charge back's end")
     start = 0 if ascending else k_full
     candidates = [c for c in candidates if c[1] > start]
     if ascending:
