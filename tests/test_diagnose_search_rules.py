@@ -354,7 +354,8 @@ def test_a_deferred_hysteresis_is_tried_beside_the_search_within_its_noise_floor
     assert d.fit["fit_test_effect"]["deferred"] == "hysteresis" and d.fit["fit_test_effect"]["added"]
     without = d.fit["fit_test_effect"]["without_it"]  # the search without the refit: the offset alone
     assert without["effects"] == ["current_bias"] and d.after["rmse_v"] <= 0.9 * without["rmse_v"]
-    # … which ended within its noise floor (the search added no base refit there)
+    # … which ended within its noise floor (that of a search without the base refit: on this case it added the
+    # offset alone, docs/undeclared_effects_seed31.json)
     assert without["rmse_v"] <= search.noise_floor(d.fit["voltage_noise_sd_binned_final"], False)
 
 

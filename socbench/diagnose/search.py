@@ -933,9 +933,7 @@ class Search:
         tried = [c for c in cands if c.effect != BASE_REFIT and np.isfinite(c.score) and c.fit is not None
                  and not self.measured_input(c.effect)
                  and abs(c.rmse_after - rmse_now) > NULL_FIT_TOL * rmse_now][:JOINT_TRIES]
-        # the joint step adds the refit's parameters too: its score pays for them (the candidate's own score counts
-        # the effect's alone)
-        refit_penalty = 2.0 * len(self.params_of(BASE_REFIT)[0]) / n_eff
+        refit_penalty = self._refit_penalty(n_eff)
         best = None
         for alone in tried:
             joint = self._try(alone.effect, names + [BASE_REFIT], None, fold_sigs, sigs_all.get(alone.effect),
@@ -966,12 +964,16 @@ class Search:
         # below the winner as it would be added (alone) and as it was fitted beside the refit
         if rival is None or rival.rmse_after > (1.0 - self.min_gain) * min(best.rmse_after, joint.rmse_after):
             return best
-        # the joint step adds the refit's parameters too: its score pays for them
-        rival.score -= 2.0 * len(self.params_of(BASE_REFIT)[0]) / n_eff
+        rival.score -= self._refit_penalty(n_eff)
         return dataclasses.replace(rival, evidence=rival.evidence + (
             f"; fitted jointly with the base refit in place of {best.effect}, which won the round alone "
             f"({1000 * best.rmse_after:.1f} mV) but beside the refit explains less ({1000 * joint.rmse_after:.1f} "
             f"against {1000 * rival.rmse_after:.1f} mV)"))
+
+    def _refit_penalty(self, n_eff: float) -> float:
+        """What a joint step pays in score for the base refit's parameters beside its effect (a candidate's own score
+        counts the effect's alone): ``2·p_refit/n_eff``, the AIC-like term of :meth:`_scored`."""
+        return 2.0 * len(self.params_of(BASE_REFIT)[0]) / n_eff
 
     def _carried_start(self, alone: Candidate, names) -> np.ndarray:
         """Rows ``(groups, P)`` for the joint fit of ``alone``'s effect beside the refit adopted after it: what was

@@ -890,9 +890,7 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
                          "the current")
     # full: the most charged point; the test starts where the record first comes within FULL_TOL of it (charge
     # pulses at full may return to it or beyond, and noise and coarse sampling blur the count by tenths of a percent)
-    ah_full = float(np.min(ah))
-    k_full = _first_approach(ah, ah_full, ah)
-    q = float(capacity_ah) if capacity_ah else float(np.max(ah[k_full:]) - ah_full)
+    ah_full, k_full, q = _full_point(ah, capacity_ah)
     if not q > 0:
         raise DataError("the record discharges no charge: cannot place it on the SOC axis", file=src)
     soc = _soc_axis(ah, ah_full, q, soc_start)
@@ -940,10 +938,7 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
         # to beyond where the test started (a count that drifts over a day-long test, the charge a cell takes beyond
         # what it gave, a test started a little below full). The test down from full starts at the most charged
         # point before its first held phase; what follows it is post-conditioning (_test_end)
-        head = candidates[0][0]
-        ah_full = float(np.min(ah[:head + 1]))
-        k_full = _first_approach(ah[:head + 1], ah_full, ah)
-        q = float(capacity_ah) if capacity_ah else float(np.max(ah[k_full:]) - ah_full)
+        ah_full, k_full, q = _full_point(ah, capacity_ah, stop=candidates[0][0] + 1)
         soc = _soc_axis(ah, ah_full, q, soc_start)
         notes.append(f"the record charges back {float(ah_full - np.min(ah)):.3g} Ah beyond where its test started: "
                      "full is the most charged point before the test, not the charge back's end")
@@ -1100,6 +1095,17 @@ def _bottom_point(t, v, di, ah, soc, pulses, start: int, end: int, lev: RestLeve
     idx = np.clip(np.searchsorted(edges, zs, side="right") - 1, 0, max(edges.size - 1, 0))
     pts = [(float(np.median(zs[idx == j])), float(np.median(us[idx == j]))) for j in np.unique(idx)]
     return tuple(sorted(pts))
+
+
+def _full_point(ah: np.ndarray, capacity_ah, stop: int | None = None) -> tuple[float, int, float]:
+    """``(Ah_full, k_full, Q)``: the most charged point of the count ``ah`` among its samples before ``stop`` (all
+    by default), the first sample within :data:`FULL_TOL` of it (:func:`_first_approach`), and the capacity: the given
+    one, else the charge from there to the most discharged point after it."""
+    head = ah[:stop]
+    ah_full = float(np.min(head))
+    k_full = _first_approach(head, ah_full, ah)
+    q = float(capacity_ah) if capacity_ah else float(np.max(ah[k_full:]) - ah_full)
+    return ah_full, k_full, q
 
 
 def _first_approach(x: np.ndarray, extreme: float, ah: np.ndarray) -> int:
