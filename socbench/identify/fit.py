@@ -415,9 +415,13 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
                          "current column added to SOC from the reference")
         level_knots = np.unique(np.clip(np.round(analysis.level_soc, 3), 0.0, 1.0))
         weights = _fitted_samples(analysis, ocv, profile, notes)
-        # the SOC range the record covers on this axis: a cold HPPC counted with a warmer capacity ends above 0, a
-        # test put on part charged starts below 1
-        z_lo, z_hi = (float(np.clip(f(analysis.soc), 0.0, 1.0)) for f in (np.min, np.max))
+        # the SOC range the test covers on this axis: a cold HPPC counted with a warmer capacity ends above 0, a test
+        # put on part charged starts below 1; a charge first from empty or a charge back after, left out of the fit,
+        # covers nothing (knots there would be free of data: fitted so, a "charge first" record's R0 below its lowest
+        # pulse came out at 3× the test's). The test's own samples beyond its OCV rest points, left out of the fit
+        # too, stay in the range: a test that ends under load at its cut-off (the ORNL Leaf's) reaches empty
+        z_lo, z_hi = (float(np.clip(f(analysis.soc[analysis.start_index:analysis.end_index]), 0.0, 1.0))
+                      for f in (np.min, np.max))
         domain = (0.0 if z_lo < DOMAIN_FULL_BELOW else round(z_lo, 3),
                   1.0 if z_hi > 1.0 - DOMAIN_FULL_BELOW else round(z_hi, 3))
     else:

@@ -369,7 +369,7 @@ def fit_parameters(
             r = fun(res_x)[:n_voltage]
             J = jac(res_x)[:n_voltage]
         cov, stderr, corr = covariance(J, r, P)
-    domain = _domain(build, res_x, t, cur, temp, start_state, jumps, restarts)
+    domain = _domain(build, res_x, t, cur, temp, start_state, jumps, restarts, kept)
     domain["segments"] = 1 + len(restarts or ())
     rmse = float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
     rel = np.where(np.isfinite(span), 1e-4 * span, 0.0)
@@ -434,8 +434,10 @@ def _joined(profile: Profile, parts: list) -> Profile:
                          temperature_c=cat("temperature_c"), soc_ref=cat("soc_ref"))
 
 
-def _domain(build, theta, t, cur, temp, start_state, jumps, restarts) -> dict:
-    """The domain report (socbench.domain) of the fitted model along the fitted (compressed) record."""
+def _domain(build, theta, t, cur, temp, start_state, jumps, restarts, kept=None) -> dict:
+    """The domain report (socbench.domain) of the fitted model along the fitted (compressed) record, on its samples
+    ``kept`` (default all; a sample of weight 0 is not fitted, and where the model stands there is not the fit's
+    concern)."""
     from ..domain import domain_report
     from ..models.blocks import GuardLog
 
@@ -447,4 +449,6 @@ def _domain(build, theta, t, cur, temp, start_state, jumps, restarts) -> dict:
     except (ModelError, ConfigError, FloatingPointError) as exc:
         return {"error": str(exc)}
     log.samples = int(t.size)
+    if kept is not None:
+        states, volts = states[..., kept, :], volts[..., kept]
     return domain_report(model, states=states, voltage=volts, guards=log)
