@@ -23,12 +23,13 @@
    search's first step, the same in every fold, scored against the base fitted without it (held to the search's
    10 % held-out gain, not to its noise floor: no parameter of it but a state's initial value is fitted on the
    evaluation records, :data:`~socbench.diagnose.search.FIT_TEST_FLOORED`); the search goes on from the refitted base
-   with it. A branch the HPPC's rests show (:mod:`socbench.identify.rest_relaxation`: fitted on
-   the relaxation alone, no OCV error enters) is a first step where the evaluation records are predicted no worse:
-   a measurement on the test, whose share of their error the OCV's can hide. One that fails only the evaluation
-   records' gain is tried again beside what the search adds (:func:`search_beside`): another effect can dominate
-   their error and hide its share (a hysteresis even where the search ended within its noise floor,
-   :data:`DEFERRED_UNFLOORED`).
+   with it, and drops it at the end only where the model without it is no worse
+   (:data:`~socbench.diagnose.search.FIT_TEST_KEPT`). A branch the HPPC's rests show
+   (:mod:`socbench.identify.rest_relaxation`: fitted on the relaxation alone, no OCV error enters) is a first step
+   where the evaluation records are predicted no worse: a measurement on the test, whose share of their error the
+   OCV's can hide. One that fails only the evaluation records' gain is tried again beside what the search adds
+   (:func:`search_beside`): another effect can dominate their error and hide its share (a hysteresis even where the
+   search ended within its noise floor, :data:`DEFERRED_UNFLOORED`).
 4. **Search** (:mod:`socbench.diagnose.search`): blocked cross-validation over every evaluation record
    (:func:`~socbench.diagnose.data.make_folds`), signatures, one bounded fit per fold, held-out scores, the forward
    steps while the held-out RMSE falls by ≥ 10 %. The search is greedy; where its first effect (not a measured

@@ -28,7 +28,7 @@ One round, on the current model ``m`` (the base model, then the base model with 
    the held-out RMSE by ``min_gain`` (:meth:`Search._swap_drift`);
 6. then each named effect the final model does not need is dropped: refitted without it (everything else jointly, every
    fold), the model is within ``min_gain`` of the final held-out RMSE (:meth:`Search._prune`, the backward half of
-   stepwise selection).
+   stepwise selection); an effect the fit test found, no worse (:data:`FIT_TEST_KEPT`).
 
 Candidates. The bounded fit (the expensive part) runs for the ``max_fits`` best-supported families by signature R² (at
 least ``MIN_SIGNATURE_R2``); the four SOC drifts (capacity, current bias, leak, efficiency: one regressor shape up to
@@ -159,6 +159,16 @@ TWIN_TAU = 3.0
 #: are not there unchanged; held-out seeds 5150 and 6007 every rate unchanged; offered alone (``--oracle``, seed
 #: 2026) the hidden effect added in 84 → 85 of 120
 FIT_TEST_FLOORED = False
+#: a fit-test step that passed the search's gain (:meth:`Search.fit_test_step`, ``bar="gain"``: the effect fitted on
+#: the fit test, the evaluation records predicted ``min_gain`` better with nothing of it fitted on them) is dropped at
+#: the end (:meth:`Search._prune`) only where the model without it is no worse, not within ``min_gain``: that model
+#: still holds the base refit, fitted on the evaluation records themselves, which can take most of its share there
+#: without being the cell's (False: the ``min_gain`` bar of every searched effect). On the randomised benchmark's
+#: development seeds (840 cases), against that bar (stop 64): two more hysteresis singles named first (seed 2026
+#: case 17, seed 777 case 189, each dropped before with the records 5-10 % worse without it); one pair (seed 47 case
+#: 33, an offset and a hysteresis) kept a slow branch the fit test found beside the offset, not in the truth; every
+#: other outcome unchanged
+FIT_TEST_KEPT = True
 #: a measured temperature this far from the fit's [K] is evidence of a temperature effect (Search._choose)
 T_EVIDENCE_K = 5.0
 #: effects fitted again beside the base refit in the round after it was adopted (the best-scoring ones)
@@ -449,6 +459,9 @@ class Search:
         self.bias_measured = None
         #: effects added as the fit test's rests show them (:meth:`fit_test_step` with ``bar="not worse"``)
         self.shown_on_fit_test = set()
+        #: effects added as the fit test found them and the evaluation records confirmed (:meth:`fit_test_step` with
+        #: ``bar="gain"``): dropped at the end only where the model without them is no worse (:data:`FIT_TEST_KEPT`)
+        self.found_on_fit_test = set()
         if self.bias_rest is not None:
             mean, se, seconds = self.bias_rest
             lo, hi = self.bounds["current_bias"]["b0"]
@@ -605,10 +618,12 @@ class Search:
         if not np.isfinite(c.score) or bar == "gain" and not (c.score > 0 and c.rmse_after
                                                                 <= (1.0 - self.min_gain) * rmse_before):
             return None
+        if bar == "not worse" and c.rmse_after > rmse_before:
+            return None
         if bar == "not worse":
-            if c.rmse_after > rmse_before:
-                return None
             self.shown_on_fit_test.add(name)
+        elif bar == "gain" and FIT_TEST_KEPT:
+            self.found_on_fit_test.add(name)
         return dataclasses.replace(c, fit_test=True, fold_ratio=self.worst_block(c, sse_before), evidence=(
             f"{evidence}; held-out RMSE {1000 * rmse_before:.1f} → {1000 * c.rmse_after:.1f} mV (no parameter fitted "
             "on the evaluation data)"))
@@ -788,7 +803,9 @@ class Search:
         fade before the base refit took the aged cell's grown resistances) adds nothing beside it at the end, and a
         diagnosis should not name it. Measured inputs are never dropped (a current offset the rests measure, the
         temperature where the records' measured temperature differs from the fit's), nor a branch the fit test's rests
-        show (:meth:`fit_test_step`)."""
+        show (:meth:`fit_test_step`); an effect the fit test found that predicted the evaluation records ``min_gain``
+        better with nothing of it fitted on them goes only where the model without it is no worse
+        (:data:`FIT_TEST_KEPT`)."""
         n_eff = effective_samples(r_now)
         empty = {g: {} for g in self.groups}
         while True:
@@ -806,14 +823,18 @@ class Search:
                     trials.append((c.rmse_after, e, c))
             if not trials:
                 return steps
-            rmse_without, e, c = min(trials, key=lambda x: x[0])
-            if final.rmse_after < (1.0 - self.min_gain) * rmse_without:
+            # each effect's bar: within min_gain of the final RMSE; an effect the fit test found, no worse
+            trials = [t for t in trials if (t[0] <= final.rmse_after if t[1] in self.found_on_fit_test
+                                            else final.rmse_after >= (1.0 - self.min_gain) * t[0])]
+            if not trials:
                 return steps
+            rmse_without, e, c = min(trials, key=lambda x: x[0])
             steps = [st for st in steps if st.effect != e]
             if not steps:
                 return steps
+            bar = "no worse" if e in self.found_on_fit_test else f"less than {100 * self.min_gain:.0f} % worse"
             note = (f"; {e} dropped at the end: refitted without it, held-out RMSE {1000 * final.rmse_after:.1f} → "
-                    f"{1000 * c.rmse_after:.1f} mV (less than {100 * self.min_gain:.0f} % worse)")
+                    f"{1000 * c.rmse_after:.1f} mV ({bar})")
             steps[-1] = dataclasses.replace(steps[-1], evidence=steps[-1].evidence + note, rmse_after=c.rmse_after,
                                             held_residual=c.held_residual, fold_sse=c.fold_sse, fit=c.fit,
                                             layout=c.layout, effects=c.effects)
