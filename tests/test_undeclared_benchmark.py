@@ -19,9 +19,9 @@ from socbench.diagnose.randomized import case_kind, draw_case, markdown, oracle_
 SEED = 7
 #: rates of the 200-case run (seed 2026), docs/undeclared_effects.json (rates; pair_first from its cases); a rate the
 #: latest run measured lower than an earlier one keeps the earlier (the floors are never lowered): the run of
-#: 2026-11-29 02:24 measured soc_not_worse 191/200 (before: 190, the highest earlier), named first 80, cut 90 of 120,
-#: nulls 39 of 40, one of a pair first 36 of 40, each as high as the highest earlier
-RATES_200 = {"named_first_single": 80 / 120, "cut_30_single": 90 / 120, "nothing_added_null": 39 / 40,
+#: 2026-11-29 22:04 measured named first 82 of 120 (before: 80, the highest earlier), soc_not_worse 191/200, cut 90 of
+#: 120, nulls 39 of 40, one of a pair first 36 of 40, each as high as the highest earlier
+RATES_200 = {"named_first_single": 82 / 120, "cut_30_single": 90 / 120, "nothing_added_null": 39 / 40,
              "pair_first": 36 / 40, "soc_not_worse": 191 / 200}
 
 
