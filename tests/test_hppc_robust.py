@@ -433,6 +433,20 @@ def test_steps_no_longer_than_the_pulses(seed):
 PRECHARGE_DRAWS = 12
 
 
+def _charged_first(seed: int, **drawn):
+    """``(cell, record, the record cut at the top of its charge)``: a random HPPC (no gaps) whose record starts at
+    0-5 % SOC and charges to full at 0.2-0.5C before the test; ``drawn`` maps further layout fields to the range each
+    is drawn from (uniformly, after the charge's own draws)."""
+    rng, cell, lay, ins = H.random_setup(seed)
+    lay = dataclasses.replace(lay, gaps=False, precharge_from=float(rng.uniform(0.0, 0.05)),
+                              precharge_c=float(rng.uniform(0.2, 0.5)),
+                              **{name: float(rng.uniform(*span)) for name, span in drawn.items()})
+    rec = H.hppc_record(cell, lay, ins, seed=seed, with_soc_ref=False)
+    # segments: rest, charge, then the test's first rest (schedule[0]: segment start times)
+    cut = rec.profile.slice(int(np.searchsorted(rec.profile.time_s, rec.schedule[0][2])), rec.profile.n)
+    return cell, rec, cut
+
+
 def test_a_charge_from_empty_before_the_test_is_left_out_of_the_fit():
     """ORNL-Leaf shaped records: the cell starts near empty and charges to full before the HPPC, and the tester counts
     1-3 % more charge than the cell stores (coulombic loss), so the SOC counted back from full is off by up to
@@ -441,13 +455,7 @@ def test_a_charge_from_empty_before_the_test_is_left_out_of_the_fit():
     the pre-charge out (a note says so) and matches the yardstick: RMSE within 25 % and R0 within 10 %."""
     worst = []
     for k in range(PRECHARGE_DRAWS):
-        rng, cell, lay, ins = H.random_setup(20_000 + k)
-        lay = dataclasses.replace(lay, gaps=False, precharge_from=float(rng.uniform(0.0, 0.05)),
-                                  precharge_c=float(rng.uniform(0.2, 0.5)),
-                                  precharge_loss=float(rng.uniform(0.01, 0.03)))
-        rec = H.hppc_record(cell, lay, ins, seed=20_000 + k, with_soc_ref=False)
-        # segments: rest, charge, then the test's first rest (schedule[0]: segment start times)
-        cut = rec.profile.slice(int(np.searchsorted(rec.profile.time_s, rec.schedule[0][2])), rec.profile.n)
+        cell, rec, cut = _charged_first(20_000 + k, precharge_loss=(0.01, 0.03))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             whole = fit_model("thevenin", rec.profile, mode="constant")
@@ -471,11 +479,7 @@ def test_a_charge_from_empty_before_the_test_does_not_widen_the_fitted_soc_range
     outside the model's domain."""
     worst, outside = [], []
     for k in range(CHARGE_FIRST_PAPER_DRAWS):
-        rng, cell, lay, ins = H.random_setup(21_000 + k)
-        lay = dataclasses.replace(lay, gaps=False, precharge_from=float(rng.uniform(0.0, 0.05)),
-                                  precharge_c=float(rng.uniform(0.2, 0.5)), stop_soc=float(rng.uniform(0.1, 0.3)))
-        rec = H.hppc_record(cell, lay, ins, seed=21_000 + k, with_soc_ref=False)
-        cut = rec.profile.slice(int(np.searchsorted(rec.profile.time_s, rec.schedule[0][2])), rec.profile.n)
+        cell, rec, cut = _charged_first(21_000 + k, stop_soc=(0.1, 0.3))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             whole = fit_model("thevenin", rec.profile, mode="paper", capacity_ah=cell.capacity_ah)
