@@ -310,7 +310,7 @@ HOW = (
     "current sensor (the median current there, its error widened by the scatter of the rests' own levels beyond "
     "their noise: an offset reads the same in every rest, a creeping vehicle's load does not): an offset they read "
     "is added first as a measurement (fitted within "
-    "the rests' bounds — their level ± 3 standard errors and 0.05 % of 1C — whatever it does to the voltage error "
+    "the rests' bounds — their level ± 3 standard errors — whatever it does to the voltage error "
     "while another effect dominates it), a null one rules "
     "the offset out. The winner is added and refitted with what was added before while the "
     "held-out RMSE falls by ≥ 10 %, scores above the AIC-like penalty and stays above "

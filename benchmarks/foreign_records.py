@@ -30,8 +30,9 @@ alternating between Thevenin (the truth has a branch more: an extra RC is missin
 in subprocesses, as a user would. What the field record holds that the model lacks is therefore known: the current
 sensor's offset (always), and on a Thevenin base the second branch. The report counts exit codes, tracebacks and
 stderr lines that are not socbench's one-line warnings, wall times, how often the offset (where it is at least 0.1 %
-of 1C) and the missing branch are named, where the missing branch stood when it was not (``branch_verdict``: read from
-the diagnosis report with the search's own rules), and every other effect named (none is in the data).
+of 1C) and the missing branch are named, how far the offset named lies from the sensor's, where the missing branch
+stood when it was not (``branch_verdict``: read from the diagnosis report with the search's own rules), and every
+other effect named (none is in the data).
 """
 
 from __future__ import annotations
@@ -211,20 +212,22 @@ def run_case(seed: int, folder: str, refine_ocv: str = "always") -> dict:
     rc_diag, err_diag, s_diag = _cli(["diagnose", "--fit", str(hppc), "--eval", str(field), "--model", model,
                                       "--out", str(folder / f"case{seed}_diag"), "--no-figures",
                                       "--refine-ocv", refine_ocv], folder)
-    added, branch, left, soc_before, soc_after, capacity_fit = None, None, None, None, None, None
+    added, branch, left, soc_before, soc_after, capacity_fit, offset_named = None, None, None, None, None, None, None
     if rc_fit == 0:
         capacity_fit = json.loads((folder / f"case{seed}.json").read_text())["capacity_ah"]
     if rc_diag == 0:
         diagnosis = json.loads((folder / f"case{seed}_diag" / "diagnosis.json").read_text())
         added, left = diagnosis["effects_added"], diagnosis.get("left")
+        offset_named = next((st["params"]["b0"] for st in diagnosis["steps"] if st["effect"] == "current_bias"),
+                            None)
         soc_before = diagnosis["before"].get("soc", {}).get("ekf", {}).get("soc_rmse")
         soc_after = diagnosis["after"].get("soc", {}).get("ekf", {}).get("soc_rmse")
         if model == "thevenin":
             branch = branch_verdict(diagnosis)
     out.update({"model": model, "fit_exit": rc_fit, "diagnose_exit": rc_diag, "fit_s": s_fit, "diagnose_s": s_diag,
                 "traceback": "Traceback" in err_fit + err_diag, "leaks": _leaks(err_fit) + _leaks(err_diag),
-                "added": added, "branch": branch, "left": left, "soc_rmse_before_ekf": soc_before,
-                "soc_rmse_after_ekf": soc_after, "capacity_fit_ah": capacity_fit,
+                "added": added, "offset_named_a": offset_named, "branch": branch, "left": left,
+                "soc_rmse_before_ekf": soc_before, "soc_rmse_after_ekf": soc_after, "capacity_fit_ah": capacity_fit,
                 "knee_warned": NO_KNEE in err_fit + err_diag})
     return out
 
@@ -289,6 +292,8 @@ def summary(cases: list) -> dict:
             "offset_cases": len(offset), "offset_named": sum("current_bias" in c["added"] for c in offset),
             "quantised_offset_cases": sum(c["i_step_c"] >= 0.01 for c in offset),
             "quantised_offset_named": sum(c["i_step_c"] >= 0.01 and "current_bias" in c["added"] for c in offset),
+            "offset_error_c": _median_worst([abs(c["offset_named_a"] / c["capacity_ah"] - c["offset_c"])
+                                             for c in offset if c.get("offset_named_a") is not None]),
             "thevenin_cases": len(thev), "extra_rc_named": sum("extra_rc" in c["added"] for c in thev),
             "left_points_at_ocv": [c["seed"] for c in ran if suggests_ocv(c.get("left"))],
             "branch_verdicts": {v: n for v in VERDICTS
@@ -342,6 +347,9 @@ def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
          f"| slowest fit / diagnosis (wall, with start-up) | {s['fit_s_max']:.1f} s / {s['diagnose_s_max']:.1f} s |",
          f"| current offset ≥ {100 * OFFSET_NAMED_FRAC:.1f} % of 1C named | {s['offset_named']}/{s['offset_cases']} |",
          f"| … of those read with a 1 %-of-1C ADC step | {s['quantised_offset_named']}/{s['quantised_offset_cases']} |",
+         "| … the offset named against the sensor's, median / worst error (% of 1C) | "
+         + (" / ".join(f"{100 * x:.3f}" for x in s["offset_error_c"]) if s["offset_error_c"][0] is not None
+            else "–") + " |",
          f"| missing second branch named (Thevenin base) | {s['extra_rc_named']}/{s['thevenin_cases']} |",
          "| … where it stood when not named (the last round it was fitted in; `branch` column below) | " + "; ".join(
              f"{v}: {n}" for v, n in s["branch_verdicts"].items() if v != "named") + " |",

@@ -66,7 +66,8 @@ scored. So is a temperature whose resistances do not move with it (activation en
 
 The current sensor gets evidence of its own: where the records hold rests (at least ``FIELD_REST_MIN_S`` below C/20
 whose spread is the sensor's noise), the true current is zero, so the measured rest current *is* the offset. ``b`` is
-bounded to that median ± 3 standard errors (± C/500 for the sensor's resolution); with at least ``REST_EVIDENCE_S`` of
+bounded to that median ± 3 standard errors (± ``REST_BOUND_C`` of 1C beside them; where the rests read one level of
+an undithered sensor, its step over √12 stands for the standard error); with at least ``REST_EVIDENCE_S`` of
 rests a clear offset puts the current bias first — added whatever the voltage says of it, a measurement rather than an
 inference (on a cold record the temperature's error hides it until both are in the model) — a null one rules it out.
 """
@@ -105,6 +106,9 @@ TIE_R2 = 0.1
 REST_EVIDENCE_S = 600.0
 #: a rest current above this share of 1C (and four standard errors) is a current-sensor offset
 REST_OFFSET_C = 5e-4
+#: the least half-width of the offset's bounds about what the rests read, as a share of 1C (a noise-free reading
+#: still leaves the fit a range)
+REST_BOUND_C = 1e-5
 #: the rest current's standard error includes the scatter of the rests' levels beyond their noise (rest_current)
 REST_SPREAD = True
 #: the standard error of a median of normal noise over that of a mean (√(π/2))
@@ -465,10 +469,16 @@ class Search:
         if self.bias_rest is not None:
             mean, se, seconds = self.bias_rest
             lo, hi = self.bounds["current_bias"]["b0"]
-            # the rests' own uncertainty and the least offset they are taken to read (0.05 % of 1C): wider bounds
-            # (0.2 % of 1C until stop 47) let the offset take up another SOC drift of the base (a capacity a few per
-            # cent off), which the SOC filters then count (tests/test_rest_offset_bound.py)
-            half = 3.0 * se + base.capacity_ah * REST_OFFSET_C
+            # the rests' own uncertainty (an undithered ADC reads a rest as one level, no scatter: the offset is
+            # known to its step, not to zero): wider bounds (0.2 % of 1C beside it until stop 47, 0.05 % until stop
+            # 65) let the offset take up another SOC drift of the base (a capacity a few per cent off, a slow branch
+            # it lacks), and the offset named is not the sensor's (tests/test_rest_offset_bound.py)
+            known = se
+            if known <= 0.0:
+                records = folds.records if raw is None else raw
+                known = max(quantisation_step(p.current_a) for p in ([records] if hasattr(records, "current_a")
+                                                                     else records)) / np.sqrt(12.0)
+            half = 3.0 * known + base.capacity_ah * REST_BOUND_C
             self.bounds["current_bias"] = {"b0": (max(lo, mean - half), min(hi, mean + half))}
             if seconds >= REST_EVIDENCE_S:
                 self.bias_measured = bool(abs(mean) > max(4.0 * se, base.capacity_ah * REST_OFFSET_C))
