@@ -65,13 +65,12 @@ def test_a_measured_offset_is_fitted_within_what_the_rests_read(seed):
     assert abs(b0 - offset) <= 6.0 * se, (b0, offset, se)
 
 
-
 @pytest.mark.parametrize("seed", range(2))
 def test_an_offset_an_undithered_adc_reads_as_one_level_is_not_pinned_to_that_level(seed):
     """A noise-free current read in 0.5 %-of-1C steps: each rest reads the one level nearest the offset (0.3–0.45 %
     of 1C reads 0.5 %), with no scatter to give it a standard error. The offset is known to the step, not to the level:
     the bounds stand on the step over √12 (pinned to the level, the offset named would be the level's, 0.05–0.2 % of
-    1C off), and the voltage (the field cell is the HPPC's own) moves it towards the truth."""
+    1C off), and the voltage (the field cell is the HPPC's own) places it nearer the truth than the level."""
     step = 0.005
     fit, field, offset, q = draw(seed, fade=(1.0, 1.0), offset_c=(0.003, 0.0045), i_noise_c=0.0, i_lsb_c=step)
     level, se, _ = search.rest_current(field, q, min_s=search.FIELD_REST_MIN_S)
