@@ -443,8 +443,8 @@ class Search:
         cap = self.bounds["capacity"]
         self.bounds["capacity"] = {"cap0": (max(cap["cap0"][0], FADE_ONLY), cap["cap0"][1]),
                                    **({"r_growth": cap["r_growth"]} if resistance_growth else {})}
-        self.bias_rest = rest_current(folds.records if raw is None else raw, base.capacity_ah,
-                                      min_s=FIELD_REST_MIN_S)
+        measured = folds.records if raw is None else raw  # the records as the sensor read them
+        self.bias_rest = rest_current(measured, base.capacity_ah, min_s=FIELD_REST_MIN_S)
         self.noise_sd = noise_sd
         #: the raw records' noise → the averaged records' (0: the noise is not measured again as the model improves)
         self.noise_scale = float(noise_scale)
@@ -475,9 +475,7 @@ class Search:
             # it lacks), and the offset named is not the sensor's (tests/test_rest_offset_bound.py)
             known = se
             if known <= 0.0:
-                records = folds.records if raw is None else raw
-                known = max(quantisation_step(p.current_a) for p in ([records] if hasattr(records, "current_a")
-                                                                     else records)) / np.sqrt(12.0)
+                known = max(quantisation_step(p.current_a) for p in measured) / np.sqrt(12.0)
             half = 3.0 * known + base.capacity_ah * REST_BOUND_C
             self.bounds["current_bias"] = {"b0": (max(lo, mean - half), min(hi, mean + half))}
             if seconds >= REST_EVIDENCE_S:
