@@ -104,9 +104,11 @@ def hppc_segments(r, q: float, protocol: str = "from full") -> tuple[list, float
     return segs, z0
 
 
-def field_segments(r, q: float) -> list:
-    segs, z = [(r.uniform(60, 1800), 0.0)], 0.95
-    while z > 0.15:
+def field_segments(r, q: float, z_start: float = 0.95, z_end: float = 0.15) -> list:
+    """``[(duration s, current A), ...]`` of a field record from ``z_start`` down to ``z_end``: a parked rest, then
+    segments of 5–120 s at −0.5C (charge), 0.2, 0.5, 1 or 2C (×0.5–1.5), a rest of 5–30 min after 5 % of them."""
+    segs, z = [(r.uniform(60, 1800), 0.0)], z_start
+    while z > z_end:
         d, c = r.uniform(5, 120), float(r.choice([-0.5, 0.2, 0.5, 1.0, 2.0])) * q * r.uniform(0.5, 1.5)
         segs.append((d, c))
         z -= d * c / 3600 / q
@@ -133,21 +135,30 @@ def measure(segs, cell: dict, dt: float, z0: float, r, inst: dict):
     pol = sum(np.array([starts[k][1][j] for k in seg]) * np.exp(-tau_in / tau) + rk * cur * (1 - np.exp(-tau_in / tau))
               for j, (rk, tau) in enumerate(branches))
     volt = ocv(np.clip(zs, 0, 1)) - r0 * cur - pol
-    i_meas = cur + inst["i_offset"] + r.normal(0, inst["i_sd"], t.size)
-    v_meas = volt + r.normal(0, inst["v_sd"], t.size)
+    return t + inst["t0"], *read(cur, volt, r, inst), zs
+
+
+def read(cur, volt, r, inst: dict):
+    """``(current, voltage)`` as the instrument ``inst`` reads the true ones: the current sensor's offset and noise,
+    the voltage noise, each ADC's step."""
+    i_meas = cur + inst["i_offset"] + r.normal(0, inst["i_sd"], cur.size)
+    v_meas = volt + r.normal(0, inst["v_sd"], volt.size)
     if inst["i_step"] > 0:
         i_meas = np.round(i_meas / inst["i_step"]) * inst["i_step"]
     if inst["v_step"] > 0:
         v_meas = np.round(v_meas / inst["v_step"]) * inst["v_step"]
-    return t + inst["t0"], i_meas, v_meas, zs
+    return i_meas, v_meas
 
 
-def write(path: Path, t, i, v, soc=None, capacity_ah: float | None = 1.0):
+def write(path: Path, t, i, v, soc=None, capacity_ah: float | None = 1.0, temperature=None):
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["time_s", "current_a", "voltage_v"] + (["soc_ref"] if soc is not None else []))
+        w.writerow(["time_s", "current_a", "voltage_v"] + (["temperature_c"] if temperature is not None else [])
+                   + (["soc_ref"] if soc is not None else []))
         for k in range(t.size):
-            w.writerow([f"{t[k]:.3f}", f"{i[k]:.6g}", f"{v[k]:.6g}"] + ([f"{soc[k]:.6f}"] if soc is not None else []))
+            w.writerow([f"{t[k]:.3f}", f"{i[k]:.6g}", f"{v[k]:.6g}"]
+                       + ([f"{temperature[k]:.2f}"] if temperature is not None else [])
+                       + ([f"{soc[k]:.6f}"] if soc is not None else []))
     side = {"n_series": 1, "name": path.stem, **({"capacity_ah": capacity_ah} if capacity_ah else {})}
     path.with_suffix(".json").write_text(json.dumps(side))
 
@@ -159,8 +170,8 @@ def cycler_reference(t, z_true, q: float, r) -> np.ndarray:
     return z_true[0] + r.uniform(-0.01, 0.01) - counted / (q * r.uniform(0.97, 1.03))
 
 
-def draw(seed: int, folder: Path) -> dict:
-    r = np.random.default_rng(seed)
+def cell_and_instrument(r) -> tuple[dict, dict, float, float]:
+    """``(cell, instrument, HPPC sample period s, field sample period s)`` drawn from ``r`` (module docstring)."""
     q = float(np.exp(r.uniform(np.log(1.0), np.log(60.0))))
     r0 = r.uniform(0.02, 0.12) / q
     cell = {"q": q, "ocv": str(r.choice(["nmc", "lfp", "ripple"])), "r0": r0,
@@ -170,6 +181,13 @@ def draw(seed: int, folder: Path) -> dict:
             "v_sd": r.uniform(0.0005, 0.005), "i_sd": r.uniform(0.0, 0.01) * q,
             "i_offset": r.uniform(-0.005, 0.005) * q, "t0": float(r.choice([0.0, 1.7e9]))}
     dt_hppc, dt_field = float(r.choice([0.1, 0.5, 1.0, 2.0, 5.0, 10.0])), float(r.choice([1.0, 2.0, 5.0]))
+    return cell, inst, dt_hppc, dt_field
+
+
+def draw(seed: int, folder: Path) -> dict:
+    r = np.random.default_rng(seed)
+    cell, inst, dt_hppc, dt_field = cell_and_instrument(r)
+    q = cell["q"]
     protocol = PROTOCOLS[int(np.random.default_rng([seed, 1]).integers(len(PROTOCOLS)))]
     segs, z0 = hppc_segments(r, q, protocol)
     hppc = measure(segs, cell, dt_hppc, z0, r, inst)
@@ -429,22 +447,34 @@ def _left_cell(left) -> str:
             f"{gap})")
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", type=int, default=30)
+def case_arguments(ap, cases: int, doc: str) -> None:
+    """The arguments of every benchmark of this family: how many cases, from which seed, on how many processes, where
+    the records go and where the report is written."""
+    ap.add_argument("--cases", type=int, default=cases)
     ap.add_argument("--seed", type=int, default=0, help="first case's seed (cases use seed, seed+1, ...)")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--out", default=None, help="folder for the records and outputs (default: a temporary one)")
-    ap.add_argument("--doc", default=str(REPO / "docs" / "foreign_records.md"))
+    ap.add_argument("--doc", default=str(REPO / "docs" / doc))
+
+
+def run_cases(run, args, *extra) -> list:
+    """``run(seed, folder, *extra)`` for each of ``args.cases`` seeds from ``args.seed`` on ``args.jobs`` processes,
+    the records in ``args.out`` (default: a new temporary folder)."""
+    folder = Path(args.out or tempfile.mkdtemp(prefix="socbench-foreign-"))
+    folder.mkdir(parents=True, exist_ok=True)
+    seeds = list(range(args.seed, args.seed + args.cases))
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        return list(pool.map(run, seeds, [str(folder)] * len(seeds), *[[x] * len(seeds) for x in extra]))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    case_arguments(ap, 30, "foreign_records.md")
     ap.add_argument("--refine-ocv", default="always", choices=("coarse", "always", "never"),
                     help="passed to socbench diagnose (default: its own default, always)")
     args = ap.parse_args(argv)
-    folder = Path(args.out or tempfile.mkdtemp(prefix="socbench-foreign-"))
-    folder.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    seeds = list(range(args.seed, args.seed + args.cases))
-    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        cases = list(pool.map(run_case, seeds, [str(folder)] * len(seeds), [args.refine_ocv] * len(seeds)))
+    cases = run_cases(run_case, args, args.refine_ocv)
     s = summary(cases)
     command = (f"python benchmarks/foreign_records.py --cases {args.cases} --seed {args.seed} --jobs {args.jobs}"
                + (f" --refine-ocv {args.refine_ocv}" if args.refine_ocv != "always" else ""))

@@ -1,0 +1,83 @@
+"""The foreign-effects benchmark's generator (benchmarks/foreign_effects.py): without an effect it is the foreign
+records' own cell, sample for sample; each effect it hides has the form its docstring states (a play-operator
+hysteresis of ±M, a cold cell's two activation energies and its warming); its scoring of a diagnosis."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+QUIET = {"v_step": 0.0, "i_step": 0.0, "v_sd": 0.0, "i_sd": 0.0, "i_offset": 0.0, "t0": 0.0}
+
+
+def _benchmark():
+    spec = importlib.util.spec_from_file_location("foreign_effects", REPO / "benchmarks" / "foreign_effects.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+fe = _benchmark()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_without_an_effect_it_is_the_foreign_records_cell(seed):
+    r = np.random.default_rng(seed)
+    cell, inst, dt, _ = fe.fr.cell_and_instrument(r)
+    segs, z0 = fe.fr.hppc_segments(r, cell["q"], fe.fr.PROTOCOLS[seed % len(fe.fr.PROTOCOLS)])
+    theirs = fe.fr.measure(segs, cell, dt, z0, np.random.default_rng([seed, 9]), inst)
+    ours = fe.simulate(segs, cell, dt, z0, np.random.default_rng([seed, 9]), inst)
+    for a, b in zip(theirs, ours):
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-9)
+
+
+def _cell(r):
+    cell, _, _, _ = fe.fr.cell_and_instrument(r)
+    return cell
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_play_hysteresis_is_plus_m_after_a_charge_and_minus_m_after_a_discharge(seed):
+    """A charge, then a discharge, each longer than the play's width, each followed by a rest of 10 branch time
+    constants: at each rest's end the voltage lies M above, then M below, the cell without hysteresis."""
+    r = np.random.default_rng([seed, 1])
+    cell = _cell(r)
+    q, slow = cell["q"], max(tau for _, tau in cell["branches"])
+    play = fe.hidden_effect("hysteresis", cell, np.random.default_rng([seed, 2]))
+    move = 2.0 * play["width"] * 3600.0  # s at 1C: twice the width
+    segs = [(move, -q), (10 * slow, 0.0), (move, q), (10 * slow, 0.0)]
+    plain = fe.simulate(segs, cell, 1.0, 0.3, np.random.default_rng(0), QUIET)
+    hyst = fe.simulate(segs, cell, 1.0, 0.3, np.random.default_rng(0), QUIET, play=play, h0=0.0)
+    ends = np.searchsorted(plain[0], np.cumsum([d for d, _ in segs])[[1, 3]]) - 1
+    np.testing.assert_allclose(hyst[2][ends] - plain[2][ends], [play["M"], -play["M"]], rtol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_cold_cell_drops_by_its_own_r0_and_warms_under_load(seed):
+    """From rest at the ambient, the first sample of a 1C step lies ``R0·k(T_amb; E_a,R0)·I`` below the rest (its
+    branches have not moved yet) plus the entropic shift; under the load the cell warms above the ambient."""
+    r = np.random.default_rng([seed, 3])
+    cell = _cell(r)
+    cold = fe.hidden_effect("cold", cell, np.random.default_rng([seed, 4]))
+    q = cell["q"]
+    segs = [(60.0, 0.0), (1800.0, q)]
+    t, _, v, _, temp = fe.simulate(segs, cell, 0.01, 0.8, np.random.default_rng(0), QUIET, cold=cold)
+    first = np.searchsorted(t, 60.0)
+    drop = v[first - 1] - v[first]
+    expected = cell["r0"] * fe.arrhenius(cold["ea_r0"], cold["ambient_c"]) * q
+    assert drop == pytest.approx(expected, rel=0.02)  # the branches move by dt/τ ≤ 0.3 % of their drop
+    assert temp[first - 1] == pytest.approx(cold["ambient_c"])
+    assert temp[-1] > cold["ambient_c"] + 0.5 * cold["rise_1c_k"] * (1 - np.exp(-1800.0 / cold["tau_th_s"]))
+
+
+def test_the_score_never_counts_a_current_offset_wrong():
+    case = {"kind": "capacity", "added": ["current_bias", "hysteresis"], "soc_before": 0.01, "soc_after": 0.02}
+    assert fe.score(case) == {"named": False, "first": False, "false": ["hysteresis"], "soc_worse": True}
+    case = {"kind": "cold", "added": ["current_bias", "temperature"], "soc_before": 0.01, "soc_after": 0.011}
+    assert fe.score(case) == {"named": True, "first": True, "false": [], "soc_worse": False}
+    case = {"kind": "none", "added": ["current_bias"], "soc_before": None, "soc_after": None}
+    assert fe.score(case) == {"named": True, "first": True, "false": [], "soc_worse": None}
