@@ -44,7 +44,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import foreign_records as fr  # noqa: E402  (the cell, layouts, instrument and file writer of this family)
 
-REPO = fr.REPO
 #: kinds of case, by seed modulo 4
 KINDS = ("none", "capacity", "cold", "hysteresis")
 #: the effect socbench should name for each kind
@@ -151,13 +150,15 @@ def draw(seed: int, folder: Path) -> dict:
     segs, z0 = fr.hppc_segments(r, q, protocol)
     play = effect if kind == "hysteresis" else None
     hppc = simulate(segs, cell, dt_hppc, z0, r, inst, play=play, h0=1.0 if z0 > 0.5 else -1.0)
-    field_cell = dict(cell)
+    field_cell = cell
     if kind == "capacity":
         grow = 1.0 + effect["r_growth"]
         field_cell = {**cell, "q": q * (1.0 - effect["fade"]), "r0": cell["r0"] * grow,
                       "branches": [(rk * grow, tau) for rk, tau in cell["branches"]]}
     segs_field, derate = field_with_recharge(np.random.default_rng([seed, 2]), field_cell["q"]), 1.0
-    for _ in range(DERATE_TRIES):  # a battery management system cuts the load before the cell reaches its cutoff
+    # a battery management system cuts the load before the cell reaches its cut-off (after DERATE_TRIES the record is
+    # written as it is: a cell still below it is one socbench refuses in one line, as it should)
+    for _ in range(DERATE_TRIES):
         rf = np.random.default_rng([seed, 2, 1])
         field = simulate([(d, c * derate) for d, c in segs_field], field_cell, dt_field, 0.95, rf, inst,
                          cold=effect if kind == "cold" else None, play=play, h0=1.0)
