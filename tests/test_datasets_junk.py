@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,7 @@ from socbench.datasets import FORMATS, detect_format, load
 from socbench.datasets.calce import load_calce
 from socbench.datasets.canonical import load_canonical
 from socbench.datasets.nissan_leaf import load_nissan_leaf
-from socbench.errors import DataError
+from socbench.errors import DataError, SocbenchWarning
 from socbench.profile import SOC_WARN_MARGIN, Profile
 
 SETTINGS = settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -41,13 +42,21 @@ def _assert_clean(p: Profile) -> None:
 
 
 def _load_or_dataerror(fn, path):
-    try:
-        p = fn(path)
-    except DataError as exc:
-        assert str(exc)  # a message, one line
-        assert "\n" not in str(exc)
-        return None
-    _assert_clean(p)
+    """The profile ``fn`` reads from ``path``, clean, or None where it raised a one-line DataError; any warning on the
+    way is socbench's own one-line warning (no library warning leaks)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            p = fn(path)
+        except DataError as exc:
+            assert str(exc)  # a message, one line
+            assert "\n" not in str(exc)
+            p = None
+    for w in caught:
+        assert issubclass(w.category, SocbenchWarning), f"{w.category.__name__}: {w.message}"
+        assert "\n" not in str(w.message)
+    if p is not None:
+        _assert_clean(p)
     return p
 
 
