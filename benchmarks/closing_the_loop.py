@@ -14,9 +14,10 @@ Cases (the diagnosis is told the base model and the files, nothing else):
   ``benchmarks/undeclared_effects.py`` wrote (``--benchmark``), with the command and wall time it recorded, and the
   rates of the same benchmark on the development seeds 31, 47 (120 cases each), 777 and 4242 (200 each; 4242 was
   the held-out seed until stop 46 read its misses case by case; ``--development``) and on held-out seeds
-  (``--held-out``: 5150 since stop 46, 6007 since stop 47; run once after a change, never read case by case —
-  stop 47 listed 5150's missed cases beside the development seeds' when choosing what to work on, which is why
-  6007 was added, run once and not listed).
+  (``--held-out``: 5150 since stop 46, 6007 since stop 47, 8128 since stop 66; run once after a change, never read
+  case by case — stop 47 listed 5150's missed cases beside the development seeds' when choosing what to work on,
+  which is why 6007 was added, run once and not listed; 8128 was first run at stop 66 on the search as it stood, and
+  its null cases were read to describe what it showed).
 
 Each case is timed (wall clock and CPU of this process) on this machine.
 """
@@ -706,7 +707,8 @@ def main(argv=None) -> int:
                     help="JSONs of the same benchmark on the development seeds (their rates are tabled when they "
                          "exist)")
     ap.add_argument("--held-out", nargs="*", default=["docs/undeclared_effects_seed5150.json",
-                                                      "docs/undeclared_effects_seed6007.json"],
+                                                      "docs/undeclared_effects_seed6007.json",
+                                                      "docs/undeclared_effects_seed8128.json"],
                     help="JSONs of the same benchmark on held-out seeds: run once after a change, never looked at "
                          "case by case (tabled beside the development seeds when they exist)")
     ap.add_argument("--foreign-effects", default="docs/foreign_effects.json",
