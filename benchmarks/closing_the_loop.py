@@ -16,8 +16,8 @@ Cases (the diagnosis is told the base model and the files, nothing else):
   the held-out seed until stop 46 read its misses case by case; ``--development``) and on held-out seeds
   (``--held-out``: 5150 since stop 46, 6007 since stop 47, 8128 since stop 66; run once after a change, never read
   case by case — stop 47 listed 5150's missed cases beside the development seeds' when choosing what to work on,
-  which is why 6007 was added, run once and not listed; 8128 was first run at stop 66 on the search as it stood, and
-  its null cases were read to describe what it showed).
+  which is why 6007 was added, run once and not listed; 8128 was added at stop 66, run once on the search of stop
+  65, and its null cases were read afterwards to describe what it showed).
 
 Each case is timed (wall clock and CPU of this process) on this machine.
 """
