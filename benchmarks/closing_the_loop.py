@@ -567,7 +567,7 @@ def render_foreign_effects(fe: dict | None) -> list:
          "hides them in forms of its own, in records of another generator (numpy only, no socbench code: the cells, "
          "HPPC layouts and instruments of docs/foreign_records.md, a DP base): an aged cell whose resistances grew "
          "with its fade; a cold field record whose R0 and branches follow two activation energies, with an entropic "
-         "shift and a cell warming by its own losses; a play-operator hysteresis (linear in the charge, saturating) "
+         "shift and a cell warming by its own losses; a stop-operator hysteresis (linear in the charge, saturating) "
          "where socbench fits Plett's exponential one; and null cases. The diagnosis runs as a user runs it (the "
          f"CLI); a current offset named is never counted wrong (the sensor has one). `{fe['command']}` "
          f"(docs/foreign_effects.md): diagnose exit 0 in {s['diagnose_ok']}/{s['cases']}, slowest diagnosis "

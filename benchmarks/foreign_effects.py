@@ -16,10 +16,10 @@ of this generator's own, unlike socbench's (`socbench.models.effects`):
   (``T' = (T_amb − T)/τ_th + ΔT₁·(I/1C)²/τ_th``, τ_th 10–30 min, ΔT₁ 2–8 K at 1C): its temperature column (±0.3 K)
   moves over the record. Where the load would take the cold cell below its 2.5 V cut-off, the field record's
   current is derated (×0.8 until it does not), as a battery management system would.
-* **hysteresis** — a play operator: the hysteresis state moves linearly with the charge passed, across its whole range
-  in 3–15 % of the capacity, and stops at ±1 (Plett's state, which socbench fits, approaches ±1 exponentially); the
-  voltage is ``U(z) + M·h``, M 10–25 mV (LFP-like OCV) or 3–10 mV; in both records (it is the cell's), full from a
-  charge (h = +1), empty from a discharge (h = −1).
+* **hysteresis** — a stop operator (Prandtl's: a saturated integral of the charge): the hysteresis state moves
+  linearly with the charge passed, across its whole range in 3–15 % of the capacity, and stops at ±1 (Plett's state,
+  which socbench fits, approaches ±1 exponentially); the voltage is ``U(z) + M·h``, M 10–25 mV (LFP-like OCV) or
+  3–10 mV; in both records (it is the cell's), full from a charge (h = +1), empty from a discharge (h = −1).
 * **none** — nothing hidden: a null case.
 
 The kind cycles with the seed (none, capacity, cold, hysteresis). The HPPC file declares its capacity (the SOC axis is
@@ -67,15 +67,15 @@ def arrhenius(ea: float, t_c: float) -> float:
 
 
 def simulate(segs, cell: dict, dt: float, z0: float, r, inst: dict, cold: dict | None = None,
-             play: dict | None = None, h0: float = 0.0):
+             stop: dict | None = None, h0: float = 0.0):
     """Sample times, measured current and voltage, true SOC and the cell's temperature (°C) of the cell ``cell``
     under the segments ``segs`` (``[(s, A)]``, discharge positive), sampled every ``dt`` s at a random phase.
 
     Each segment is cut into pieces of at most :data:`PIECE_S`; over a piece the current and the cell's parameters are
     constant and the state is solved exactly: ``z`` by the charge, each branch as ``v·e^{−t/τ} + R·I·(1 − e^{−t/τ})``,
-    the play operator's state ``h`` linearly in the charge, clipped to ±1. ``cold``: ambient, activation energies,
+    the stop operator's state ``h`` linearly in the charge, clipped to ±1. ``cold``: ambient, activation energies,
     entropic coefficient and self-heating (module docstring), the parameters taken at each piece's start temperature;
-    ``play``: ``{"M": V, "width": share of the capacity}``. Without either it is
+    ``stop``: ``{"M": V, "width": share of the capacity}``. Without either it is
     :func:`foreign_records.measure` (same random draws, same values)."""
     ocv = fr.ocv_shape(cell["ocv"])
     q, r0, branches = cell["q"], cell["r0"], cell["branches"]
@@ -97,8 +97,8 @@ def simulate(segs, cell: dict, dt: float, z0: float, r, inst: dict, cold: dict |
         z -= c * d / 3600 / q
         v = np.array([vk * np.exp(-d / tau) + rk * kb * c * (1 - np.exp(-d / tau))
                       for vk, (rk, tau) in zip(v, branches)])
-        if play:
-            h = float(np.clip(h - 2.0 * c * d / (3600 * q * play["width"]), -1.0, 1.0))
+        if stop:
+            h = float(np.clip(h - 2.0 * c * d / (3600 * q * stop["width"]), -1.0, 1.0))
         if cold:
             decay = np.exp(-d / cold["tau_th_s"])
             temp = cold["ambient_c"] + (temp - cold["ambient_c"]) * decay \
@@ -108,8 +108,8 @@ def simulate(segs, cell: dict, dt: float, z0: float, r, inst: dict, cold: dict |
     zs = z_s[k] - cur * tau_in / 3600 / q
     pol = sum(v_s[k, j] * np.exp(-tau_in / tau) + r_s[k, j] * cur * (1 - np.exp(-tau_in / tau))
               for j, (_, tau) in enumerate(branches))
-    hs = np.clip(h_s[k] - 2.0 * cur * tau_in / (3600 * q * play["width"]), -1.0, 1.0) if play else 0.0
-    volt = ocv(np.clip(zs, 0, 1)) + du_s[k] + (play["M"] * hs if play else 0.0) - r0_s[k] * cur - pol
+    hs = np.clip(h_s[k] - 2.0 * cur * tau_in / (3600 * q * stop["width"]), -1.0, 1.0) if stop else 0.0
+    volt = ocv(np.clip(zs, 0, 1)) + du_s[k] + (stop["M"] * hs if stop else 0.0) - r0_s[k] * cur - pol
     return t + inst["t0"], *fr.read(cur, volt, r, inst), zs, temp_s[k]
 
 
@@ -148,8 +148,8 @@ def draw(seed: int, folder: Path) -> dict:
     effect = hidden_effect(kind, cell, np.random.default_rng([seed, 5]))
     protocol = fr.PROTOCOLS[int(np.random.default_rng([seed, 1]).integers(len(fr.PROTOCOLS)))]
     segs, z0 = fr.hppc_segments(r, q, protocol)
-    play = effect if kind == "hysteresis" else None
-    hppc = simulate(segs, cell, dt_hppc, z0, r, inst, play=play, h0=1.0 if z0 > 0.5 else -1.0)
+    stop = effect if kind == "hysteresis" else None
+    hppc = simulate(segs, cell, dt_hppc, z0, r, inst, stop=stop, h0=1.0 if z0 > 0.5 else -1.0)
     field_cell = cell
     if kind == "capacity":
         grow = 1.0 + effect["r_growth"]
@@ -161,7 +161,7 @@ def draw(seed: int, folder: Path) -> dict:
     for _ in range(DERATE_TRIES):
         rf = np.random.default_rng([seed, 2, 1])
         field = simulate([(d, c * derate) for d, c in segs_field], field_cell, dt_field, 0.95, rf, inst,
-                         cold=effect if kind == "cold" else None, play=play, h0=1.0)
+                         cold=effect if kind == "cold" else None, stop=stop, h0=1.0)
         if field[2].min() >= V_CUTOFF:
             break
         derate *= DERATE
@@ -243,7 +243,7 @@ def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
         "in the field record in a form of this benchmark's own, unlike the one socbench fits (the module docstring of "
         "`benchmarks/foreign_effects.py` gives each): an aged cell whose resistances grew with its fade; a cold field "
         "record whose R0 and branches follow two activation energies, with an entropic OCV shift and a cell that "
-        "warms by its own losses; a play-operator hysteresis (linear in charge, saturating) where socbench fits "
+        "warms by its own losses; a stop-operator hysteresis (linear in charge, saturating) where socbench fits "
         "Plett's exponential one; and null cases. The base model is DP, the cell's own structure. `socbench "
         "diagnose` runs in a subprocess, as a user would run it. A current offset named is never counted wrong "
         "(the sensor has one).", "",

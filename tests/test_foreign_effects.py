@@ -1,5 +1,5 @@
 """The foreign-effects benchmark's generator (benchmarks/foreign_effects.py): without an effect it is the foreign
-records' own cell, sample for sample; each effect it hides has the form its docstring states (a play-operator
+records' own cell, sample for sample; each effect it hides has the form its docstring states (a stop-operator
 hysteresis of ±M, a cold cell's two activation energies and its warming); its scoring of a diagnosis."""
 
 from __future__ import annotations
@@ -41,19 +41,19 @@ def _cell(r):
 
 
 @pytest.mark.parametrize("seed", range(3))
-def test_the_play_hysteresis_is_plus_m_after_a_charge_and_minus_m_after_a_discharge(seed):
-    """A charge, then a discharge, each longer than the play's width, each followed by a rest of 10 branch time
+def test_the_stop_hysteresis_is_plus_m_after_a_charge_and_minus_m_after_a_discharge(seed):
+    """A charge, then a discharge, each longer than the stop's width, each followed by a rest of 10 branch time
     constants: at each rest's end the voltage lies M above, then M below, the cell without hysteresis."""
     r = np.random.default_rng([seed, 1])
     cell = _cell(r)
     q, slow = cell["q"], max(tau for _, tau in cell["branches"])
-    play = fe.hidden_effect("hysteresis", cell, np.random.default_rng([seed, 2]))
-    move = 2.0 * play["width"] * 3600.0  # s at 1C: twice the width
+    stop = fe.hidden_effect("hysteresis", cell, np.random.default_rng([seed, 2]))
+    move = 2.0 * stop["width"] * 3600.0  # s at 1C: twice the width
     segs = [(move, -q), (10 * slow, 0.0), (move, q), (10 * slow, 0.0)]
     plain = fe.simulate(segs, cell, 1.0, 0.3, np.random.default_rng(0), QUIET)
-    hyst = fe.simulate(segs, cell, 1.0, 0.3, np.random.default_rng(0), QUIET, play=play, h0=0.0)
+    hyst = fe.simulate(segs, cell, 1.0, 0.3, np.random.default_rng(0), QUIET, stop=stop, h0=0.0)
     ends = np.searchsorted(plain[0], np.cumsum([d for d, _ in segs])[[1, 3]]) - 1
-    np.testing.assert_allclose(hyst[2][ends] - plain[2][ends], [play["M"], -play["M"]], rtol=1e-9)
+    np.testing.assert_allclose(hyst[2][ends] - plain[2][ends], [stop["M"], -stop["M"]], rtol=1e-9)
 
 
 @pytest.mark.parametrize("seed", range(3))
