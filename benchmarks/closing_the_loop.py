@@ -557,11 +557,16 @@ def render_pooled(pooled: dict | None) -> list:
             "refit.", ""]
 
 
-def render_foreign_effects(fe: dict | None) -> list:
+def render_foreign_effects(report: dict | None) -> list:
     """The section on effects hidden in a form socbench does not fit (docs/foreign_effects.json)."""
-    if not fe:
+    if not report:
         return []
-    s = fe["summary"]
+    here = str(Path(__file__).resolve().parent)
+    if here not in sys.path:  # run as a script, the benchmarks' folder is there already
+        sys.path.insert(0, here)
+    import foreign_effects as fe  # the benchmark's own table of its rates
+
+    s = report["summary"]
     L = ["## Effects in another generator's form", "",
          "The randomised benchmark hides effects made by socbench's own effect models. `benchmarks/foreign_effects.py` "
          "hides them in forms of its own, in records of another generator (numpy only, no socbench code: the cells, "
@@ -569,20 +574,12 @@ def render_foreign_effects(fe: dict | None) -> list:
          "with its fade; a cold field record whose R0 and branches follow two activation energies, with an entropic "
          "shift and a cell warming by its own losses; a stop-operator hysteresis (linear in the charge, saturating) "
          "where socbench fits Plett's exponential one; and null cases. The diagnosis runs as a user runs it (the "
-         f"CLI); a current offset named is never counted wrong (the sensor has one). `{fe['command']}` "
+         f"CLI); a current offset named is never counted wrong (the sensor has one). `{report['command']}` "
          f"(docs/foreign_effects.md): diagnose exit 0 in {s['diagnose_ok']}/{s['cases']}, slowest diagnosis "
          f"{s['slowest_diagnose_s']:.1f} s.", "",
-         "| hidden | expected name | named | named first | an effect named that is not there | held-out RMSE before "
-         "→ after, median mV | EKF SOC RMSE before → after, median % | EKF SOC worse by > 0.2 points |",
-         "|---|---|---|---|---|---|---|---|"]
-    for kind, row in s["kinds"].items():
-        n = row["cases"]
-        expected = {"none": "nothing", "cold": "temperature"}.get(kind, kind)
-        L.append(f"| {kind} | {expected} | {row['named']}/{n} | {row['first']}/{n} | {row['false']}/{n} | "
-                 f"{_fmt(row['rmse_before_mv'], 1)} → {_fmt(row['rmse_after_mv'], 1)} | "
-                 f"{_fmt(row['soc_before_pct'], 2)} → {_fmt(row['soc_after_pct'], 2)} | {row['soc_worse']}/{n} |")
-    missed = {kind: [c for c in fe["cases"] if c["kind"] == kind and expected not in (c["added"] or [])]
-              for kind, expected in (("capacity", "capacity"), ("hysteresis", "hysteresis"))}
+         *fe.kinds_table(s)]
+    missed = {kind: [c for c in report["cases"] if c["kind"] == kind and fe.EXPECTED[kind] not in (c["added"] or [])]
+              for kind in ("capacity", "hysteresis")}
     fades = ", ".join(f"{100 * c['effect']['fade']:.0f} % ({c['ocv']})" for c in missed["capacity"])
     gaps = ", ".join(f"{c['effect']['M'] / (c['v_sd_mv'] / 1000):.1f} ({c['ocv']})" for c in missed["hysteresis"])
     flat = sum(c["ocv"] == "lfp" for c in missed["capacity"])
@@ -596,10 +593,6 @@ def render_foreign_effects(fe: dict | None) -> list:
           "exponential state (Plett's) does not follow the generator's linear ramp closely enough to pass the "
           "nested test against the refit."]
     return L + [""]
-
-
-def _fmt(x, digits: int) -> str:
-    return "–" if x is None else f"{x:.{digits}f}"
 
 
 def render(results: dict) -> str:

@@ -42,75 +42,17 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import foreign_records as fr  # noqa: E402  (the cell, layouts, instrument and file writer of this family)
+import foreign_records as fr  # noqa: E402  (the cell and its solver, layouts, instrument and file writer)
 
 #: kinds of case, by seed modulo 4
 KINDS = ("none", "capacity", "cold", "hysteresis")
 #: the effect socbench should name for each kind
 EXPECTED = {"none": None, "capacity": "capacity", "cold": "temperature", "hysteresis": "hysteresis"}
-#: the longest piece a segment is cut into: the cell's parameters (its temperature) are held over each piece
-PIECE_S = 30.0
 #: the cell's discharge cut-off [V]: a field record's load is derated (×``DERATE``, up to ``DERATE_TRIES`` times)
 #: until its voltage stays above it — a cold cell's resistance would otherwise take it below a volt
 V_CUTOFF = 2.5
 DERATE = 0.8
 DERATE_TRIES = 8
-#: the fit test's temperature [°C]
-T_LAB_C = 25.0
-R_GAS = 8.314462618
-KELVIN = 273.15
-
-
-def arrhenius(ea: float, t_c: float) -> float:
-    """A resistance's factor at ``t_c`` °C against 25 °C for activation energy ``ea`` J/mol."""
-    return float(np.exp(ea / R_GAS * (1.0 / (t_c + KELVIN) - 1.0 / (T_LAB_C + KELVIN))))
-
-
-def simulate(segs, cell: dict, dt: float, z0: float, r, inst: dict, cold: dict | None = None,
-             stop: dict | None = None, h0: float = 0.0):
-    """Sample times, measured current and voltage, true SOC and the cell's temperature (°C) of the cell ``cell``
-    under the segments ``segs`` (``[(s, A)]``, discharge positive), sampled every ``dt`` s at a random phase.
-
-    Each segment is cut into pieces of at most :data:`PIECE_S`; over a piece the current and the cell's parameters are
-    constant and the state is solved exactly: ``z`` by the charge, each branch as ``v·e^{−t/τ} + R·I·(1 − e^{−t/τ})``,
-    the stop operator's state ``h`` linearly in the charge, clipped to ±1. ``cold``: ambient, activation energies,
-    entropic coefficient and self-heating (module docstring), the parameters taken at each piece's start temperature;
-    ``stop``: ``{"M": V, "width": share of the capacity}``. Without either it is
-    :func:`foreign_records.measure` (same random draws, same values)."""
-    ocv = fr.ocv_shape(cell["ocv"])
-    q, r0, branches = cell["q"], cell["r0"], cell["branches"]
-    pieces = [(min(PIECE_S, d - s), c) for d, c in segs for s in np.arange(0.0, d, PIECE_S)]
-    edges = np.cumsum([0.0] + [d for d, _ in pieces])
-    t = np.arange(r.uniform(0, dt), edges[-1], dt)
-    k = np.searchsorted(edges, t, side="right") - 1
-    n = len(pieces)
-    z_s, h_s, temp_s = np.empty(n), np.empty(n), np.empty(n)
-    v_s, r_s, r0_s, du_s = np.empty((n, len(branches))), np.empty((n, len(branches))), np.empty(n), np.empty(n)
-    z, h, v = z0, h0, np.zeros(len(branches))
-    temp = cold["ambient_c"] if cold else T_LAB_C
-    for m, (d, c) in enumerate(pieces):
-        kr0 = arrhenius(cold["ea_r0"], temp) if cold else 1.0
-        kb = arrhenius(cold["ea_branch"], temp) if cold else 1.0
-        z_s[m], h_s[m], temp_s[m], v_s[m] = z, h, temp, v
-        r0_s[m], r_s[m] = r0 * kr0, [rk * kb for rk, _ in branches]
-        du_s[m] = cold["dudt"] * (temp - T_LAB_C) if cold else 0.0
-        z -= c * d / 3600 / q
-        v = np.array([vk * np.exp(-d / tau) + rk * kb * c * (1 - np.exp(-d / tau))
-                      for vk, (rk, tau) in zip(v, branches)])
-        if stop:
-            h = float(np.clip(h - 2.0 * c * d / (3600 * q * stop["width"]), -1.0, 1.0))
-        if cold:
-            decay = np.exp(-d / cold["tau_th_s"])
-            temp = cold["ambient_c"] + (temp - cold["ambient_c"]) * decay \
-                + cold["rise_1c_k"] * (c / q) ** 2 * (1 - decay)
-    cur = np.array([pieces[m][1] for m in k])
-    tau_in = t - edges[k]
-    zs = z_s[k] - cur * tau_in / 3600 / q
-    pol = sum(v_s[k, j] * np.exp(-tau_in / tau) + r_s[k, j] * cur * (1 - np.exp(-tau_in / tau))
-              for j, (_, tau) in enumerate(branches))
-    hs = np.clip(h_s[k] - 2.0 * cur * tau_in / (3600 * q * stop["width"]), -1.0, 1.0) if stop else 0.0
-    volt = ocv(np.clip(zs, 0, 1)) + du_s[k] + (stop["M"] * hs if stop else 0.0) - r0_s[k] * cur - pol
-    return t + inst["t0"], *fr.read(cur, volt, r, inst), zs, temp_s[k]
 
 
 def hidden_effect(kind: str, cell: dict, re) -> dict:
@@ -149,7 +91,7 @@ def draw(seed: int, folder: Path) -> dict:
     protocol = fr.PROTOCOLS[int(np.random.default_rng([seed, 1]).integers(len(fr.PROTOCOLS)))]
     segs, z0 = fr.hppc_segments(r, q, protocol)
     stop = effect if kind == "hysteresis" else None
-    hppc = simulate(segs, cell, dt_hppc, z0, r, inst, stop=stop, h0=1.0 if z0 > 0.5 else -1.0)
+    hppc = fr.simulate(segs, cell, dt_hppc, z0, r, inst, stop=stop, h0=1.0 if z0 > 0.5 else -1.0)
     field_cell = cell
     if kind == "capacity":
         grow = 1.0 + effect["r_growth"]
@@ -160,7 +102,7 @@ def draw(seed: int, folder: Path) -> dict:
     # written as it is: a cell still below it is one socbench refuses in one line, as it should)
     for _ in range(DERATE_TRIES):
         rf = np.random.default_rng([seed, 2, 1])
-        field = simulate([(d, c * derate) for d, c in segs_field], field_cell, dt_field, 0.95, rf, inst,
+        field = fr.simulate([(d, c * derate) for d, c in segs_field], field_cell, dt_field, 0.95, rf, inst,
                          cold=effect if kind == "cold" else None, stop=stop, h0=1.0)
         if field[2].min() >= V_CUTOFF:
             break
@@ -233,6 +175,19 @@ def _fmt(x, digits=1):
     return "–" if x is None else f"{x:.{digits}f}"
 
 
+def kinds_table(s: dict) -> list:
+    """The Markdown table of :func:`summary`'s rates per kind (this benchmark's doc and docs/closing_the_loop.md)."""
+    lines = ["| hidden (kind) | expected name | cases | named | named first | an effect named that is not there | "
+             "held-out RMSE before → after, median mV | EKF SOC RMSE before → after, median % | EKF SOC worse by > "
+             "0.2 points |", "|---|---|---|---|---|---|---|---|---|"]
+    for kind, row in s["kinds"].items():
+        n = row["cases"]
+        lines.append(f"| {kind} | {EXPECTED[kind] or 'nothing'} | {n} | {row['named']}/{n} | {row['first']}/{n} | "
+                     f"{row['false']}/{n} | {_fmt(row['rmse_before_mv'])} → {_fmt(row['rmse_after_mv'])} | "
+                     f"{_fmt(row['soc_before_pct'], 2)} → {_fmt(row['soc_after_pct'], 2)} | {row['soc_worse']}/{n} |")
+    return lines
+
+
 def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
     now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     lines = [
@@ -251,16 +206,7 @@ def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
         f"| `socbench diagnose` exit 0 | {s['diagnose_ok']}/{s['cases']} |",
         f"| tracebacks / stderr lines that are not socbench's one-line messages | {s['tracebacks']} / {s['leaks']} |",
         f"| slowest diagnosis (wall, with start-up) | {s['slowest_diagnose_s']:.1f} s |", "",
-        "| hidden (kind) | expected name | cases | named | named first | an effect named that is not there | "
-        "held-out RMSE before → after, median mV | EKF SOC RMSE before → after, median % | EKF SOC worse by > 0.2 "
-        "points |", "|---|---|---|---|---|---|---|---|---|"]
-    for kind, row in s["kinds"].items():
-        expected = EXPECTED[kind] or "nothing"
-        lines.append(f"| {kind} | {expected} | {row['cases']} | {row['named']}/{row['cases']} | "
-                     f"{row['first']}/{row['cases']} | {row['false']}/{row['cases']} | "
-                     f"{_fmt(row['rmse_before_mv'])} → {_fmt(row['rmse_after_mv'])} | "
-                     f"{_fmt(row['soc_before_pct'], 2)} → {_fmt(row['soc_after_pct'], 2)} | "
-                     f"{row['soc_worse']}/{row['cases']} |")
+        *kinds_table(s)]
     lines += ["", "For a null case, *named* and *named first* mean nothing but a current offset was named.", "",
               "Per case:", "",
               "| case | kind | hidden effect | OCV | HPPC protocol | capacity Ah | field h | field °C | offset % of 1C "

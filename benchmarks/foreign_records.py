@@ -117,25 +117,70 @@ def field_segments(r, q: float, z_start: float = 0.95, z_end: float = 0.15) -> l
     return segs
 
 
-def measure(segs, cell: dict, dt: float, z0: float, r, inst: dict):
-    """Sample times (random phase, period ``dt``), measured current and voltage, true SOC."""
+#: the longest piece a segment is cut into: the cell's parameters (its temperature) are held over each piece
+PIECE_S = 30.0
+#: the fit test's temperature [°C]
+T_LAB_C = 25.0
+R_GAS = 8.314462618
+KELVIN = 273.15
+
+
+def arrhenius(ea: float, t_c: float) -> float:
+    """A resistance's factor at ``t_c`` °C against 25 °C for activation energy ``ea`` J/mol."""
+    return float(np.exp(ea / R_GAS * (1.0 / (t_c + KELVIN) - 1.0 / (T_LAB_C + KELVIN))))
+
+
+def simulate(segs, cell: dict, dt: float, z0: float, r, inst: dict, cold: dict | None = None,
+             stop: dict | None = None, h0: float = 0.0):
+    """Sample times, measured current and voltage, true SOC and the cell's temperature (°C) of the cell ``cell``
+    under the segments ``segs`` (``[(s, A)]``, discharge positive), sampled every ``dt`` s at a random phase.
+
+    Each segment is cut into pieces of at most :data:`PIECE_S`; over a piece the current and the cell's parameters are
+    constant and the state is solved exactly: ``z`` by the charge, each branch as ``v·e^{−t/τ} + R·I·(1 − e^{−t/τ})``,
+    the stop operator's state ``h`` linearly in the charge, clipped to ±1. ``cold``: ambient, activation energies,
+    entropic coefficient and self-heating, the parameters taken at each piece's start temperature;
+    ``stop``: ``{"M": V, "width": share of the capacity}`` (both: ``benchmarks/foreign_effects.py``). Without either,
+    the cell of this benchmark: cutting a segment into pieces changes nothing, its parameters are constant."""
     ocv = ocv_shape(cell["ocv"])
     q, r0, branches = cell["q"], cell["r0"], cell["branches"]
-    edges = np.cumsum([0.0] + [d for d, _ in segs])
+    pieces = [(min(PIECE_S, d - s), c) for d, c in segs for s in np.arange(0.0, d, PIECE_S)]
+    edges = np.cumsum([0.0] + [d for d, _ in pieces])
     t = np.arange(r.uniform(0, dt), edges[-1], dt)
-    seg = np.searchsorted(edges, t, side="right") - 1
-    starts, z, v = [], z0, np.zeros(len(branches))
-    for d, c in segs:  # the state at each segment's start, exactly
-        starts.append((z, v.copy()))
+    k = np.searchsorted(edges, t, side="right") - 1
+    n = len(pieces)
+    z_s, h_s, temp_s = np.empty(n), np.empty(n), np.empty(n)
+    v_s, r_s, r0_s, du_s = np.empty((n, len(branches))), np.empty((n, len(branches))), np.empty(n), np.empty(n)
+    z, h, v = z0, h0, np.zeros(len(branches))
+    temp = cold["ambient_c"] if cold else T_LAB_C
+    for m, (d, c) in enumerate(pieces):
+        kr0 = arrhenius(cold["ea_r0"], temp) if cold else 1.0
+        kb = arrhenius(cold["ea_branch"], temp) if cold else 1.0
+        z_s[m], h_s[m], temp_s[m], v_s[m] = z, h, temp, v
+        r0_s[m], r_s[m] = r0 * kr0, [rk * kb for rk, _ in branches]
+        du_s[m] = cold["dudt"] * (temp - T_LAB_C) if cold else 0.0
         z -= c * d / 3600 / q
-        v = np.array([vk * np.exp(-d / tau) + rk * c * (1 - np.exp(-d / tau)) for vk, (rk, tau) in zip(v, branches)])
-    cur = np.array([segs[k][1] for k in seg])
-    tau_in = t - edges[seg]
-    zs = np.array([starts[k][0] for k in seg]) - cur * tau_in / 3600 / q
-    pol = sum(np.array([starts[k][1][j] for k in seg]) * np.exp(-tau_in / tau) + rk * cur * (1 - np.exp(-tau_in / tau))
-              for j, (rk, tau) in enumerate(branches))
-    volt = ocv(np.clip(zs, 0, 1)) - r0 * cur - pol
-    return t + inst["t0"], *read(cur, volt, r, inst), zs
+        v = np.array([vk * np.exp(-d / tau) + rk * kb * c * (1 - np.exp(-d / tau))
+                      for vk, (rk, tau) in zip(v, branches)])
+        if stop:
+            h = float(np.clip(h - 2.0 * c * d / (3600 * q * stop["width"]), -1.0, 1.0))
+        if cold:
+            decay = np.exp(-d / cold["tau_th_s"])
+            temp = cold["ambient_c"] + (temp - cold["ambient_c"]) * decay \
+                + cold["rise_1c_k"] * (c / q) ** 2 * (1 - decay)
+    cur = np.array([pieces[m][1] for m in k])
+    tau_in = t - edges[k]
+    zs = z_s[k] - cur * tau_in / 3600 / q
+    pol = sum(v_s[k, j] * np.exp(-tau_in / tau) + r_s[k, j] * cur * (1 - np.exp(-tau_in / tau))
+              for j, (_, tau) in enumerate(branches))
+    hs = np.clip(h_s[k] - 2.0 * cur * tau_in / (3600 * q * stop["width"]), -1.0, 1.0) if stop else 0.0
+    volt = ocv(np.clip(zs, 0, 1)) + du_s[k] + (stop["M"] * hs if stop else 0.0) - r0_s[k] * cur - pol
+    return t + inst["t0"], *read(cur, volt, r, inst), zs, temp_s[k]
+
+
+def measure(segs, cell: dict, dt: float, z0: float, r, inst: dict):
+    """Sample times (random phase, period ``dt``), measured current and voltage, true SOC (:func:`simulate`, no
+    effect)."""
+    return simulate(segs, cell, dt, z0, r, inst)[:4]
 
 
 def read(cur, volt, r, inst: dict):

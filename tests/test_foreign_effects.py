@@ -1,6 +1,7 @@
-"""The foreign-effects benchmark's generator (benchmarks/foreign_effects.py): without an effect it is the foreign
-records' own cell, sample for sample; each effect it hides has the form its docstring states (a stop-operator
-hysteresis of ±M, a cold cell's two activation energies and its warming); its scoring of a diagnosis."""
+"""The foreign-effects benchmark's generator (benchmarks/foreign_effects.py; its cell is solved by
+benchmarks/foreign_records.py): without an effect the solver's pieces are the exact solution of whole segments; each
+effect it hides has the form its docstring states (a stop-operator hysteresis of ±M, a cold cell's two activation
+energies and its warming); its scoring of a diagnosis."""
 
 from __future__ import annotations
 
@@ -25,13 +26,17 @@ fe = _benchmark()
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_without_an_effect_it_is_the_foreign_records_cell(seed):
+def test_without_an_effect_cutting_segments_into_pieces_changes_nothing(seed, monkeypatch):
+    """The cell's solver (foreign_records.simulate) holds its parameters over pieces of at most PIECE_S (for the cold
+    cell's temperature); without an effect the pieces are the exact solution of whole segments, sample for sample."""
     r = np.random.default_rng(seed)
     cell, inst, dt, _ = fe.fr.cell_and_instrument(r)
     segs, z0 = fe.fr.hppc_segments(r, cell["q"], fe.fr.PROTOCOLS[seed % len(fe.fr.PROTOCOLS)])
-    theirs = fe.fr.measure(segs, cell, dt, z0, np.random.default_rng([seed, 9]), inst)
-    ours = fe.simulate(segs, cell, dt, z0, np.random.default_rng([seed, 9]), inst)
-    for a, b in zip(theirs, ours):
+    pieces = fe.fr.simulate(segs, cell, dt, z0, np.random.default_rng([seed, 9]), inst)
+    monkeypatch.setattr(fe.fr, "PIECE_S", 1e12)  # every segment one piece
+    whole = fe.fr.simulate(segs, cell, dt, z0, np.random.default_rng([seed, 9]), inst)
+    assert len(pieces[0]) == len(whole[0])
+    for a, b in zip(whole, pieces):
         np.testing.assert_allclose(b, a, rtol=0, atol=1e-9)
 
 
@@ -50,8 +55,8 @@ def test_the_stop_hysteresis_is_plus_m_after_a_charge_and_minus_m_after_a_discha
     stop = fe.hidden_effect("hysteresis", cell, np.random.default_rng([seed, 2]))
     move = 2.0 * stop["width"] * 3600.0  # s at 1C: twice the width
     segs = [(move, -q), (10 * slow, 0.0), (move, q), (10 * slow, 0.0)]
-    plain = fe.simulate(segs, cell, 1.0, 0.3, np.random.default_rng(0), QUIET)
-    hyst = fe.simulate(segs, cell, 1.0, 0.3, np.random.default_rng(0), QUIET, stop=stop, h0=0.0)
+    plain = fe.fr.simulate(segs, cell, 1.0, 0.3, np.random.default_rng(0), QUIET)
+    hyst = fe.fr.simulate(segs, cell, 1.0, 0.3, np.random.default_rng(0), QUIET, stop=stop, h0=0.0)
     ends = np.searchsorted(plain[0], np.cumsum([d for d, _ in segs])[[1, 3]]) - 1
     np.testing.assert_allclose(hyst[2][ends] - plain[2][ends], [stop["M"], -stop["M"]], rtol=1e-9)
 
@@ -65,10 +70,10 @@ def test_a_cold_cell_drops_by_its_own_r0_and_warms_under_load(seed):
     cold = fe.hidden_effect("cold", cell, np.random.default_rng([seed, 4]))
     q = cell["q"]
     segs = [(60.0, 0.0), (1800.0, q)]
-    t, _, v, _, temp = fe.simulate(segs, cell, 0.01, 0.8, np.random.default_rng(0), QUIET, cold=cold)
+    t, _, v, _, temp = fe.fr.simulate(segs, cell, 0.01, 0.8, np.random.default_rng(0), QUIET, cold=cold)
     first = np.searchsorted(t, 60.0)
     drop = v[first - 1] - v[first]
-    expected = cell["r0"] * fe.arrhenius(cold["ea_r0"], cold["ambient_c"]) * q
+    expected = cell["r0"] * fe.fr.arrhenius(cold["ea_r0"], cold["ambient_c"]) * q
     assert drop == pytest.approx(expected, rel=0.02)  # the branches move by dt/τ ≤ 0.3 % of their drop
     assert temp[first - 1] == pytest.approx(cold["ambient_c"])
     assert temp[-1] > cold["ambient_c"] + 0.5 * cold["rise_1c_k"] * (1 - np.exp(-1800.0 / cold["tau_th_s"]))
