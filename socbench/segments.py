@@ -264,7 +264,7 @@ def restart_soc(profile: Profile, start: int, model, rule: str = REFERENCE) -> n
     drop), clipped to [0, 1]; 1 when the record has neither."""
     ref = profile.get("soc_ref") if rule == REFERENCE else None  # a reference given but refused raises its error
     if ref is not None:
-        axis = soc_axis(model.params, profile)
+        axis = soc_axis(model, profile)
         z = ref[..., start] if axis.identity else axis.to_model(ref[..., start])
     elif profile.voltage_v is not None:
         z = model.soc_from_voltage(profile.voltage_v[..., start], profile.current_a[..., start],

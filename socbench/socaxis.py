@@ -85,10 +85,31 @@ class SocAxis:
                 "ratio": self.ratio}
 
 
+def soc_capacity(params_or_model) -> float:
+    """The charge [Ah] one unit of a model's SOC counts: ``capacity_ah``, over the initial ``cap`` of a capacity effect
+    where the model (an :class:`~socbench.models.effects.AugmentedModel`) or the parameter set (its ``effects``) has
+    one. That effect moves the SOC by ``cap·Δz`` (``cap = Q_model/Q_true``): its SOC is the faded cell's, counted
+    with ``Q_model/cap``, and a reference counted with the faded cell's measured capacity is already on that axis
+    (converted with ``Q_model``, the fade would be taken off twice)."""
+    params = getattr(params_or_model, "params", params_or_model)
+    q = float(params.capacity_ah)
+    effects = getattr(params_or_model, "effects", None)
+    if effects is None or effects is params.effects:  # a parameter set: its effects are name/values records
+        caps = [e["values"].get("cap0", 1.0) for e in params.effects if e["name"] == "capacity"]
+    else:
+        caps = [e["cap0"] for e in effects if e.name == "capacity"]
+    for cap in caps:
+        cap = np.asarray(cap, dtype=float)
+        if cap.size != 1:
+            raise ConfigError("soc_capacity needs one capacity-effect value, not a batch of them")
+        q /= float(cap.reshape(()))
+    return q
+
+
 def soc_axis(params, profile: Profile) -> SocAxis:
-    """The axis pair of a parameter set (``params.capacity_ah``) on a record (its counted reference capacity, else the
-    model's own: identity)."""
-    q_ref = float(params.capacity_ah)
+    """The axis pair of a parameter set or a model (:func:`soc_capacity`) on a record (its counted reference capacity,
+    else the model's own: identity)."""
+    q_ref = soc_capacity(params)
     q_data = reference_capacity(profile)
     return SocAxis(q_ref, q_data if q_data is not None else q_ref)
 

@@ -19,6 +19,7 @@ FORMATS: dict[str, str] = {
     "calce-csv": "socbench.datasets.calce:load_calce",
     "nissan-leaf": "socbench.datasets.nissan_leaf:load_nissan_leaf",
     "dji-log": "socbench.datasets.dji:load_dji",
+    "cmu-evtol": "socbench.datasets.cmu_evtol:load_cmu_evtol",
 }
 
 

@@ -3,9 +3,13 @@
 1. **Prepare** the evaluation data (:mod:`socbench.diagnose.data`): charge-preserving bins of ≥ ``dt`` s, coarser
    where a record would keep more than ``max_samples`` bins (which bounds the cost of every fit).
 2. **Fit** the base model on the fit data (:func:`fit_base`). A fit record that moves most of its charge below C/10 is
-   a slow OCV test: it gives the OCV curve (:func:`~socbench.identify.ocv_from_slow_test`: the mean of the charge and
-   discharge branches when both are there, or with ``slow_ocv="discharge"`` the discharge branch, the paper's
-   convention of rest points taken after discharge steps) and the capacity. The fit setting is chosen by validation
+   a slow OCV test (so is, of two fit records, one that moves most of its charge at or below C/4 beside one that does
+   not: an ageing campaign's C/5 capacity check, :func:`split_fit_records`): it gives the OCV curve
+   (:func:`~socbench.identify.ocv_from_slow_test`: the mean of the charge and discharge branches when both are
+   there, or with ``slow_ocv="discharge"`` the discharge branch, the paper's convention of rest points taken after
+   discharge steps; a branch alone is then freed of the over-potential the fitted model holds at the test's current,
+   :mod:`socbench.identify.unloaded_ocv`, kept where the dynamic record is fitted no worse) and the capacity. The fit
+   setting is chosen by validation
    on the evaluation records (:func:`~socbench.identify.select_fit`: constant mode with each sample weighting, then
    the winner in lookup mode; with an OCV from the HPPC's rest points and ``relax_ocv``, the winner again on the
    points relaxed by the over-potential it still holds at each rest's end, :mod:`socbench.identify.relaxed_ocv`, and
@@ -65,6 +69,7 @@ from ..identify import (
     relaxed_ocv,
     select_fit,
     slow_test_count_error,
+    unloaded_ocv,
     validation_rmse,
 )
 from ..identify.fit import branches_identified
@@ -142,14 +147,34 @@ def _capacity(profile: Profile) -> float | None:
     return None
 
 
-def is_slow_test(profile: Profile) -> bool:
-    """Data-only test: at least 80 % of the charge the record moves moves at |I| ≤ C/10 (a slow OCV test; a CV
-    top-off at its start may be faster). C is the declared capacity, else the largest Ah excursion of the record."""
+def is_slow_test(profile: Profile, c_rate: float = SLOW_TEST_C_RATE) -> bool:
+    """Data-only test: at least 80 % of the charge the record moves moves at |I| ≤ ``c_rate``·C (a slow OCV test; a
+    CV top-off at its start may be faster). C is the declared capacity, else the largest Ah excursion of the record."""
     ah = profile.amp_hours()
     q = _capacity(profile) or float(np.ptp(ah)) or 1.0
     moved = np.abs(profile.current_a[:-1]) * profile.dt
-    slow = np.abs(profile.current_a[:-1]) <= SLOW_TEST_C_RATE * q
+    slow = np.abs(profile.current_a[:-1]) <= c_rate * q
     return bool(moved.sum() > 0 and moved[slow].sum() >= 0.8 * moved.sum())
+
+
+#: of two fit records neither slower than C/10 (:data:`SLOW_TEST_C_RATE`), the one that moves most of its charge at
+#: or below this rate while the other does not is the slow test: the C/5 capacity check of an ageing campaign (the
+#: CMU eVTOL cells' reference discharges) beside a record with load. Its one branch is freed of the fitted model's
+#: over-potential (:mod:`socbench.identify.unloaded_ocv`). Alone, such a record stays a dynamic one (an HPPC whose
+#: steps run at C/5)
+PSEUDO_OCV_C_RATE = 0.25
+
+
+def split_fit_records(fit_profiles) -> tuple[list, list]:
+    """``(slow tests, dynamic records)`` of the fit data (:func:`is_slow_test`, :data:`PSEUDO_OCV_C_RATE`)."""
+    fit_profiles = list(fit_profiles)
+    slow = [p for p in fit_profiles if is_slow_test(p)]
+    dynamic = [p for p in fit_profiles if not is_slow_test(p)]
+    if not slow and len(dynamic) == 2:
+        slower = [p for p in dynamic if is_slow_test(p, PSEUDO_OCV_C_RATE)]
+        if len(slower) == 1:
+            slow, dynamic = slower, [p for p in dynamic if p is not slower[0]]
+    return slow, dynamic
 
 
 #: the diagnosis' default for ``refine_ocv`` (:func:`fit_base`): every HPPC's rest-point OCV is refined, the refit kept
@@ -202,6 +227,13 @@ def slow_test_branches(profile: Profile, info: dict | None = None):
     the branches disagree (:func:`~socbench.identify.slow_test_count_error`); the two are weighted by their
     certainty (the rests' alone where the OCV is too flat to show it). The branches are the runs at the test's typical
     (median) current, whatever a CV top-off did before."""
+    test, i_min = slow_test_record(profile, info)
+    return ocv_from_slow_test(test, capacity_ah=_capacity(profile), i_min=i_min)
+
+
+def slow_test_record(profile: Profile, info: dict | None = None):
+    """``(test, i_min)``: the slow test ``profile`` as its branches are read (:func:`slow_test_branches`: one-minute
+    bins, the current sensor's offset taken off) and the current below which a sample is off its branches."""
     info = {} if info is None else info
     q = _capacity(profile)
     test = bin_average(profile, SLOW_TEST_BIN_S)
@@ -223,7 +255,7 @@ def slow_test_branches(profile: Profile, info: dict | None = None):
         info["slow_test_count_error_a"] = {"from_branches": left[0], "se": left[1], "weight": w}
     if rest is not None or left is not None:
         info["slow_test_current_offset_a"] = offset
-    return ocv_from_slow_test(test, capacity_ah=q, i_min=i_min)
+    return test, i_min
 
 
 def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean", validation=None,
@@ -291,8 +323,7 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
     if refine_ocv not in (True, False, "coarse"):  # a string such as "never" is truthy: it would refine
         raise ConfigError(f"refine_ocv must be True, False or 'coarse', not {refine_ocv!r}")
     fit_profiles = list(fit_profiles)
-    slow = [p for p in fit_profiles if is_slow_test(p)]
-    dynamic = [p for p in fit_profiles if not is_slow_test(p)]
+    slow, dynamic = split_fit_records(fit_profiles)
     if not dynamic:
         raise DataError("the fit data need one record with load (not only a slow OCV test)")
     if len(dynamic) > 1:
@@ -301,7 +332,8 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
     steps = "discharge"  # how the HPPC moves between its levels (read below where its rest points are the OCV)
     info = {"records": [p.name for p in fit_profiles]}
     if slow:
-        s = slow_test_branches(slow[0], info)
+        slow_test, i_min = slow_test_record(slow[0], info)
+        s = ocv_from_slow_test(slow_test, capacity_ah=_capacity(slow[0]), i_min=i_min)
         use_mean = slow_ocv == "mean" and s.mean is not None
         ocv = s.mean if use_mean else s.discharge
         capacity = s.capacity_ah
@@ -368,6 +400,15 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
                 if refit is not None:
                     fits[name_r], chosen = refit, name_r
                     info["ocv"] += f" refined between them from the {steps} segments"
+        if slow and not use_mean:  # a branch under load: freed of the over-potential the fit holds at its current
+            refit, report = unloaded_ocv.refit_on_unloaded_branch(fits[chosen], prof, slow_test, i_min,
+                                                                  **setting(chosen))
+            info["ocv_unloading"] = report
+            if refit is not None:
+                name_u = f"{chosen}, OCV unloaded"
+                scores[name_u] = float(np.mean([validation_rmse(refit, r) for r in validation]))
+                fits[name_u], chosen = refit, name_u
+                info["ocv"] += ", freed of the fitted model's over-potential at the test's current"
         res = fits[chosen]
         label = {k: (k if k.startswith("lookup") else f"constant, {k}") for k in scores}
         info["selection"] = {"chosen": label[chosen], "setting": best_setting,
@@ -398,7 +439,7 @@ def effect_on_fit_test_record(model_name: str, base, fit_profiles, evals, info: 
     if not effects:
         return None, None
     sel = info["selection"]
-    prof = next(p for p in fit_profiles if not is_slow_test(p))
+    prof = split_fit_records(fit_profiles)[1][0]
     lookup = {"mode": "lookup", "knots": LOOKUP_KNOTS} if sel["form"] == "lookup" else None
     refit, reports, deferred = effect_on_fit_test(
         model_name, base, prof, evals, effects, setting={**FIT_CANDIDATES[sel["setting"]], **info.get("axis", {})},
@@ -609,7 +650,8 @@ def soc_errors(model_for, folds: Folds, soc0s, voltage_sd, estimators=SOC_ESTIMA
     if any(p.soc_ref is None for p in folds.records):
         return None
     vsd = np.maximum(np.asarray(voltage_sd, dtype=float), 1e-3)
-    axis_params = model_for(None, fold=0)[0].params  # the model's axis: every fold's model counts with its capacity
+    # each fold's model counts the SOC with its own capacity (a fitted fade: socbench.socaxis.soc_capacity)
+    fold_models = [model_for(None, fold=j)[0] for j in range(folds.k)]
     out = {}
     for name in estimators:
         per_fold = _compiled_fold_filters(model_for, name, folds.k, vsd)
@@ -618,8 +660,11 @@ def soc_errors(model_for, folds: Folds, soc0s, voltage_sd, estimators=SOC_ESTIMA
         sq, n, failed = 0.0, 0, 0
         for r, (p, b, z0) in enumerate(zip(folds.records, folds.blocks, soc0s)):
             soc, f = run(p, b, z0, r)
-            axis = soc_axis(axis_params, p)
-            e = (soc if axis.identity else axis.to_data(soc)) - p.soc_ref
+            for j, m in enumerate(fold_models):
+                axis = soc_axis(m, p)
+                if not axis.identity:
+                    soc[b == j] = axis.to_data(soc[b == j])
+            e = soc - p.soc_ref
             sq += float(e @ e)
             n += p.n
             failed += f

@@ -1,0 +1,132 @@
+"""A one-branch slow test at C/4–C/10 as the OCV (socbench.identify.unloaded_ocv, diagnose.core.split_fit_records) and
+the SOC axis of a model with a fitted fade (socbench.socaxis.soc_capacity), on records of the independent generator
+(tests/hppc_records.py: exact continuous-time cells, not socbench's models)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from socbench.diagnose.core import diagnose, split_fit_records
+from socbench.errors import DataError
+from socbench.identify.hppc import ocv_from_slow_test
+from socbench.identify.unloaded_ocv import unloaded_branch
+from socbench.models import make_model
+from socbench.models.effects import augment, make_effect
+from socbench.models.params import Constant, ModelParams
+from socbench.profile import Profile, ProfileMeta
+from socbench.socaxis import REFERENCE_CAPACITY_KEY, soc_axis, soc_capacity
+from tests.hppc_records import Instrument, _solve, hppc_record, random_cell, random_layout
+
+DRAWS = range(20)
+
+
+def capacity_check(cell, c_rate: float, dt: float, rng, v_noise: float = 1e-3, reference_ah: float | None = None):
+    """A capacity check of ``cell``: 20 min at rest at full, a discharge at ``c_rate`` to 2 % SOC, 20 min at rest;
+    sampled every ``dt`` s at a random phase, the voltage with white noise. ``reference_ah``: a reference SOC counted
+    from full with that capacity (and recorded as the reference's capacity)."""
+    q = cell.capacity_ah
+    i_dis = c_rate * q
+    t_dis = 0.98 * q * 3600.0 / i_dis
+    seg_i, seg_t0 = np.array([0.0, i_dis, 0.0]), np.array([0.0, 1200.0, 1200.0 + t_dis])
+    t = np.arange(rng.uniform(0.0, dt), 2400.0 + t_dis, dt)
+    cur, soc, _, v = _solve(cell, seg_i, seg_t0, t)
+    v = v + rng.normal(0.0, v_noise, t.size)
+    extra, ref = {}, None
+    if reference_ah is not None:
+        ah = np.concatenate([[0.0], np.cumsum(cur[:-1] * np.diff(t))]) / 3600.0
+        ref, extra = np.clip(1.0 - ah / reference_ah, 0.0, 1.0), {REFERENCE_CAPACITY_KEY: reference_ah}
+    meta = ProfileMeta(name="capacity-check", source="capacity-check", capacity_ah=q, n_series=1, extra=extra)
+    return Profile(t, cur, v, None, ref, meta), soc
+
+
+def truth_params(cell, ocv) -> ModelParams:
+    """The cell's own resistances and time constants (a dp where it has two branches) on the curve ``ocv``."""
+    values = {"R0": Constant(cell.r0)}
+    for k, (r, tau) in enumerate(cell.branches, start=1):
+        values[f"R{k}"], values[f"C{k}"] = Constant(r), Constant(tau / r)
+    return ModelParams(cell.capacity_ah, ocv, values)
+
+
+def test_unloading_a_c5_branch_removes_the_over_potential():
+    """The discharge branch of a C/4–C/10 test lies I·(R0 + ΣR) below the OCV; freed of the over-potential of the
+    cell's own model (its true resistances: this checks the unloading, not a fit), the curve's median distance from
+    the true OCV over SOC 0.15–0.95 (past the branches' first transient, above the knee) is under a fifth of that
+    gap, in every draw (the branch's own SOC axis, counted over the charge the test moved, differs a little from the
+    cell's)."""
+    shrunk = []
+    for seed in DRAWS:
+        rng = np.random.default_rng(7000 + seed)
+        cell = random_cell(rng)
+        test, _ = capacity_check(cell, float(rng.uniform(0.1, 0.25)), float(rng.uniform(10.0, 60.0)), rng)
+        branch = ocv_from_slow_test(test).discharge
+        model = "thevenin" if len(cell.branches) == 1 else "dp"
+        fit = SimpleNamespace(name=model, params=truth_params(cell, branch))
+        curve, eta = unloaded_branch(fit, test)
+        z = np.linspace(0.15, 0.95, 81)
+        left = np.median(np.abs(curve.value(z) - cell.ocv.value(z)))
+        expected = test.current_a.max() * (cell.r0 + sum(r for r, _ in cell.branches))
+        assert eta == pytest.approx(expected, rel=0.2), (seed, eta, expected)
+        shrunk.append(left / expected)
+    assert max(shrunk) < 0.2, np.round(shrunk, 3)
+
+
+def test_two_fit_records_a_c5_test_beside_a_dynamic_one_is_the_slow_test():
+    """Of two fit records, a C/5 discharge beside an HPPC is the slow test; alone it stays a dynamic record, and two
+    records neither of them slow are refused by the diagnosis' base fit as before."""
+    rng = np.random.default_rng(3)
+    cell = random_cell(rng)
+    check, _ = capacity_check(cell, 0.2, 30.0, rng)
+    hppc = hppc_record(cell, random_layout(rng), Instrument(dt=1.0, v_noise=1e-3), seed=4).profile
+    slow, dynamic = split_fit_records([check, hppc])
+    assert slow == [check] and dynamic == [hppc]
+    assert split_fit_records([check]) == ([], [check])
+    slow, dynamic = split_fit_records([hppc, hppc.with_(meta=hppc.meta)])
+    assert slow == [] and len(dynamic) == 2
+    with pytest.raises(DataError, match="one dynamic fit record"):
+        diagnose("thevenin", [hppc, hppc.with_(meta=hppc.meta)], [check], soc=False)
+
+
+def test_soc_capacity_of_a_fitted_fade():
+    """A model with a capacity effect counts the SOC of the faded cell: ``Q/cap0``; a parameter set carrying the
+    effect the same; without one, the set's capacity."""
+    rng = np.random.default_rng(5)
+    cell = random_cell(rng)
+    params = truth_params(cell, cell.ocv)
+    base = make_model("thevenin" if len(cell.branches) == 1 else "dp", params)
+    cap0 = float(rng.uniform(1.05, 1.3))
+    faded = augment(base, [make_effect("capacity", cap0=cap0)])
+    assert soc_capacity(base) == pytest.approx(cell.capacity_ah)
+    assert soc_capacity(faded) == pytest.approx(cell.capacity_ah / cap0)
+    with_effect = ModelParams(params.capacity_ah, params.ocv, params.values,
+                              effects=({"name": "capacity", "values": {"cap0": cap0, "r_growth": 0.0}},))
+    assert soc_capacity(with_effect) == pytest.approx(cell.capacity_ah / cap0)
+    check, _ = capacity_check(cell, 0.2, 30.0, rng, reference_ah=cell.capacity_ah / cap0)
+    assert soc_axis(faded, check).identity
+
+
+@pytest.mark.parametrize("draw", range(4))
+def test_a_fade_on_a_counted_reference_is_named_and_the_soc_is_not_worse(draw):
+    """A cell (NMC- or NCA-like OCV) characterised fresh (a C/5 capacity check and an HPPC), evaluated on a capacity
+    check of the same cell faded 6–20 %, whose reference SOC is counted with the charge that check delivers (the faded
+    capacity): the fade is named within 1.5 points of the truth, and neither filter's SOC error grows (before the fix
+    of the SOC axis the fitted fade was taken off twice: a correct fade made the SOC several points worse)."""
+    rng = np.random.default_rng(9100 + draw)
+    cell = random_cell(rng)
+    # a sloped OCV: on LFP's plateau a fade shows only at the knee (docs/foreign_effects.md measures that case)
+    cell = type(cell)(cell.capacity_ah, str(rng.choice(["nmc", "nca"])), cell.r0, cell.branches)
+    fade = float(rng.uniform(0.06, 0.2))
+    fresh, _ = capacity_check(cell, 0.2, 30.0, rng)
+    hppc = hppc_record(cell, random_layout(rng), Instrument(dt=1.0, v_noise=1e-3), seed=draw).profile
+    aged = type(cell)(cell.capacity_ah * (1.0 - fade), cell.ocv_shape, cell.r0, cell.branches)
+    check, _ = capacity_check(aged, 0.2, 30.0, rng, reference_ah=aged.capacity_ah)
+    check = check.with_(meta=ProfileMeta(name="aged", source="aged", capacity_ah=cell.capacity_ah, n_series=1,
+                                         extra=check.meta.extra))
+    d = diagnose("dp", [fresh, hppc], [check])
+    assert "capacity" in d.effects_added, d.effects_added
+    cap0 = next(s.params["cap0"] for s in d.steps if s.effect == "capacity")
+    assert abs((1.0 - 1.0 / cap0) - fade) < 0.015, (cap0, fade)
+    for name in ("ekf", "ukf"):
+        assert d.after["soc"][name]["soc_rmse"] <= d.before["soc"][name]["soc_rmse"] + 0.002, (d.before, d.after)
