@@ -50,11 +50,12 @@ CITE = ("G. Wiggins, S. Allu, H. Wang, *Battery cell data from a 2013 Nissan Lea
         "batterysim/nissan-leaf-data, MIT licence (`nissan_leaf_ornl/PROVENANCE.md`)")
 
 
-def data_dir() -> Path:
+def data_dir(folder: str = "nissan_leaf_ornl") -> Path:
+    """``folder`` of the measured data (``SOCBENCH_DATA_DIR``); exits with one line when that is not set."""
     d = os.environ.get("SOCBENCH_DATA_DIR")
     if not d:
         sys.exit("SOCBENCH_DATA_DIR is not set (the measured data folder)")
-    return Path(d) / "nissan_leaf_ornl"
+    return Path(d) / folder
 
 
 def cli(args, out: Path):
