@@ -607,9 +607,9 @@ def render_evtol_fade(report: dict | None) -> list:
          "branch freed of the fitted model's over-potential) and one mission, evaluated on each later check, whose "
          "reference SOC is counted with the charge that check delivered; the fade is in the data, not in the "
          f"metadata. `{report['command']}` (docs/evtol_fade.md):", "",
-         "| base | checks | capacity named (measured fade ≥ 3 %) | error of the fitted fade against the measured, median / worst "
-         "[points] | other effects named | held-out RMSE, median [mV] | EKF SOC RMSE, median [%] | a filter's "
-         "SOC worse by > 0.2 points |", "|---|---|---|---|---|---|---|---|"]
+         "| base | checks | capacity named (measured fade ≥ 3 %) | error of the fitted fade against the measured, "
+         "median / worst [points] | other effects named | held-out RMSE, median [mV] | EKF SOC RMSE, median [%] | "
+         "a filter's SOC worse by > 0.2 points |", "|---|---|---|---|---|---|---|---|"]
     for model in report["models"]:
         s = report["summary"][model]
         err = ("–" if s["fade_error_pt_median"] is None
