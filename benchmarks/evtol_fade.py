@@ -110,7 +110,8 @@ def run_one(job: dict) -> dict:
                 "rmse_before_v": d["before"]["rmse_v"], "rmse_after_v": d["after"]["rmse_v"],
                 "soc_before": {k: v["soc_rmse"] for k, v in d["before"].get("soc", {}).items()},
                 "soc_after": {k: v["soc_rmse"] for k, v in d["after"].get("soc", {}).items()},
-                "ocv": d["fit"].get("ocv"), "base_fit": d["fit"].get("selection", {}).get("chosen")})
+                "ocv": d["fit"].get("ocv"), "base_fit": d["fit"].get("selection", {}).get("chosen"),
+                "filter_voltage_sd": (d.get("soc") or {}).get("voltage_sd")})
     return row
 
 
@@ -135,6 +136,18 @@ def summary(rows: list[dict], model: str) -> dict:
             "soc_worse": len(worse), "soc_worse_checks": [f"{r['cell']}/{r['check']}" for r in worse],
             "median_soc_ekf": [float(np.median([100 * r[k]["ekf"] for r in rs])) for k in ("soc_before", "soc_after")],
             "median_rmse_mv": [float(np.median([1000 * r[k] for r in rs])) for k in ("rmse_before_v", "rmse_after_v")]}
+
+
+def _noise_where_worse(res: dict) -> dict:
+    """``{model: (median filter voltage noise before, after) [mV]}`` over the checks whose SOC error grew."""
+    out = {}
+    for model in res["models"]:
+        worse = set(res["summary"][model]["soc_worse_checks"])
+        sds = [r["filter_voltage_sd"] for r in res["rows"] if r["model"] == model and r["exit"] == 0
+               and f"{r['cell']}/{r['check']}" in worse and r.get("filter_voltage_sd")]
+        if sds:
+            out[model] = tuple(1000 * float(np.median([np.median(s[k]) for s in sds])) for k in ("before", "after"))
+    return out
 
 
 def markdown(res: dict) -> str:
@@ -163,6 +176,12 @@ def markdown(res: dict) -> str:
           "* What is left after the fade is the end of the discharge: the last minutes to the cut-off, where the "
           "aged cell's voltage falls hundreds of mV below the model's. Where the fade is small (VAH07, 30 s grid, "
           "4–8 %) that is most of the error left, and the filters' SOC gains little or loses (the rows above).",
+          "* Where a filter's SOC error grows after the fade is named, the better model is trusted more: the filters' "
+          "voltage noise, the held-out residual outside the block each scores (`diagnosis.json` → `soc.voltage_sd`, "
+          "per fold), falls with the fade (median over the checks where the SOC grew, before → after: "
+          + "; ".join(f"{m} {v[0]:.0f} → {v[1]:.0f} mV" for m, v in _noise_where_worse(res).items()) + "), so the "
+          "filters leave the count where the model still misses (near full, and the last minutes to the cut-off); "
+          "before, the fade's own error made them count. The reference is that count, from an exact start.",
           "* The base fit on the 30 s mission is poorly conditioned (its SOC-lookup resistances are loosely "
           "identified): the same records held in memory and read back from CSV (the time column rounded in its last "
           "digits) can make that fit land elsewhere, and the search then names another SOC drift than the fade. "
