@@ -16,6 +16,8 @@ from hypothesis import strategies as st
 from socbench.datasets import FORMATS, detect_format, load
 from socbench.datasets.calce import load_calce
 from socbench.datasets.canonical import load_canonical
+from socbench.datasets.cmu_evtol import LAYOUTS as EVTOL_LAYOUTS
+from socbench.datasets.cmu_evtol import load_cmu_evtol
 from socbench.datasets.nissan_leaf import load_nissan_leaf
 from socbench.errors import DataError, SocbenchWarning
 from socbench.profile import SOC_WARN_MARGIN, Profile
@@ -171,7 +173,8 @@ def test_source_loaders_on_junk_with_their_headers(workdir, table):
     _, rows = table
     for fn, header in ((load_calce, ["Test_Time_s", "Current_A", "Voltage_V"]),
                        (load_nissan_leaf, ["time_s", "cycle", "step", "step_time_s", "current_A", "voltage_V",
-                                           "power_W", "capacity_Ah", "energy_Wh", "mode", "flag"])):
+                                           "power_W", "capacity_Ah", "energy_Wh", "mode", "flag"]),
+                       *((load_cmu_evtol, list(head)) for head in EVTOL_LAYOUTS.values())):
         path = workdir / "source.csv"
         width = len(header)
         _write_table(path, header, [(list(r) + [0.0] * width)[:width] for r in rows])

@@ -1,10 +1,19 @@
-"""CMU eVTOL battery dataset (Sony-Murata VTC6 18650, 3 Ah, NMC): a cell's whole life, resampled by a third party.
+"""CMU eVTOL battery dataset (Sony-Murata VTC6 18650, 3 Ah, NMC): a cell's whole life, as published or resampled.
 
-Columns (PROVENANCE.md of ``cmu_evtol_vtc6_resampled``): ``time_s, current_A_pos_discharge, voltage_V,
-temperature_C`` (cell surface), positive = discharge, on a uniform grid of 30, 166 or 186 s (linear interpolation of
-the original ~1 Hz logs). Each file is hundreds of eVTOL missions (take-off ≈ 75 s at 15–20 A, cruise ≈ 800 s at
-4–5 A, landing ≈ 105 s at 15–20 A, each after a CC-CV charge and a rest) with, every 50 missions, a reference
-performance test whose C/5 discharge from full (4.2 V) to the 2.5 V cut-off measures the capacity the cell has left.
+Two layouts, told apart by their header:
+
+* **original** (the dataset's ``VAHnn.csv``, DOI 10.1184/R1/14226830; its README lists the columns): ``time_s,
+  Ecell_V, I_mA, EnergyCharge_W_h, QCharge_mA_h, EnergyDischarge_W_h, QDischarge_mA_h, Temperature__C, cycleNumber,
+  Ns``, the current in mA, positive = charge (the cycler's sign: flipped on the way in, and the flip checked by the
+  voltage's response, :func:`~socbench.datasets.canonical.check_current_sign`); a repeated time stamp (the files
+  join several tester files) keeps its later record, and the count is kept in ``meta.extra``;
+* **resampled** (PROVENANCE.md of ``cmu_evtol_vtc6_resampled``): ``time_s, current_A_pos_discharge, voltage_V,
+  temperature_C`` (cell surface), positive = discharge, on a uniform grid of 30, 166 or 186 s (linear interpolation
+  of the original ~1 Hz logs by a third party).
+
+Each file is hundreds of eVTOL missions (take-off ≈ 75 s at 15–20 A, cruise ≈ 800 s at 4–5 A, landing ≈ 105 s at
+15–20 A, each after a CC-CV charge and a rest) with, every 50 missions, a reference performance test whose C/5
+discharge from full (4.2 V) to the 2.5 V cut-off measures the capacity the cell has left.
 
 What the resampling leaves: the capacity checks (five hours at a constant current lose nothing at any of the grids) and
 the trends over life; not the missions' dynamics (a take-off is two or three samples at 30 s, none at 166 s), nor
@@ -25,11 +34,17 @@ import numpy as np
 from ..errors import DataError
 from ..profile import Profile, ProfileMeta
 from ..socaxis import REFERENCE_CAPACITY_KEY
-from .canonical import _numeric, _read_frame
+from .canonical import _numeric, _read_frame, check_current_sign
 from .header import header_columns
 from .units import check_cell_units
 
-COLUMNS = ("time_s", "current_A_pos_discharge", "voltage_V", "temperature_C")
+#: each layout's leading columns: time, current, voltage, temperature (one resampled copy adds a cycle index after them)
+LAYOUTS = {"resampled": ("time_s", "current_A_pos_discharge", "voltage_V", "temperature_C"),
+           "original": ("time_s", "Ecell_V", "I_mA", "EnergyCharge_W_h", "QCharge_mA_h", "EnergyDischarge_W_h",
+                        "QDischarge_mA_h", "Temperature__C", "cycleNumber", "Ns")}
+#: time, current, voltage and temperature columns of each layout, and the factor that makes the current A, + = discharge
+SIGNALS = {"resampled": (("time_s", "current_A_pos_discharge", "voltage_V", "temperature_C"), 1.0),
+           "original": (("time_s", "I_mA", "Ecell_V", "Temperature__C"), -1e-3)}
 #: the VTC6's nominal capacity (dataset documentation)
 CAPACITY_AH = 3.0
 CHEMISTRY = "NMC"
@@ -47,37 +62,54 @@ CHECK_MIN_SHARE = 0.5
 MISSION_PEAK_C_RATE = 2.0
 
 
+def _layout(columns) -> str | None:
+    cols = tuple(columns)
+    return next((name for name, head in LAYOUTS.items() if cols[:len(head)] == head), None)
+
+
 def sniff(path) -> bool:
     path = Path(path)
     if path.suffix.lower() != ".csv":
         return False
     try:
-        return tuple(header_columns(path))[:len(COLUMNS)] == COLUMNS  # one copy adds the repository's cycle index
+        return _layout(header_columns(path)) is not None
     except OSError:
         return False
 
 
 def load_cmu_evtol(path) -> Profile:
-    """Load one resampled CMU eVTOL life record as a :class:`Profile` (positive = discharge, no reference SOC)."""
+    """Load one CMU eVTOL life record (either layout) as a :class:`Profile` (positive = discharge, no reference
+    SOC)."""
     path = Path(path)
     src = str(path)
     df = _read_frame(path)
-    missing = [c for c in COLUMNS if c not in df.columns]
-    if missing:
-        raise DataError(f"not a CMU eVTOL resampled record: expected columns {', '.join(COLUMNS)}; got "
-                        f"{', '.join(df.columns)}", file=src, column=missing[0])
+    layout = _layout(df.columns)
+    if layout is None:
+        raise DataError("not a CMU eVTOL record: expected the columns " + " | ".join(
+            ", ".join(head) for head in LAYOUTS.values()) + f"; got {', '.join(df.columns)}", file=src)
     if len(df) < 2:
         raise DataError("fewer than two data rows", file=src)
-    t, i, v, temp = (_numeric(df, c, src) for c in COLUMNS)
+    (tc, ic, vc, temp_c), scale = SIGNALS[layout]
+    t, i_raw, v, temp = (_numeric(df, c, src) for c in (tc, ic, vc, temp_c))
+    i = scale * i_raw
     check_cell_units(v, i, voltage_range=VOLTAGE_RANGE, max_abs_current=MAX_ABS_CURRENT, cell="3 Ah 18650 cell",
-                     src=src, voltage_column="voltage_V", current_column="current_A_pos_discharge")
+                     src=src, voltage_column=vc, current_column=ic)
     step = np.diff(t)
-    if (step <= 0).any():
-        k = int(np.argmax(step <= 0))
-        raise DataError(f"time does not increase ({t[k]:g} s then {t[k + 1]:g} s)", file=src, column="time_s",
-                        row=k + 2)
-    extra = {"dataset": "CMU eVTOL battery dataset (Bills et al., Sci. Data 10, 344, 2023), third-party resampled "
-                        "copy", "grid_s": float(np.median(step)), "nominal_capacity_ah": CAPACITY_AH}
+    if (step < 0).any() or (layout == "resampled" and (step == 0).any()):
+        k = int(np.argmax(step < 0) if (step < 0).any() else np.argmax(step == 0))
+        raise DataError(f"time does not increase ({t[k]:g} s then {t[k + 1]:g} s)", file=src, column=tc, row=k + 2)
+    repeated = 0
+    if (step == 0).any():  # joined tester files repeat a stamp: the later record holds (ZOH: the earlier lasts 0 s)
+        keep = np.r_[step > 0, True]
+        repeated = int((~keep).sum())
+        t, i, v, temp = t[keep], i[keep], v[keep], temp[keep]
+        step = np.diff(t)
+    if layout == "original":
+        check_current_sign(t, i, v, src=src, column=ic, convention="the dataset's convention: positive = charge")
+    extra = {"dataset": "CMU eVTOL battery dataset (Bills et al., Sci. Data 10, 344, 2023)"
+                        + (", third-party resampled copy" if layout == "resampled" else ""),
+             "layout": layout, "grid_s": float(np.median(step)), "nominal_capacity_ah": CAPACITY_AH,
+             "repeated_stamps_dropped": repeated}
     meta = ProfileMeta(name=path.stem, source=src, capacity_ah=CAPACITY_AH, n_series=1, chemistry=CHEMISTRY,
                        extra=extra)
     return Profile(t - t[0], i, v, temp, None, meta)
