@@ -99,10 +99,10 @@ def soc_capacity(params_or_model) -> float:
     else:
         caps = [e["cap0"] for e in effects if e.name == "capacity"]
     for cap in caps:
-        cap = np.asarray(cap, dtype=float)
-        if cap.size != 1:
-            raise ConfigError("soc_capacity needs one capacity-effect value, not a batch of them")
-        q /= float(cap.reshape(()))
+        cap = np.unique(np.asarray(cap, dtype=float))
+        if cap.size != 1:  # one axis per variant: a SocAxis has one
+            raise ConfigError("soc_capacity needs one capacity-effect value, not a batch of different ones")
+        q /= float(cap[0])
     return q
 
 
