@@ -130,3 +130,21 @@ def test_a_fade_on_a_counted_reference_is_named_and_the_soc_is_not_worse(draw):
     assert abs((1.0 - 1.0 / cap0) - fade) < 0.015, (cap0, fade)
     for name in ("ekf", "ukf"):
         assert d.after["soc"][name]["soc_rmse"] <= d.before["soc"][name]["soc_rmse"] + 0.002, (d.before, d.after)
+
+
+def test_a_faded_model_starts_the_filters_at_the_same_soc_on_its_own_axis():
+    """A record that starts part charged, its reference counted with the faded cell's capacity: the start handed to
+    the filters on the parameter set's axis is converted to the faded model's axis, the reference's own SOC there."""
+    from socbench.diagnose.core import _start_on_axis
+
+    rng = np.random.default_rng(11)
+    cell = random_cell(rng)
+    cap0 = 1.25
+    base = make_model("thevenin" if len(cell.branches) == 1 else "dp", truth_params(cell, cell.ocv))
+    faded = augment(base, [make_effect("capacity", cap0=cap0)])
+    check, _ = capacity_check(cell, 0.2, 30.0, rng, reference_ah=cell.capacity_ah / cap0)
+    part = check.with_(soc_ref=np.clip(check.soc_ref - 0.2, 0.0, 1.0))  # starts at 0.8 of the faded cell
+    z0_base = float(soc_axis(base, part).to_model(part.soc_ref[0]))
+    assert z0_base == pytest.approx(1.0 - 0.2 / cap0)
+    assert _start_on_axis(z0_base, faded, part) == pytest.approx(0.8)
+    assert _start_on_axis(z0_base, base, part) == z0_base

@@ -632,10 +632,12 @@ def fold_spread_sd(step, base) -> dict:
 
 def soc_errors(model_for, folds: Folds, soc0s, voltage_sd, estimators=SOC_ESTIMATORS) -> dict | None:
     """Held-out SOC RMSE of each filter: every record filtered from its start once per fold, block ``j`` scored with
-    fold ``j``'s run. ``model_for(layout, fold=None)`` gives ``(model, per-record voltage offsets or None)``: with
-    ``fold`` that fold's model alone, else one variant per fold on a leading batch axis of shape ``layout`` — ``(k,)``
-    for the EKF, ``(k, 1)`` for the UKF, which evaluates the model on ``(runs, sigma points)`` — or one model for every
-    fold. ``voltage_sd (k,)`` is each fold's filter voltage noise. None without a reference SOC.
+    fold ``j``'s run (``soc0s``: each record's start on the axis of the models' parameter set; a fold model with a
+    fitted fade starts from the same SOC on its own axis). ``model_for(layout, fold=None)`` gives ``(model, per-record
+    voltage offsets or None)``: with ``fold`` that fold's model alone, else one variant per fold on a leading batch axis
+    of shape ``layout`` — ``(k,)`` for the EKF, ``(k, 1)`` for the UKF, which evaluates the model on ``(runs, sigma
+    points)`` — or one model for every fold. ``voltage_sd (k,)`` is each fold's filter voltage noise. None without a
+    reference SOC.
 
     Two paths, the same numbers: where every fold's filter runs compiled (:func:`socbench.kernels.engine.plan`), one
     run per fold with its own model and noise (the compiled filters take one parameter set and the sensor-noise
@@ -659,7 +661,7 @@ def soc_errors(model_for, folds: Folds, soc0s, voltage_sd, estimators=SOC_ESTIMA
                else partial(_batched_runs, model_for, name, folds.k, vsd))
         sq, n, failed = 0.0, 0, 0
         for r, (p, b, z0) in enumerate(zip(folds.records, folds.blocks, soc0s)):
-            soc, f = run(p, b, z0, r)
+            soc, f = run(p, b, [_start_on_axis(z0, m, p) for m in fold_models], r)
             for j, m in enumerate(fold_models):
                 axis = soc_axis(m, p)
                 if not axis.identity:
@@ -670,6 +672,16 @@ def soc_errors(model_for, folds: Folds, soc0s, voltage_sd, estimators=SOC_ESTIMA
             failed += f
         out[name] = {"soc_rmse": float(np.sqrt(sq / n)), "failed_runs": failed}
     return out
+
+
+def _start_on_axis(z0: float, model, profile: Profile) -> float:
+    """``z0``, a start on the axis of ``model``'s parameter set (its ``capacity_ah``), on the axis ``model`` counts
+    with: the same SOC of the record's reference, converted (:func:`socbench.socaxis.soc_capacity`: a fitted fade
+    counts the faded cell's SOC)."""
+    own, plain = soc_axis(model, profile), soc_axis(model.params, profile)
+    if own.model_capacity_ah == plain.model_capacity_ah:
+        return z0
+    return float(np.clip(own.to_model(plain.to_data(z0)), 0.0, 1.0))
 
 
 def _fold_noise(model, voltage_sd: float):
@@ -693,17 +705,18 @@ def _compiled_fold_filters(model_for, name: str, k: int, vsd) -> list | None:
     return out
 
 
-def _fold_runs(per_fold, p: Profile, b, z0: float, r: int):
-    """The compiled path: fold ``j``'s own run scores block ``j``. ``(SOC (n,), failed runs)``."""
+def _fold_runs(per_fold, p: Profile, b, z0, r: int):
+    """The compiled path: fold ``j``'s own run, from ``z0[j]``, scores block ``j``. ``(SOC (n,), failed runs)``."""
     soc, failed = np.empty(p.n), 0
     for j, (est, model, offsets) in enumerate(per_fold):
-        res = est.run(_batched(p, 1, None if offsets is None else np.asarray(offsets)[None], r), x0=model.x0(z0, (1,)))
+        res = est.run(_batched(p, 1, None if offsets is None else np.asarray(offsets)[None], r),
+                      x0=model.x0(z0[j], (1,)))
         soc[b == j] = res.soc[0, b == j]
         failed += int(res.failed.sum())
     return soc, failed
 
 
-def _batched_runs(model_for, name: str, k: int, vsd, p: Profile, b, z0: float, r: int):
+def _batched_runs(model_for, name: str, k: int, vsd, p: Profile, b, z0, r: int):
     """The numpy reference: the ``k`` folds as one batched run (a parameter batch, each run's own R)."""
     from ..estimators import make_estimator
 
@@ -715,7 +728,7 @@ def _batched_runs(model_for, name: str, k: int, vsd, p: Profile, b, z0: float, r
         return vsd**2 + noise.input_var * np.asarray(D) ** 2
 
     est = make_estimator(name, model, noise, R=r_of)
-    res = est.run(_batched(p, k, offsets, r), x0=run_model.x0(np.full(k, z0), (k,)))
+    res = est.run(_batched(p, k, offsets, r), x0=run_model.x0(np.asarray(z0, dtype=float), (k,)))
     return res.soc[b, np.arange(p.n)], int(res.failed.sum())
 
 
