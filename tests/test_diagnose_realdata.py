@@ -8,7 +8,8 @@
   gets within 1.5 × of the oracle, and neither filter's held-out SOC error, on the record's own SOC axis, grows;
 * CALCE A123 LFP: the held-out SOC error of the EKF and the UKF after the loop is not worse than before;
 * the Panasonic cell's own ageing over its campaign: a fade named on its last 1C capacity test, of the size the charge
-  it delivered measures, and none on its first.
+  it delivered measures, and none on its first;
+* the Panasonic records whose cell warms by tens of kelvin as they run: the temperature named first.
 
 Nothing but the files and the base model is given; no effect name is in any metadata the diagnosis reads (the measured
 cell temperature column is data). Tens of CPU seconds each (a shared CI machine: wall time varies).
@@ -98,3 +99,18 @@ def test_panasonic_ageing_is_named_on_the_last_capacity_test_only(data_dir, reco
         assert d.after["rmse_v"] <= 0.5 * d.before["rmse_v"]
     for name in ("ekf", "ukf"):
         assert d.after["soc"][name]["soc_rmse"] <= d.before["soc"][name]["soc_rmse"], (d.before["soc"], d.after["soc"])
+
+
+@pytest.mark.parametrize("record", ["n20degC_Trise/07-01-17_19.59_n20degC_trise_US06_Pan18650PF.mat",
+                                    "10degC_Trise/07-09-17_19.11_10degC_trise_Cycle_1_Pan18650PF.mat"])
+def test_panasonic_rising_temperature_names_the_temperature_first(data_dir, record):
+    """A record whose cell warms by 17–33 °C as it runs (the chamber starts cold and drifts), the DP fitted at 25 °C:
+    the temperature is named first, the held-out voltage error falls by a quarter, and both filters' SOC error falls."""
+    fit = [load(data_dir / PAN / "25degC" / "03-11-17_08.47_25degC_5Pulse_HPPC_Pan18650PF.mat")]
+    rec = load(data_dir / PAN / record)
+    assert np.ptp(rec.temperature_c) > 15.0
+    d = diagnose("dp", fit, [rec])
+    assert d.effects_added and d.effects_added[0] == "temperature", d.effects_added
+    assert d.after["rmse_v"] <= 0.75 * d.before["rmse_v"]
+    for name in ("ekf", "ukf"):
+        assert d.after["soc"][name]["soc_rmse"] < d.before["soc"][name]["soc_rmse"], (d.before["soc"], d.after["soc"])
