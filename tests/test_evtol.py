@@ -145,3 +145,25 @@ def test_resampled_missions_count_more_discharge_than_charge(data_dir):
         ratios.append(i[i > 0].sum() / -i[i < 0].sum())
         assert abs(life.voltage_v[a] - life.voltage_v[b]) < 0.01
     assert 1.03 < np.median(ratios) < 1.12, ratios
+
+
+@pytest.mark.slow
+def test_a_whole_life_record_names_no_effect_at_the_limit_of_its_range(tmp_path, data_dir):
+    """The 30 s copy's whole life as the evaluation record: its counted charge drifts by many capacities (the
+    missions' lost balance), so no model follows it and the CLI says so (the domain warning). The search then names
+    nothing at the far end of a range (before :data:`socbench.diagnose.search.FAR_END`, a 100 mV hysteresis was
+    named, taking up a drift of volts)."""
+    from socbench.diagnose import diagnose
+    from socbench.diagnose.search import FAR_END
+    from socbench.models.effects import EFFECTS
+
+    life = load(data_dir / EVTOL / "VAH07_CV4p0V_30s_resampled.csv")
+    checks = capacity_checks(life)
+    fit = [capacity_check_record(life, checks[0], with_reference=False), mission_record(life, 0)]
+    d = diagnose("thevenin", fit, [life], soc=False)
+    assert d.before["rmse_v"] > 1.0  # volts: nothing follows this record
+    for st in d.steps:
+        if st.effect in FAR_END:
+            p = FAR_END[st.effect]
+            hi = EFFECTS[st.effect]().bounds(d.base_model)[p][1]
+            assert st.params[p] < 0.999 * hi, (st.effect, st.params)

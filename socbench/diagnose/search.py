@@ -62,7 +62,8 @@ A fit at the end of a range is not the effect's own shape: an SOC drift at the l
 (``DRIFT_AT_BOUND``), a hysteresis at Plett's γ floor or a branch at the longest time constant (``SLOW_END``: a state
 that never settles within the records, a slow offset or a ramp) stands in for an OCV or SOC-axis error and is not
 scored. So is a temperature whose resistances do not move with it (activation energy below
-``TEMPERATURE_EA_MIN``): its entropic term alone is an offset the temperature column indexes.
+``TEMPERATURE_EA_MIN``): its entropic term alone is an offset the temperature column indexes; and a temperature or a
+hysteresis at the upper end of its activation energy or gap (``FAR_END``: as much as its range allows).
 
 The current sensor gets evidence of its own: where the records hold rests (at least ``FIELD_REST_MIN_S`` below C/20
 whose spread is the sensor's noise), the true current is zero, so the measured rest current *is* the offset. ``b`` is
@@ -247,14 +248,21 @@ SLOW_END_RULE = True
 #: fitted on the Panasonic 18650PF's temperature pairs by more than a factor of two (12–44 kJ/mol,
 #: ``benchmarks/closing_the_loop.py``) and at a quarter of the randomised benchmark's lower end (20 kJ/mol). None: off
 TEMPERATURE_EA_MIN = 5e3
-#: a temperature effect whose all-data fit puts its activation energy at the upper end of its range (100 kJ/mol) is not
-#: scored (:meth:`Search.steepest_activation`), as an SOC drift at the limit of its range is not: a record whose
-#: temperature moves a few kelvin (a C/5 discharge warming by 2 K) lets the steepest Arrhenius factor scale the
-#: resistances as far as the fit wants, which stands in for something else — on the CMU eVTOL cells' capacity checks
-#: (``benchmarks/evtol_fade.py``) a temperature at 100 kJ/mol was named beside or instead of the fade. The Panasonic
-#: 18650PF's temperature pairs fit 12–44 kJ/mol (``benchmarks/closing_the_loop.py``), the randomised benchmark draws
-#: 20–50 kJ/mol
-TEMPERATURE_EA_MAX_RULE = True
+#: an effect whose all-data fit puts this parameter at the upper end of its range is not scored
+#: (:meth:`Search.at_far_end`), as an SOC drift at the limit of its range is not: the effect is taking up as much as
+#: its bounds allow of something else.
+#:
+#: * a temperature's activation energy at 100 kJ/mol: a record whose temperature moves a few kelvin (a C/5 discharge
+#:   warming by 2 K) lets the steepest Arrhenius factor scale the resistances as far as the fit wants — on the CMU
+#:   eVTOL cells' capacity checks (``benchmarks/evtol_fade.py``) one was named beside or instead of the fade; the
+#:   Panasonic 18650PF's temperature pairs fit 12–44 kJ/mol (``benchmarks/closing_the_loop.py``), the randomised
+#:   benchmark draws 20–50 kJ/mol;
+#: * a hysteresis gap ``M`` of 100 mV per cell: four times the widest LFP gap the randomised benchmark draws (and the
+#:   fit test's refit refuses it there already, :func:`~socbench.identify.fit_test_effect.bound_hit`) — on a whole
+#:   eVTOL life record whose counted charge drifts, it took up a drift of volts
+FAR_END = {"temperature": "Ea", "hysteresis": "M"}
+#: whether :data:`FAR_END` applies
+FAR_END_RULE = True
 #: relative change of the held-out RMSE below which an effect fitted alone counts as fitted to its null
 NULL_FIT_TOL = 1e-3
 #: compression of the training record for the fits (the held-out part is scored on every sample)
@@ -1116,11 +1124,10 @@ class Search:
         if unmoved is not None:
             score = -np.inf
             evidence += f"; {unmoved}: its entropic term alone, an offset the temperature indexes, stands in for it"
-        steepest = self.steepest_activation(name, params) if TEMPERATURE_EA_MAX_RULE else None
-        if steepest is not None:
+        far = self.at_far_end(name, params) if FAR_END_RULE else None
+        if far is not None:
             score = -np.inf
-            evidence += (f"; {steepest}: a few kelvin that scale the resistances without limit stand in for a drift "
-                         "or a misfit of the base")
+            evidence += f"; {far}: as much as its range allows, it stands in for something else"
         if name == "extra_rc":
             refit = dict(zip(dict(layout).get(BASE_REFIT, ()), self._refit_row(layout, row)))
             twin = self.twin_branch(10.0 ** params["log10_tau"], refit)
@@ -1151,16 +1158,17 @@ class Search:
             return None
         return f"{p} = {params[p]:.4g} at the {('lower', 'upper')[end]} end of [{lo:.4g}, {hi:.4g}]"
 
-    def steepest_activation(self, name: str, params: dict) -> str | None:
-        """Where the temperature effect's fitted activation energy rests at the upper end of its range (within
-        :data:`~socbench.identify.fit_test_effect.BOUND_TOL`; :data:`TEMPERATURE_EA_MAX_RULE`), that as a phrase; else
+    def at_far_end(self, name: str, params: dict) -> str | None:
+        """Where effect ``name``'s fitted ``params`` rest at the upper end of the range of its :data:`FAR_END`
+        parameter (within :data:`~socbench.identify.fit_test_effect.BOUND_TOL` of the range), that as a phrase; else
         None."""
-        if name != "temperature" or not params:
+        if name not in FAR_END or not params:
             return None
-        lo, hi = self.bounds[name]["Ea"]
-        if params["Ea"] < hi - BOUND_TOL * (hi - lo):
+        p = FAR_END[name]
+        lo, hi = self.bounds[name][p]
+        if params[p] < hi - BOUND_TOL * (hi - lo):
             return None
-        return f"Ea = {params['Ea']:.4g} J/mol at the upper end of [{lo:.4g}, {hi:.4g}]"
+        return f"{p} = {params[p]:.4g} at the upper end of [{lo:.4g}, {hi:.4g}]"
 
     @staticmethod
     def resistance_unmoved(name: str, params: dict) -> str | None:
