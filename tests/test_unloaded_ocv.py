@@ -148,3 +148,45 @@ def test_a_faded_model_starts_the_filters_at_the_same_soc_on_its_own_axis():
     assert z0_base == pytest.approx(1.0 - 0.2 / cap0)
     assert _start_on_axis(z0_base, faded, part) == pytest.approx(0.8)
     assert _start_on_axis(z0_base, base, part) == z0_base
+
+
+def test_the_diagnosed_model_file_runs_in_estimate(tmp_path):
+    """`socbench diagnose` writes the final model as a parameter file (model.json: the base as refitted, the fade in
+    its ``effects``); `socbench estimate --params` runs it on the aged record, and its SOC error there is lower than
+    the same file's without the effect."""
+    import json
+    import subprocess
+    import sys
+
+    from tests.hppc_records import write_canonical
+
+    rng = np.random.default_rng(9200)
+    cell = random_cell(rng)
+    cell = type(cell)(cell.capacity_ah, "nmc", cell.r0, cell.branches)
+    fresh, _ = capacity_check(cell, 0.2, 30.0, rng)
+    hppc = hppc_record(cell, random_layout(rng), Instrument(dt=1.0, v_noise=1e-3), seed=3).profile
+    aged = type(cell)(cell.capacity_ah * 0.85, cell.ocv_shape, cell.r0, cell.branches)
+    check, _ = capacity_check(aged, 0.2, 30.0, rng, reference_ah=aged.capacity_ah)
+    files = [write_canonical(p, tmp_path / f"{n}.csv") for p, n in ((fresh, "fresh"), (hppc, "hppc"))]
+    ev = write_canonical(check.with_(meta=ProfileMeta(name="aged", source="aged", capacity_ah=cell.capacity_ah,
+                                                      n_series=1)), tmp_path / "aged.csv")
+    sidecar = json.loads(ev.with_suffix(".json").read_text())
+    ev.with_suffix(".json").write_text(json.dumps({**sidecar, REFERENCE_CAPACITY_KEY: aged.capacity_ah}))
+
+    def cli(*args):
+        done = subprocess.run([sys.executable, "-m", "socbench.cli", *map(str, args)], capture_output=True,
+                              text=True, cwd=tmp_path)
+        assert done.returncode == 0, done.stderr
+        return done
+
+    cli("diagnose", "--fit", *files, "--eval", ev, "--model", "dp", "--out", tmp_path / "out", "--no-figures")
+    saved = json.loads((tmp_path / "out" / "model.json").read_text())
+    assert [e["name"] for e in saved["effects"]] == ["capacity"]
+    assert 1.0 - 1.0 / saved["effects"][0]["values"]["cap0"] == pytest.approx(0.15, abs=0.015)
+    without = tmp_path / "without.json"
+    without.write_text(json.dumps({**saved, "effects": []}))
+    rmse = {}
+    for name, params in (("with", tmp_path / "out" / "model.json"), ("without", without)):
+        cli("estimate", "--data", ev, "--params", params, "--estimator", "ekf", "--out", tmp_path / name)
+        rmse[name] = json.loads((tmp_path / name / "metrics.json").read_text())["soc_rmse"]
+    assert rmse["with"] < 0.5 * rmse["without"], rmse

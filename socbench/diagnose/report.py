@@ -1,13 +1,16 @@
-"""The diagnosis report: ``diagnosis.json`` (DESIGN.md keys), ``diagnosis.md`` and figures."""
+"""The diagnosis report: ``diagnosis.json`` (DESIGN.md keys), ``diagnosis.md``, ``model.json`` (the final model as a
+parameter file) and figures."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 
 from ..io import atomic_write_text
+from ..models.params import save_params
 from .leftover import sentence
 
 
@@ -140,12 +143,28 @@ def figures(diag, out_dir, prefix: str = "") -> list:
     return paths
 
 
+def final_params(diag):
+    """The final model as a parameter set (:class:`~socbench.models.params.ModelParams`): the base's parameters as the
+    all-data fit left them (scaled by the base refit where it was adopted; its per-record voltage offsets are the
+    records', not the model's, and are left out) with the added effects and their fitted values in ``effects``, so
+    that ``make_model`` builds the augmented model again (``socbench estimate --params``)."""
+    final = diag.final_model
+    base = getattr(final, "base", final)
+    effects = tuple({"name": e.name, "values": {k: float(np.asarray(v).reshape(-1)[0]) for k, v in e.values.items()}}
+                    for e in getattr(final, "effects", ()))
+    return dataclasses.replace(base.params, effects=effects)
+
+
 def write_report(diag, out_dir, prefix: str = "", with_figures: bool = True) -> dict:
-    """Write ``diagnosis.json``, ``diagnosis.md`` and the figures to ``out_dir``; returns the JSON dict."""
+    """Write ``diagnosis.json``, ``diagnosis.md``, ``model.json`` (:func:`final_params`, a parameter file for
+    ``socbench estimate``/``simulate``) and the figures to ``out_dir``; returns the JSON dict."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     figs = figures(diag, out_dir, prefix) if with_figures else []
     d = diag.to_dict()
     atomic_write_text(out_dir / "diagnosis.json", json.dumps(d, indent=2, default=_json_default))
     atomic_write_text(out_dir / "diagnosis.md", markdown(diag, figs))
+    save_params(out_dir / "model.json", diag.model, final_params(diag),
+                fit={"from": "socbench diagnose", "effects_added": list(diag.effects_added),
+                     "base_refit": any(s.effect == "base_refit" for s in diag.steps)})
     return d
