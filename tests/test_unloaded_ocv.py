@@ -190,3 +190,30 @@ def test_the_diagnosed_model_file_runs_in_estimate(tmp_path):
         cli("estimate", "--data", ev, "--params", params, "--estimator", "ekf", "--out", tmp_path / name)
         rmse[name] = json.loads((tmp_path / name / "metrics.json").read_text())["soc_rmse"]
     assert rmse["with"] < 0.5 * rmse["without"], rmse
+
+
+def test_every_effect_round_trips_through_the_model_file(tmp_path):
+    """``final_params`` of a model with any one effect of the catalogue saves and loads back to a model that runs the
+    same open loop (settings such as a temperature's reference or a hysteresis branch kept)."""
+    from socbench.diagnose.report import final_params
+    from socbench.models.effects import EFFECTS
+    from socbench.models.params import load_params, save_params
+
+    rng = np.random.default_rng(13)
+    cell = random_cell(rng)
+    base = make_model("thevenin", ModelParams(cell.capacity_ah, cell.ocv, {
+        "R0": Constant(cell.r0), "R1": Constant(cell.branches[0][0]),
+        "C1": Constant(cell.branches[0][1] / cell.branches[0][0])}))
+    test, _ = capacity_check(cell, 0.5, 30.0, rng)
+    test = test.with_(temperature_c=np.linspace(10.0, 30.0, test.n))
+    for name in EFFECTS:
+        model = augment(base, [make_effect(name)])
+        diag = SimpleNamespace(final_model=model, model="thevenin")
+        path = tmp_path / f"{name}.json"
+        save_params(path, "thevenin", final_params(diag))
+        loaded_name, params = load_params(path)
+        again = make_model(loaded_name, params)
+        assert [e.name for e in again.effects] == [name]
+        a = model.simulate(test, soc0=1.0).voltage_v
+        b = again.simulate(test, soc0=1.0).voltage_v
+        assert np.allclose(a, b, atol=1e-9), name
