@@ -152,8 +152,8 @@ def test_a_faded_model_starts_the_filters_at_the_same_soc_on_its_own_axis():
 
 def test_the_diagnosed_model_file_runs_in_estimate(tmp_path):
     """`socbench diagnose` writes the final model as a parameter file (model.json: the base as refitted, the fade in
-    its ``effects``); `socbench estimate --params` runs it on the aged record, and its SOC error there is lower than
-    the same file's without the effect."""
+    its ``effects``, the noise recipe's model error measured on the evaluation record); `socbench estimate --params`
+    runs it on the aged record, and its SOC error there is lower than the same file's without the effect."""
     import json
     import subprocess
     import sys
@@ -182,6 +182,7 @@ def test_the_diagnosed_model_file_runs_in_estimate(tmp_path):
     cli("diagnose", "--fit", *files, "--eval", ev, "--model", "dp", "--out", tmp_path / "out", "--no-figures")
     saved = json.loads((tmp_path / "out" / "model.json").read_text())
     assert [e["name"] for e in saved["effects"]] == ["capacity"]
+    assert saved["model_error"]["measured_on"] == "identification"  # measured on the evaluation record, in sample
     assert 1.0 - 1.0 / saved["effects"][0]["values"]["cap0"] == pytest.approx(0.15, abs=0.015)
     without = tmp_path / "without.json"
     without.write_text(json.dumps({**saved, "effects": []}))

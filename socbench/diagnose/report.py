@@ -164,7 +164,28 @@ def write_report(diag, out_dir, prefix: str = "", with_figures: bool = True) -> 
     d = diag.to_dict()
     atomic_write_text(out_dir / "diagnosis.json", json.dumps(d, indent=2, default=_json_default))
     atomic_write_text(out_dir / "diagnosis.md", markdown(diag, figs))
-    save_params(out_dir / "model.json", diag.model, final_params(diag),
+    params = final_params(diag)
+    stats = final_model_error(diag, params)
+    save_params(out_dir / "model.json", diag.model, params,
                 fit={"from": "socbench diagnose", "effects_added": list(diag.effects_added),
-                     "base_refit": any(s.effect == "base_refit" for s in diag.steps)})
+                     "base_refit": any(s.effect == "base_refit" for s in diag.steps)},
+                **({"model_error": stats.to_dict()} if stats is not None else {}))
     return d
+
+
+def final_model_error(diag, params):
+    """The noise recipe's statistics of the final model (:func:`socbench.estimators.model_error.estimate`) on the
+    evaluation records that carry a reference SOC, as ``socbench fit`` measures them on its identification records
+    (``measured_on="identification"``: the effects were fitted on these records, so the error is in sample,
+    optimistic); None where none has a reference."""
+    from ..errors import ConfigError, DataError
+    from ..estimators import model_error
+    from ..models import make_model
+
+    records = [p for p in diag.split.records if p.soc_ref is not None]
+    if not records:
+        return None
+    try:
+        return model_error.estimate(make_model(diag.model, params), records, measured_on="identification")
+    except (ConfigError, DataError):  # a record the model cannot run from its reference: no block, as `fit` does
+        return None
