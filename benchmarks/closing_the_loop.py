@@ -189,6 +189,22 @@ def one_record_rows(data_dir: Path, records: dict, fit_files=(REAL["panasonic"][
     return rows
 
 
+def _soc_cells(r) -> list:
+    """The EKF and UKF cells ``before → after [%]`` of a table row's ``soc`` (``–`` for a filter not run)."""
+    return [f"{100 * r['soc']['before'][k]:.2f} → {100 * r['soc']['after'][k]:.2f}" if k in r["soc"]["before"]
+            else "–" for k in ("ekf", "ukf")]
+
+
+def _soc_grew(r) -> bool:
+    """Whether a filter's held-out SOC error grew by more than 0.2 points in the table row ``r``."""
+    return any(r["soc"]["after"].get(k, 0.0) > r["soc"]["before"].get(k, 0.0) + 0.002 for k in r["soc"]["before"])
+
+
+def _named(r) -> str:
+    """The effects a table row names, each with its fitted parameters."""
+    return "; ".join(f"{e} ({format_params(p)})" for e, p in r["params"].items()) or "none"
+
+
 def render_calce_sequence(rows) -> list:
     if not rows:
         return []
@@ -202,14 +218,12 @@ def render_calce_sequence(rows) -> list:
          f"{rows[0]['fit_capacity_ah']:.3f} Ah | held-out voltage RMSE before → after [mV] | EKF SOC before → after "
          "[%] | UKF SOC before → after [%] |", "|---|---|---|---|---|---|---|"]
     for r in rows:
-        soc = [f"{100 * r['soc']['before'][k]:.2f} → {100 * r['soc']['after'][k]:.2f}"
-               if k in r["soc"]["before"] else "–" for k in ("ekf", "ukf")]
-        named = "; ".join(f"{e} ({format_params(p)})" for e, p in r["params"].items()) or "none"
+        soc = _soc_cells(r)
+        named = _named(r)
         fade = "–" if r["fitted_fade"] is None else f"{100 * r['fitted_fade']:.1f} %"
         L.append(f"| {r['model']} | {r['variant']} | {named} | {fade} | {_mv(r['before_v'])} → {_mv(r['after_v'])} | "
                  f"{soc[0]} | {soc[1]} |")
-    worse = [r for r in rows if any(r["soc"]["after"].get(k, 0.0) > r["soc"]["before"].get(k, 0.0) + 0.002
-                                    for k in r["soc"]["before"])]
+    worse = [r for r in rows if _soc_grew(r)]
     faded = [r for r in rows if r["fitted_fade"] is not None]
     L += ["", f"A filter's held-out SOC error grows by more than 0.2 points in {len(worse)} of {len(rows)} rows."]
     if faded and rows[0].get("reference_capacity_ah"):
@@ -236,9 +250,8 @@ def render_trise(rows) -> list:
          "| base | record | cell temperature [°C] | effects named (parameters) | held-out voltage RMSE before → after "
          "[mV] | EKF SOC before → after [%] | UKF SOC before → after [%] |", "|---|---|---|---|---|---|---|"]
     for r in rows:
-        soc = [f"{100 * r['soc']['before'][k]:.2f} → {100 * r['soc']['after'][k]:.2f}"
-               if k in r["soc"]["before"] else "–" for k in ("ekf", "ukf")]
-        named = "; ".join(f"{e} ({format_params(p)})" for e, p in r["params"].items()) or "none"
+        soc = _soc_cells(r)
+        named = _named(r)
         t = "–" if r["temperature_c"] is None else f"{r['temperature_c'][0]:.1f} … {r['temperature_c'][1]:.1f}"
         L.append(f"| {r['model']} | {r['record']} ({r['file']}) | {t} | {named} | {_mv(r['before_v'])} → "
                  f"{_mv(r['after_v'])} | {soc[0]} | {soc[1]} |")
@@ -262,8 +275,7 @@ def render_ageing(rows) -> list:
          "held-out voltage RMSE before → after [mV] | EKF SOC before → after [%] | UKF SOC before → after [%] |",
          "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        soc = [f"{100 * r['soc']['before'][k]:.2f} → {100 * r['soc']['after'][k]:.2f}"
-               if k in r["soc"]["before"] else "–" for k in ("ekf", "ukf")]
+        soc = _soc_cells(r)
         fade = "–" if r["fitted_fade"] is None else f"{100 * r['fitted_fade']:.1f} %"
         r0 = "–" if not r["refit"] else f"{r['refit'].get('R0', float('nan')):.2f}"
         L.append(f"| {r['model']} | {r['record']} ({r['file']}) | {r['capacity_ah']:.3f} | "
@@ -300,8 +312,7 @@ def render_pairs(rows) -> list:
         mine = [r for r in rows if r.get("model", "dp") == model]
         cross = [r for r in mine if r["fit_c"] != r["eval_c"]]
         within = sum(r["after_v"] <= 1.5 * r["oracle_v"] for r in cross)
-        worse = [r for r in mine if any(r["soc"]["after"].get(k, 0.0) > r["soc"]["before"].get(k, 0.0) + 0.002
-                                        for k in r["soc"]["before"])]
+        worse = [r for r in mine if _soc_grew(r)]
         soc_within = sum(all(r["soc"]["after"][k] <= 1.5 * r["oracle_soc"][k] for k in r["oracle_soc"])
                          for r in cross if r.get("oracle_soc"))
         L.append(f"{model}: across temperatures, the closed loop is within 1.5 × of the oracle in {within} of "

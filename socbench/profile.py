@@ -56,6 +56,12 @@ TEMPERATURE_HOLE_S = 60.0
 GAP_FACTOR = 5.0
 
 
+def true_runs(mask) -> list[tuple[int, int]]:
+    """``[(start, stop), ...]`` of the runs of True in the boolean sample mask ``mask``."""
+    edges = np.diff(np.concatenate([[False], np.asarray(mask, dtype=bool), [False]]).astype(np.int8))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
+
+
 def gap_steps(dt, factor: float = GAP_FACTOR) -> np.ndarray:
     """Which sample steps ``dt`` are gaps: longer than ``factor`` × the median step."""
     dt = np.asarray(dt, dtype=float)

@@ -26,10 +26,10 @@ import numpy as np
 import pandas as pd
 
 from ..errors import DataError
-from ..profile import Profile, ProfileMeta
+from ..profile import Profile, ProfileMeta, true_runs
 from .canonical import check_current_sign
 from .counting import soc_between_full_charges
-from .header import header_columns
+from .header import sniff_csv
 from .units import check_cell_units
 
 CAPACITY_AH = 1.0652
@@ -58,13 +58,7 @@ def _layout(columns) -> str | None:
 
 
 def sniff(path) -> bool:
-    path = Path(path)
-    if path.suffix.lower() != ".csv":
-        return False
-    try:
-        return _layout(header_columns(path)) is not None
-    except OSError:
-        return False
+    return sniff_csv(path, lambda columns: _layout(columns) is not None)
 
 
 def _test_name(path: Path, layout: str) -> str:
@@ -148,12 +142,11 @@ def ocv_branches(profile: Profile, current_a: float = OCV_CURRENT_A, tol: float 
     near = np.abs(np.abs(i) - current_a) <= tol * current_a
 
     def longest(mask):
-        edges = np.diff(np.r_[0, mask.astype(np.int8), 0])
-        starts, stops = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
         out = np.zeros_like(mask)
-        if starts.size:
-            k = int(np.argmax(stops - starts))
-            out[starts[k]:stops[k]] = True
+        runs = true_runs(mask)
+        if runs:
+            a, b = max(runs, key=lambda r: r[1] - r[0])  # the first of the longest, as argmax took it
+            out[a:b] = True
         return out
 
     return longest(near & (i > 0)), longest(near & (i < 0))

@@ -32,10 +32,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from ..profile import Profile, ProfileMeta
+from ..profile import Profile, ProfileMeta, true_runs
 from ..socaxis import REFERENCE_CAPACITY_KEY
 from .canonical import _numeric, _read_frame, check_current_sign
-from .header import header_columns
+from .header import sniff_csv
 from .units import check_cell_units
 
 #: each layout's leading columns: time, current, voltage, temperature (one resampled copy adds a cycle index after them)
@@ -68,13 +68,7 @@ def _layout(columns) -> str | None:
 
 
 def sniff(path) -> bool:
-    path = Path(path)
-    if path.suffix.lower() != ".csv":
-        return False
-    try:
-        return _layout(header_columns(path)) is not None
-    except OSError:
-        return False
+    return sniff_csv(path, lambda columns: _layout(columns) is not None)
 
 
 def load_cmu_evtol(path) -> Profile:
@@ -115,16 +109,10 @@ def load_cmu_evtol(path) -> Profile:
     return Profile(t - t[0], i, v, temp, None, meta)
 
 
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """``[(start, stop), …]`` of the runs of True in ``mask``."""
-    edges = np.diff(np.r_[0, mask.astype(np.int8), 0])
-    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
-
-
 def _discharges(profile: Profile, bridge_s: float = 0.0) -> list[tuple[int, int]]:
     """The discharge runs (current above :data:`REST_A`), joined across dips no longer than ``bridge_s``."""
     t, i = profile.time_s, profile.current_a
-    runs = _runs(i > REST_A)
+    runs = true_runs(i > REST_A)
     out: list[list[int]] = []
     for a, b in runs:
         if out and t[a] - t[out[-1][1] - 1] <= bridge_s and not (i[out[-1][1]:a] < -REST_A).any():

@@ -6,6 +6,17 @@ import csv
 from pathlib import Path
 
 
+def sniff_csv(path, recognised) -> bool:
+    """A source loader's ``sniff``: ``path`` is a ``.csv`` file whose header ``recognised(columns)`` accepts."""
+    path = Path(path)
+    if path.suffix.lower() != ".csv":
+        return False
+    try:
+        return bool(recognised(header_columns(path)))
+    except OSError:
+        return False
+
+
 def header_columns(path) -> list[str]:
     """The first line's column names, stripped, quotes removed (RFC 4180: a spreadsheet may quote every field; a
     byte-order mark is skipped)."""

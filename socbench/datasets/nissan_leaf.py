@@ -24,7 +24,7 @@ from ..errors import DataError
 from ..profile import Profile, ProfileMeta
 from ..socaxis import REFERENCE_CAPACITY_KEY
 from .counting import soc_between_full_charges
-from .header import header_columns
+from .header import sniff_csv
 from .units import check_cell_units
 
 CAPACITY_AH = 33.1
@@ -39,13 +39,7 @@ MODES = {"CHRG", "DCHG", "REST"}
 
 
 def sniff(path) -> bool:
-    path = Path(path)
-    if path.suffix.lower() != ".csv":
-        return False
-    try:
-        return tuple(header_columns(path)) == COLUMNS
-    except OSError:
-        return False
+    return sniff_csv(path, lambda columns: tuple(columns) == COLUMNS)
 
 
 def _test(path: Path) -> tuple[str, float | None]:

@@ -168,8 +168,9 @@ PSEUDO_OCV_C_RATE = 0.25
 def split_fit_records(fit_profiles) -> tuple[list, list]:
     """``(slow tests, dynamic records)`` of the fit data (:func:`is_slow_test`, :data:`PSEUDO_OCV_C_RATE`)."""
     fit_profiles = list(fit_profiles)
-    slow = [p for p in fit_profiles if is_slow_test(p)]
-    dynamic = [p for p in fit_profiles if not is_slow_test(p)]
+    is_slow = [is_slow_test(p) for p in fit_profiles]
+    slow = [p for p, s in zip(fit_profiles, is_slow) if s]
+    dynamic = [p for p, s in zip(fit_profiles, is_slow) if not s]
     if not slow and len(dynamic) == 2:
         slower = [p for p in dynamic if is_slow_test(p, PSEUDO_OCV_C_RATE)]
         if len(slower) == 1:

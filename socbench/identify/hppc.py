@@ -98,7 +98,7 @@ import numpy as np
 from ..errors import DataError
 from ..metrics import lag1_autocorrelation
 from ..ocv import OCVCurve, monotone_points
-from ..profile import Profile, samples_fingerprint
+from ..profile import Profile, samples_fingerprint, true_runs
 from ..socaxis import reference_capacity
 
 #: relative disagreement between the integrated current and the reference SOC above which the reference is used
@@ -480,18 +480,11 @@ def rest_level(current, i_rest: float | None = None) -> RestLevel:
 
 
 # ------------------------------------------------------------------------------------------------ structure
-def _intervals(mask: np.ndarray) -> list[tuple[int, int]]:
-    """``[(start, stop), ...]`` of the runs of True in ``mask``."""
-    m = np.concatenate([[False], mask, [False]]).astype(np.int8)
-    d = np.diff(m)
-    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
-
-
 def _active_mask(t_after: np.ndarray, t: np.ndarray, dev: np.ndarray, lev: RestLevel) -> tuple[np.ndarray, int]:
     """Samples in active runs (hysteresis, blips merged into rests) and the number of blips merged."""
     active = dev > lev.lo_a
     blips = 0
-    for a, b in _intervals(active):
+    for a, b in true_runs(active):
         peak = float(np.max(dev[a:b]))
         short = (t_after[b - 1] - t[a]) < MIN_PULSE_S or (b - a) <= 2
         if peak <= lev.hi_a or (short and peak < BLIP_K * lev.hi_a):
@@ -905,7 +898,7 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
         return v_ends[r.start]
 
     rests = []
-    for a, b in _intervals(~active):
+    for a, b in true_runs(~active):
         dur = float(t_after[b - 1] - t[a]) if b < n else float(t[b - 1] - t[a])
         rests.append(Rest(a, b, dur, float(soc[b - 1]), float("nan")))
     rest_by_stop = {r.stop: r for r in rests}  # (their lengths: the SOC axis is final further down)
@@ -913,7 +906,7 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
     # pulse candidates: held phases that start from a rest and end inside the record
     sign = np.sign(di)
     candidates = []
-    for a, b in _intervals(active):
+    for a, b in true_runs(active):
         for pa, pb in _phases(a, b, sign, t_after, t):
             if pa != a or pa == 0 or pb >= n:
                 continue
@@ -1172,7 +1165,7 @@ SLOW_GAP_S = 600.0
 def _closed(mask: np.ndarray, t: np.ndarray, max_gap_s: float) -> np.ndarray:
     """``mask`` with its runs of False shorter than ``max_gap_s`` between two runs of True set True."""
     out = mask.copy()
-    for a, b in _intervals(~mask):
+    for a, b in true_runs(~mask):
         if a > 0 and b < mask.size and t[b] - t[a - 1] <= max_gap_s:
             out[a:b] = True
     return out
@@ -1191,7 +1184,7 @@ def _slow_branches(profile: Profile, capacity_ah: float | None, i_min: float | N
     dis = _closed(i > i_min, t, SLOW_GAP_S)
     if not dis.any():
         raise DataError("no discharge in the slow OCV test", file=src, column="current_a")
-    runs = _intervals(dis)
+    runs = true_runs(dis)
     a, b = max(runs, key=lambda r: ah[r[1] - 1] - ah[r[0]])
     q_dis = float(ah[b - 1] - ah[a])
     q = float(capacity_ah) if capacity_ah else q_dis
@@ -1199,7 +1192,7 @@ def _slow_branches(profile: Profile, capacity_ah: float | None, i_min: float | N
     chg = _closed(i < -i_min, t, SLOW_GAP_S) & (np.arange(i.size) >= b)
     charge = None
     if chg.any():
-        c0, c1 = max(_intervals(chg), key=lambda r: r[1] - r[0])
+        c0, c1 = max(true_runs(chg), key=lambda r: r[1] - r[0])
         charge = (1.0 - (ah[c0:c1] - ah[a]) / q, v[c0:c1], t[c0:c1])  # the same charge count as the discharge
     return discharge, charge, q
 
