@@ -409,10 +409,12 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
         if soc0 is None:
             soc0 = float(analysis.soc[0])
         extra = unrecorded_charge(profile, current_offset_a=offset)
-        jumps = -extra / q if np.any(extra) else None
-        if jumps is not None:
+        if np.any(extra):
             notes.append(f"{int(np.count_nonzero(extra))} record gaps: {float(np.sum(extra)):.4g} Ah not in the "
                          "current column added to SOC from the reference")
+        if analysis.count_correction_ah is not None:  # pulses counted alike (socbench.identify.hppc, 3)
+            extra = extra + analysis.count_correction_ah
+        jumps = -extra / q if np.any(extra) else None
         level_knots = np.unique(np.clip(np.round(analysis.level_soc, 3), 0.0, 1.0))
         weights = _fitted_samples(analysis, ocv, profile, notes)
         # the SOC range the test covers on this axis: a cold HPPC counted with a warmer capacity ends above 0, a test

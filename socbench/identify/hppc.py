@@ -41,6 +41,21 @@ or a fixed duration where the record can tell. The analysis
    HPPC's own Ah). Where the record's own reference SOC says the test spans less than full to empty (it stops at
    20 %, or starts part charged), the reference places it: ``Q`` is the charge moved over the reference's span and
    the most charged point sits where the reference puts it (:func:`reference_placement`);
+   **Pulses counted alike.** A cycler logging every 5–10 s sees a 10–18 s pulse as one or two samples: counted
+   under zero-order hold, each pulse moves the charge of a whole number of sample periods, up to a period too much
+   or too little, and as the sampling phase slides along the schedule those errors run into a bulge of up to a few
+   points of SOC between full and empty, which the OCV read at the rest points carries. An HPPC repeats one pulse:
+   where the pulses of one direction (the held ones: every sample at the level, so a logger that averages its
+   interval, whose edge samples carry part of the pulse and count its charge exactly, is left alone) are at least
+   :data:`PULSE_COUNT_MIN` and their counted lengths lie within :data:`PULSE_COUNT_SPREAD` sample periods of each
+   other — one length seen through the sampling — while a period is at least :data:`PULSE_COUNT_FRAC` of that
+   length, each pulse's charge is taken as its current × their mean counted length (unbiased over a phase that
+   slides; the pulse's own count, one or two samples, is off by up to a period), the difference added to the count
+   where the pulse ends (:func:`pulse_count_correction`, ``HPPCAnalysis.count_correction_ah``;
+   :func:`socbench.identify.fit.setup_fit` adds it to the fitted record's SOC as it adds a gap's charge). The mean's
+   own error stays (a drift along the test, which a capacity counted from full to empty takes up); the bulge goes.
+   Not where the charge comes from the reference SOC, which counted it;
+
 4. **tells pulses from steps**: a *pulse* is a phase that
 
    * starts from a rest at least half as long as itself (an HPPC rests before every pulse; a drive cycle only
@@ -151,6 +166,14 @@ KNEE_RATIO = 2.0
 KNEE_SLOPE_V = 1.0
 #: the note (and the fit command's warning) for a test whose lowest step shows no knee starts with this
 NO_KNEE = "no end-of-discharge knee"
+#: pulses counted alike (module docstring, 3): at least this many held pulses of one direction, whose counted lengths
+#: lie within this many sample periods of each other, sampled at periods of at least this share of their mean length
+PULSE_COUNT_MIN = 3
+PULSE_COUNT_SPREAD = 1.5
+PULSE_COUNT_FRAC = 0.1
+#: ... and only where that moves the SOC axis somewhere by at least this share of the capacity (less is within the
+#: count's own rounding: a schedule on the sampling grid counts every pulse alike already)
+PULSE_COUNT_MIN_MOVE = 1e-4
 #: shortest rest before a pulse set that gives an OCV point [s]: HPPC protocols rest 5 min to 2 h (4 min leaves room
 #: for a coarse sampling of a 5 min rest); after a shorter rest most of the polarisation is still there, and drive
 #: cycles stop for a minute or two
@@ -253,6 +276,10 @@ class HPPCAnalysis:
     #: current times the pulse resistance of the lowest pulse set (``r_pulse``: what the pulses there dropped by their
     #: end), medians on SOC bins of :data:`BOTTOM_BIN`; None otherwise (:attr:`ocv_bottom_extension`)
     bottom_point: tuple | None = None
+    #: per sample, the charge [Ah] added to the count in the step into the sample where a pulse counted under
+    #: zero-order hold is taken as its current × the mean counted length of its kind (:func:`pulse_count_correction`;
+    #: included in ``ah`` and ``soc``); None where no pulse was corrected
+    count_correction_ah: np.ndarray | None = None
 
     @property
     def current_offset_a(self) -> float:
@@ -637,7 +664,7 @@ def _settings() -> tuple:
 
 def _read_only(analysis: HPPCAnalysis) -> HPPCAnalysis:
     """``analysis`` with its per-sample and OCV arrays made read-only (a kept analysis is shared by every caller)."""
-    for name in ("ocv_soc", "ocv_voltage", "soc", "ah", "level_soc"):
+    for name in ("ocv_soc", "ocv_voltage", "soc", "ah", "level_soc", "count_correction_ah"):
         arr = getattr(analysis, name)
         if isinstance(arr, np.ndarray):
             arr.flags.writeable = False
@@ -853,10 +880,13 @@ def _sets_repeat(a: HPPCAnalysis) -> bool:
 
 
 def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_start=None,
-                  durations: list | None = None, rest_sets: bool = False) -> HPPCAnalysis:
+                  durations: list | None = None, rest_sets: bool = False,
+                  count_correction: np.ndarray | None = None) -> HPPCAnalysis:
     """:func:`analyze_hppc` with a given (or the record-read, for None) longest pulse; the lengths of the held
     phases from a rest (the pulse candidates, before the bound) are appended to ``durations`` when it is a list.
-    ``rest_sets``: a pulse after a rest of ``min_rest_s`` or more opens a new set too (module docstring, 5)."""
+    ``rest_sets``: a pulse after a rest of ``min_rest_s`` or more opens a new set too (module docstring, 5).
+    ``count_correction``: per sample, charge [Ah] added to the count (:func:`pulse_count_correction`); None: the
+    pulses found are counted alike where they qualify, and the record analysed again on that count."""
     if profile.batched:
         raise DataError("analyze_hppc needs a plain profile", file=profile.meta.source or profile.name)
     profile.require("voltage_v")
@@ -873,6 +903,8 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
         notes.append(f"{blips} current blip(s) shorter than {MIN_PULSE_S:g} s or at the noise level merged into rests")
 
     ah, ah_source = discharged_ah(profile, lev.offset_a)
+    if count_correction is not None:
+        ah = ah + np.cumsum(count_correction)
     ref = _reference_ah(profile)
     if ah_source == "current" and ref is not None:
         scale = max(float(np.max(np.abs(ref))), float(np.max(np.abs(ah))), 1e-12)  # as discharged_ah
@@ -1056,10 +1088,42 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
     start_ocv = float(v[0] + r_inst * di[0]) if k_full == 0 and r_inst > 0 else float("nan")
     bottom = (None if ascending or not BOTTOM_EXTENSION
               else _bottom_point(t, v, di, ah, soc, pulses, start, end, lev, max_pulse_s))
+    if count_correction is None and ah_source == "current":
+        correction = pulse_count_correction(t, di, pulses, lev)
+        if correction is not None and float(np.max(np.abs(np.cumsum(correction)))) >= PULSE_COUNT_MIN_MOVE * q:
+            again = _analyze_hppc(profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_start,
+                                  rest_sets=rest_sets, count_correction=correction)
+            moved = float(np.max(np.abs(np.cumsum(correction)))) / again.capacity_ah
+            note = (f"{int(np.count_nonzero(correction))} pulses sampled in a few samples each, counted alike (their "
+                    f"current × the mean counted length of their direction): the SOC axis moves by up to "
+                    f"{100 * moved:.2g} points")
+            return replace(again, notes=again.notes + (note,))
     rests = [replace(r, v_end=v_end(r)) for r in rests]
     return HPPCAnalysis(tuple(rests), tuple(pulses), np.asarray(ocv_z), np.asarray(ocv_v), q, soc, ah, ah_source,
                         level_soc, tuple(notes), lev, float(max_pulse_s), start_ocv, start,
-                        "charge" if ascending else "discharge", end, bottom)
+                        "charge" if ascending else "discharge", end, bottom, count_correction)
+
+
+def pulse_count_correction(t: np.ndarray, di: np.ndarray, pulses, lev: RestLevel) -> np.ndarray | None:
+    """Per sample, the charge [Ah] to add to the zero-order-hold count in the step into the sample (at each
+    corrected pulse's first sample after it) when the pulses of one direction are counted alike (module docstring,
+    3): ``I_k·(D̄ − D_k)/3600`` for pulse ``k`` of current ``I_k`` and counted length ``D_k``, ``D̄`` the mean over
+    the held pulses of its direction (``di``: the current less the sensor offset; held: every sample within
+    ``max(θ_lo, 5 %)`` of the pulse's current). None where no direction qualifies."""
+    out = np.zeros(t.size)
+    for direction in (1.0, -1.0):
+        kind = [p for p in pulses if np.sign(p.current_a) == direction and p.stop < t.size
+                and float(np.max(np.abs(di[p.start:p.stop] - p.current_a))) <= max(lev.lo_a, 0.05 * abs(p.current_a))]
+        if len(kind) < PULSE_COUNT_MIN:
+            continue
+        lengths = np.array([p.duration_s for p in kind])
+        period = float(np.median([p.duration_s / (p.stop - p.start) for p in kind]))
+        mean = float(np.mean(lengths))
+        if period < PULSE_COUNT_FRAC * mean or float(np.ptp(lengths)) > PULSE_COUNT_SPREAD * period:
+            continue
+        for p, length in zip(kind, lengths):
+            out[p.stop] += p.current_a * (mean - length) / 3600.0
+    return out if np.any(out) else None
 
 
 def _bottom_point(t, v, di, ah, soc, pulses, start: int, end: int, lev: RestLevel, max_pulse_s: float):
