@@ -96,3 +96,15 @@ def test_the_fit_counts_the_record_as_the_analysis_does(seed):
     counted = counted + np.cumsum(prob.soc_jumps)
     stop = a.end_index or p.n
     assert np.max(np.abs(counted[:stop] - a.soc[:stop])) < 1e-9
+
+
+def test_socbench_fit_says_the_pulses_were_counted_alike(tmp_path, capsys):
+    """The SOC axis a user's file is fitted on moved: ``socbench fit`` says so beside its other axis notes."""
+    from socbench.cli import main
+
+    rec = _coarse(20300, dt=8.0)
+    path = H.write_canonical(rec.profile, tmp_path / "coarse.csv")
+    assert main(["fit", "--data", str(path), "--model", "thevenin", "--out", str(tmp_path / "p.json")]) == 0
+    out = capsys.readouterr().out
+    notes = [line for line in out.splitlines() if "note:" in line]
+    assert any("counted alike" in line and "SOC axis moves" in line for line in notes), out

@@ -50,7 +50,7 @@ from ..domain import warn_outside
 from ..errors import ConfigError, DataError, SocbenchWarning
 from ..estimators import DEFAULT_NOISE, model_error, nis_calibration
 from ..identify import FIT_SETTINGS, MODES, fit_model, select_fit, select_temperature_fit
-from ..identify.hppc import NO_KNEE, analyze_hppc, declared_capacity
+from ..identify.hppc import COUNTED_ALIKE, NO_KNEE, analyze_hppc, declared_capacity
 from ..identify.pseudo_ocv import refit_on_refined_ocv
 from ..identify.start_soc import place_start
 from ..identify.temperature import fit_temperatures
@@ -283,8 +283,9 @@ def _mv(values) -> str:
 
 def _axis_notes(fit) -> list[str]:
     """The notes of a fit that say where its record's reference SOC placed the HPPC on the SOC axis
-    (:func:`socbench.identify.hppc.reference_placement`)."""
-    return [n for n in fit.params.notes if "reference SOC places the test" in n]
+    (:func:`socbench.identify.hppc.reference_placement`), or that its pulses were counted alike
+    (:func:`socbench.identify.hppc.pulse_count_correction`)."""
+    return [n for n in fit.params.notes if "reference SOC places the test" in n or COUNTED_ALIKE in n]
 
 
 def _left_out(fit) -> list[str]:

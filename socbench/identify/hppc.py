@@ -178,6 +178,8 @@ PULSE_COUNT_FRAC = 0.1
 #: ... and only where that moves the SOC axis somewhere by at least this share of the capacity (less is within the
 #: count's own rounding: a schedule on the sampling grid counts every pulse alike already)
 PULSE_COUNT_MIN_MOVE = 1e-4
+#: the analysis' note where pulses were counted alike contains this (``socbench fit`` prints it)
+COUNTED_ALIKE = "counted alike"
 #: shortest rest before a pulse set that gives an OCV point [s]: HPPC protocols rest 5 min to 2 h (4 min leaves room
 #: for a coarse sampling of a 5 min rest); after a shorter rest most of the polarisation is still there, and drive
 #: cycles stop for a minute or two
@@ -1098,7 +1100,7 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
             again = _analyze_hppc(profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_start,
                                   rest_sets=rest_sets, count_correction=correction)
             moved = float(np.max(np.abs(np.cumsum(correction)))) / again.capacity_ah
-            note = (f"{int(np.count_nonzero(correction))} pulses sampled in a few samples each, counted alike (their "
+            note = (f"{int(np.count_nonzero(correction))} pulses sampled in a few samples each, {COUNTED_ALIKE} (their "
                     f"current × the mean counted length of their direction): the SOC axis moves by up to "
                     f"{100 * moved:.2g} points")
             return replace(again, notes=again.notes + (note,))
