@@ -108,3 +108,18 @@ def test_socbench_fit_says_the_pulses_were_counted_alike(tmp_path, capsys):
     out = capsys.readouterr().out
     notes = [line for line in out.splitlines() if "note:" in line]
     assert any("counted alike" in line and "SOC axis moves" in line for line in notes), out
+
+
+def test_socbench_diagnose_says_so_in_its_report(tmp_path):
+    """``diagnosis.md`` names the OCV it started from; a count that moved its rest points is part of that."""
+    from socbench.cli import main
+
+    rec = _coarse(20300, dt=8.0)
+    hppc_path = H.write_canonical(rec.profile, tmp_path / "coarse.csv")
+    drive = H.drive_record(rec.cell, H.Instrument(dt=1.0, v_noise=1e-3), seed=3, duration_s=3600.0)
+    drive_path = H.write_canonical(drive.profile, tmp_path / "drive.csv")
+    out = tmp_path / "diag"
+    assert main(["diagnose", "--fit", str(hppc_path), "--eval", str(drive_path), "--model", "thevenin", "--out",
+                 str(out), "--no-figures"]) == 0
+    fitted_on = (out / "diagnosis.md").read_text().splitlines()[2]
+    assert "counted alike" in fitted_on and "SOC axis moves" in fitted_on, fitted_on

@@ -74,7 +74,7 @@ from ..identify import (
 )
 from ..identify.fit import branches_identified
 from ..identify.fit_test_effect import FIT_TEST_EFFECTS, effect_on_fit_test
-from ..identify.hppc import declared_capacity, quantisation_step
+from ..identify.hppc import COUNTED_ALIKE, declared_capacity, quantisation_step
 from ..identify.pseudo_ocv import step_direction
 from ..identify.start_soc import place_start
 from ..models import make_model
@@ -424,6 +424,9 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
         res = fit_model(name, prof, mode=mode, ocv=ocv, capacity_ah=capacity, **axis)
     info.update({"fitted_on": prof.name, "mode": res.mode, "rmse_v": res.rmse_v, "seconds": res.seconds,
                  "capacity_ah": res.params.capacity_ah, "values": res.values, "warnings": list(res.warnings)})
+    counted = [n for n in res.params.notes if COUNTED_ALIKE in n]  # the rest points' SOC axis moved
+    if counted and "ocv" in info:
+        info["ocv"] += f"; {counted[0]}"
     t_fit = prof.temperature_c
     info["t_ref_c"] = float(np.mean(t_fit)) if t_fit is not None else T_REF_C
     return make_model(name, res.params), info
