@@ -83,13 +83,10 @@ def field_with_recharge(rf, q: float) -> list:
 
 def draw(seed: int, folder: Path) -> dict:
     """Write case ``seed``'s HPPC and field files into ``folder``; returns what was drawn."""
-    r = np.random.default_rng(seed)
-    cell, inst, dt_hppc, dt_field = fr.cell_and_instrument(r)
+    r, cell, inst, dt_hppc, dt_field, protocol, segs, z0 = fr.hppc_setup(seed)
     q = cell["q"]
     kind = KINDS[seed % len(KINDS)]
     effect = hidden_effect(kind, cell, np.random.default_rng([seed, 5]))
-    protocol = fr.PROTOCOLS[int(np.random.default_rng([seed, 1]).integers(len(fr.PROTOCOLS)))]
-    segs, z0 = fr.hppc_segments(r, q, protocol)
     stop = effect if kind == "hysteresis" else None
     hppc = fr.simulate(segs, cell, dt_hppc, z0, r, inst, stop=stop, h0=1.0 if z0 > 0.5 else -1.0)
     field_cell = cell

@@ -229,12 +229,20 @@ def cell_and_instrument(r) -> tuple[dict, dict, float, float]:
     return cell, inst, dt_hppc, dt_field
 
 
-def draw(seed: int, folder: Path) -> dict:
+def hppc_setup(seed: int) -> tuple:
+    """``(r, cell, instrument, HPPC sample period s, field sample period s, protocol, segments, start SOC)`` of case
+    ``seed``: the draws every benchmark on this generator shares, ``r`` left where the HPPC's measurement draws
+    next."""
     r = np.random.default_rng(seed)
     cell, inst, dt_hppc, dt_field = cell_and_instrument(r)
-    q = cell["q"]
     protocol = PROTOCOLS[int(np.random.default_rng([seed, 1]).integers(len(PROTOCOLS)))]
-    segs, z0 = hppc_segments(r, q, protocol)
+    segs, z0 = hppc_segments(r, cell["q"], protocol)
+    return r, cell, inst, dt_hppc, dt_field, protocol, segs, z0
+
+
+def draw(seed: int, folder: Path) -> dict:
+    r, cell, inst, dt_hppc, dt_field, protocol, segs, z0 = hppc_setup(seed)
+    q = cell["q"]
     hppc = measure(segs, cell, dt_hppc, z0, r, inst)
     rf = np.random.default_rng([seed, 2])  # the field record's own stream: it does not depend on the HPPC's layout
     field = measure(field_segments(rf, q), cell, dt_field, 0.95, rf, inst)

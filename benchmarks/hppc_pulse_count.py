@@ -41,10 +41,7 @@ def tests_generator(seed: int):
 
 def foreign_generator(seed: int):
     """``(sample period s, spread function)`` of draw ``seed`` of benchmarks/foreign_records.py's HPPC."""
-    r = np.random.default_rng(seed)
-    cell, inst, dt, _ = fr.cell_and_instrument(r)
-    protocol = fr.PROTOCOLS[int(np.random.default_rng([seed, 1]).integers(len(fr.PROTOCOLS)))]
-    segs, z0 = fr.hppc_segments(r, cell["q"], protocol)
+    r, cell, inst, dt, _, _, segs, z0 = fr.hppc_setup(seed)
     t, i, v, z = fr.measure(segs, cell, dt, z0, r, inst)
     profile = Profile(t, i, voltage_v=v, meta=ProfileMeta(name=f"foreign{seed}", source=f"foreign{seed}",
                                                           capacity_ah=cell["q"], n_series=1))

@@ -1096,10 +1096,11 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
               else _bottom_point(t, v, di, ah, soc, pulses, start, end, lev, max_pulse_s))
     if count_correction is None and ah_source == "current":
         correction = pulse_count_correction(t, di, pulses, lev)
-        if correction is not None and float(np.max(np.abs(np.cumsum(correction)))) >= PULSE_COUNT_MIN_MOVE * q:
+        moved_ah = 0.0 if correction is None else float(np.max(np.abs(np.cumsum(correction))))
+        if correction is not None and moved_ah >= PULSE_COUNT_MIN_MOVE * q:
             again = _analyze_hppc(profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_start,
                                   rest_sets=rest_sets, count_correction=correction)
-            moved = float(np.max(np.abs(np.cumsum(correction)))) / again.capacity_ah
+            moved = moved_ah / again.capacity_ah
             note = (f"{int(np.count_nonzero(correction))} pulses sampled in a few samples each, {COUNTED_ALIKE} (their "
                     f"current × the mean counted length of their direction): the SOC axis moves by up to "
                     f"{100 * moved:.2g} points")
