@@ -467,12 +467,28 @@ def _hppc_recipe_on_a_drive(seed: int, tmp_path) -> dict:
 def test_mid_state_keeps_the_band_on_a_drive_the_hppc_recipe_did_not_see(tmp_path):
     """The recipe measured on an HPPC (in sample) meets a drive cycle whose error moves at periods of minutes, which
     one persistent slow state does not describe (module docstring). Over 24 random cells of the test generator the
-    band holds the truth (≥ 0.9 of the samples) in at least 80 % of the draws with ``ε_mid``, and in at least three
-    draws more than with it held at 0; the median SOC error is not larger. Measured: 22 of 24 against 17
-    (thevenin; seeds 1000–1047: 0.90 against 0.71; dp on seeds 2000–2047: 0.81 against 0.67)."""
-    runs = [_hppc_recipe_on_a_drive(seed, tmp_path) for seed in range(24)]
-    held = {v: sum(r[v][1] >= 0.9 for r in runs) for v in ("as is", "without mid")}
-    assert held["as is"] >= 0.8 * len(runs), held
+    band holds the truth (≥ 0.9 of the samples) in at least three draws more with ``ε_mid`` than with it held at 0, and
+    the median SOC error is not larger; where the HPPC file holds its step discharges, the band holds in at least 80 %
+    of the draws. Measured (thevenin): 16 of 24 against 13, 15 of the 17 with steps; seeds 1000–1047: 36 of 48 against
+    30, 34 of the 42 with steps.
+
+    Where the file leaves the steps out (Panasonic-style gaps: only the pulses and part of each rest), the HPPC holds no
+    sustained load at all, and the recipe measured on it cannot see the error a drive's sustained load brings (a slow
+    branch a one-branch fit lacks: 15–46 mV open loop on these drives); the band held there in 1 of 7 draws (2 of 6 on
+    seeds 1000–1047), and `socbench fit` says the recipe is too small for a drive. Until stop 69 it held in all 7:
+    the recipe ran the HPPC open loop on the raw current, and the lab sensor's offset, integrated over the day-long
+    test, was read as a slow model error that widened the band (tests/test_recipe_sensor_offset.py)."""
+    runs = [(_hppc_recipe_on_a_drive(seed, tmp_path), _steps_left_out(seed)) for seed in range(24)]
+    held = {v: sum(r[v][1] >= 0.9 for r, _ in runs) for v in ("as is", "without mid")}
     assert held["as is"] >= held["without mid"] + 3, held
-    med = {v: np.median([r[v][0] for r in runs]) for v in held}
+    with_steps = [r for r, gaps in runs if not gaps]
+    assert sum(r["as is"][1] >= 0.9 for r in with_steps) >= 0.8 * len(with_steps), held
+    med = {v: np.median([r[v][0] for r, _ in runs]) for v in held}
     assert med["as is"] <= med["without mid"], med
+
+
+def _steps_left_out(seed: int) -> bool:
+    """Whether draw ``seed`` of the test generator leaves the HPPC's step discharges out of the file."""
+    from . import hppc_records as H
+
+    return bool(H.random_setup(seed)[2].gaps)

@@ -28,8 +28,9 @@ prints every candidate's validation RMSE and the one kept.
 
 The noise recipe (:mod:`socbench.estimators.model_error`) measures the fitted model's voltage error on the
 ``--validation`` records (other drive cycles of the same cell, never one you will score), else on the identification
-records, and stores it as ``"model_error"`` (with ``measured_on``: which of the two); ``socbench estimate`` builds the
-filter covariances from it by default. Measured on the identification records it is too small for a drive cycle (an
+records as the fit saw them (their current less the sensor offset their rests read), and stores it as
+``"model_error"`` (with ``measured_on``: which of the two); ``socbench estimate`` builds the filter covariances from it
+by default. Measured on the identification records it is too small for a drive cycle (an
 HPPC shows no sustained load; docs/real_data.md section 4g): both commands say so. Measured on ``--validation``
 records, its size is then calibrated there (:mod:`socbench.estimators.nis_calibration`): the EKF and the particle
 filter, run on those records with the recipe and ``socbench estimate``'s default sensor noise, should average a NIS of
@@ -311,14 +312,15 @@ def _validation_notes(args, stats) -> list[str]:
 def _model_error(model, records, validation):
     """The noise recipe's statistics and which records it used (None when no record has a known SOC).
 
-    Without ``--validation`` it measures on the identification records; one without a reference SOC gets its HPPC SOC
-    axis (counted from full with the model's capacity, :func:`~socbench.identify.hppc.analyze_hppc`) as the known
-    SOC, the axis the fit itself placed it on."""
+    Without ``--validation`` it measures on the identification records as the fit saw them (:func:`_as_fitted`): the
+    current less the sensor offset their rests read, and where a record has no reference SOC its HPPC SOC axis
+    (counted from full with the model's capacity, :func:`~socbench.identify.hppc.analyze_hppc`), the axis the fit
+    itself placed it on."""
     if validation:
         stats = model_error.estimate(model, validation, measured_on="validation")
         return (nis_calibration.calibrate_forms(model, DEFAULT_NOISE, stats, validation),
                 f"{len(validation)} validation record(s)")
-    usable = [r if r.soc_ref is not None else _counted_reference(r, model.capacity_ah) for r in records]
+    usable = [_as_fitted(r, model.capacity_ah) for r in records]
     usable = [r for r in usable if r is not None]
     if not usable:
         print("note: no identification record has a reference SOC or an HPPC SOC axis: no model_error block (the "
@@ -330,10 +332,18 @@ def _model_error(model, records, validation):
             f"the {len(usable)} identification record(s) (no --validation{how})")
 
 
-def _counted_reference(record, capacity_ah: float):
-    """``record`` with its HPPC SOC axis as the reference SOC, or None when it is not an HPPC."""
+def _as_fitted(record, capacity_ah: float):
+    """``record`` as the fit saw it, or None when it has no reference SOC and is not an HPPC.
+
+    The fit runs the model on the current less the offset the current sensor reads on the HPPC's rests
+    (:attr:`~socbench.identify.hppc.HPPCAnalysis.current_offset_a`); the recipe measures the model's error on that
+    same current. On the raw current the offset's charge would run the open-loop SOC off the axis (0.2 % of 1C over a
+    10 h HPPC: 2 points), and that drift, the lab sensor's and not the model's, would be read as a slow model error
+    (20 mV on an NMC cell) that widens every filter built from the recipe. A record without a reference SOC gets its
+    HPPC SOC axis as the reference."""
     try:
         analysis = analyze_hppc(record, capacity_ah=capacity_ah)
-    except DataError:
-        return None
-    return record.with_(soc_ref=np.clip(analysis.soc, 0.0, 1.0))
+    except (ConfigError, DataError):
+        return record if record.soc_ref is not None else None
+    soc = record.soc_ref if record.soc_ref is not None else np.clip(analysis.soc, 0.0, 1.0)
+    return record.with_(current_a=record.current_a - analysis.current_offset_a, soc_ref=soc)
