@@ -6,7 +6,10 @@ initial SOC (``--soc0``, default the record's reference at its start) and the SO
 definition (:mod:`socbench.socaxis`).
 
 A record of several discharges (battery swaps, recharges) is simulated segment by segment, each restarting at its
-reference SOC (:mod:`socbench.segments`); ``--no-segments`` runs it as one piece. The JSON holds the DESIGN.md keys,
+reference SOC (:mod:`socbench.segments`); ``--no-segments`` runs it as one piece. Charge the reference SOC says the
+cell delivered across a gap that the current column does not carry (the Panasonic HPPC files leave out the step
+discharges) is taken as a jump of the SOC there (:func:`socbench.identify.hppc.gap_soc_jumps`), as the fit took it;
+the JSON's ``soc_jumps`` says how many and how much. The JSON holds the DESIGN.md keys,
 ``segments`` (count and the boundaries), ``domain`` (:func:`socbench.domain.domain_report`: samples with SOC outside
 [0, 1], OCV extrapolated, guards, implausible voltage) and ``guard_fractions`` (those counts and the model's guards as
 shares of samples). A warning line is printed when ≥ 1 % of the samples lie outside the model's domain.
@@ -18,12 +21,14 @@ import json
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from ..checks import check_capacity, check_current_against_reference, check_temperature_range, check_voltage_level
 from ..datasets import load
 from ..domain import warn_outside
 from ..errors import DataError, SocbenchWarning
+from ..identify.hppc import gap_soc_jumps
 from ..io import atomic_write_frame, atomic_write_text, output_file
 from ..metrics import voltage_error_stats
 from ..models import load_params, make_model, paper_params
@@ -87,13 +92,22 @@ def run(args) -> int:
     axis = soc_axis(params, profile)
     soc0 = args.soc0 if args.soc0 is not None else (float(profile.soc_ref[0]) if profile.soc_ref is not None
                                                      else None)
+    # charge the cell delivered while the logger was off, which the reference SOC holds and the current column does
+    # not (the Panasonic HPPC files leave out the step discharges): the fit carried it, so does the simulation
+    jumps = gap_soc_jumps(profile, model.capacity_ah)
     sim = model.simulate(profile, soc0=None if soc0 is None else float(axis.to_model(soc0)),
-                         segments=False if args.no_segments else None)
+                         segments=False if args.no_segments else None, soc_jumps=jumps)
     stats = voltage_error_stats(profile.voltage_v, sim.voltage_v)
     pauses = pause_report(profile, params.capacity_ah, sim.segments)
     stats.update({"model": name, "data": str(args.data), "guard_fractions": sim.domain_fractions,
                   "segments": sim.segments.to_dict(), "logger_pauses": pauses, "domain": sim.domain})
-    message = pause_message(pauses, f"{name} on {profile.name}", "the simulation holds the last current across each")
+    held = "the simulation holds the last current across each"
+    if jumps is not None:
+        stats["soc_jumps"] = {"steps": int(np.count_nonzero(jumps)),
+                              "ah": float(-np.sum(jumps) * model.capacity_ah)}
+        held += (f" (across {stats['soc_jumps']['steps']} the SOC takes the {stats['soc_jumps']['ah']:.4g} Ah the "
+                 "reference SOC says the current column misses)")
+    message = pause_message(pauses, f"{name} on {profile.name}", held)
     if message:
         warnings.warn(message, SocbenchWarning, stacklevel=1)
     if temperature:

@@ -369,18 +369,14 @@ def residual(model, profile: Profile, with_soc: bool = False):
     """Open-loop voltage error ``v_meas − v_model`` of ``model`` on ``profile`` from its reference SOC at the start
     (on the model's axis; else full), charge that only the reference knows (HPPC gaps) added back; with
     ``with_soc`` also the model's SOC path ``(e, z)``."""
-    from ..identify.hppc import unrecorded_charge
+    from ..identify.hppc import gap_soc_jumps
     from ..segments import restart_soc
 
     profile.require("voltage_v")
     if profile.batched:
         raise DataError("residual needs a plain profile (one run)", file=profile.meta.source or profile.name)
     z0 = float(restart_soc(profile, 0, model)) if profile.soc_ref is not None else 1.0  # on the model's axis
-    jumps = None
-    if profile.soc_ref is not None:
-        extra = unrecorded_charge(profile)
-        if np.any(extra):
-            jumps = -extra / model.capacity_ah
+    jumps = gap_soc_jumps(profile, model.capacity_ah)
     x0 = model.x0(np.clip(z0, 0.0, 1.0))
     states, v = model.open_loop(x0, profile.time_s, profile.current_a, profile.temperature_c, jumps)
     e = profile.voltage_v - v

@@ -429,6 +429,18 @@ def unrecorded_charge(profile: Profile, threshold_frac: float = 1e-3, current_of
     return out
 
 
+def gap_soc_jumps(profile: Profile, capacity_ah: float) -> np.ndarray | None:
+    """Per sample, the SOC (on the axis of a cell of ``capacity_ah``) that the step into it moves beyond what the
+    current column carries: ``−unrecorded_charge / capacity`` (:func:`unrecorded_charge`, the ``soc_jumps`` of
+    :meth:`~socbench.models.base.Model.open_loop`), or None where the record has no reference or none is missing.
+    The charge a cell delivered while the logger was off (the Panasonic HPPC files leave out the step discharges), as
+    the fit, the noise recipe and the simulation carry it."""
+    if profile.get("soc_ref") is None:
+        return None
+    extra = unrecorded_charge(profile)
+    return -extra / capacity_ah if np.any(extra) else None
+
+
 # ------------------------------------------------------------------------------------------------ the sensor
 def _robust_sd(x: np.ndarray) -> float:
     """1.4826 × the median absolute value: the standard deviation of zero-mean Gaussian samples, robustly."""

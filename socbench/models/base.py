@@ -255,7 +255,7 @@ class Model(ABC):
 
     # ------------------------------------------------------------------ simulation
     def simulate(self, profile: Profile, soc0=None, x0=None, guards: GuardLog | None = None,
-                 segments=None) -> Simulation:
+                 segments=None, soc_jumps=None) -> Simulation:
         """Open-loop simulation on a profile's current (and temperature): ``y_k = h(x_k, I_k)``, ``x_{k+1} = f(...)``.
 
         ``soc0`` defaults to the profile's reference SOC at the first sample, else the SOC read off the first
@@ -265,8 +265,10 @@ class Model(ABC):
         segment: ``segments=None`` finds them, ``False`` runs the record as one piece (the zero-order hold then
         carries the current across every gap), or pass a :class:`~socbench.segments.Segments`. Each segment after
         the first restarts from rest at the reference SOC of its first sample (else the SOC read off its first
-        voltage); no current is integrated across a boundary. ``Simulation.domain`` counts the samples outside the
-        model's domain (:func:`socbench.domain.domain_report`).
+        voltage); no current is integrated across a boundary. ``soc_jumps`` (optional, ``(T,)``): SOC added after the
+        step into each sample, charge the current column does not carry (:meth:`open_loop`;
+        :func:`socbench.identify.hppc.gap_soc_jumps`), none at a segment's first sample (it restarts).
+        ``Simulation.domain`` counts the samples outside the model's domain (:func:`socbench.domain.domain_report`).
         """
         from ..domain import domain_report, guard_fractions
         from ..segments import REFERENCE, resolve, restart_soc
@@ -285,8 +287,12 @@ class Model(ABC):
             if s:  # a restart: from rest, at the SOC the segment starts from
                 z = restart_soc(profile, a, self, REFERENCE)
                 xs = self.x0(np.broadcast_to(z, np.broadcast_shapes(np.shape(z), np.shape(x0)[:-1])))
+            jumps = None
+            if soc_jumps is not None:
+                jumps = np.array(soc_jumps[a:b], dtype=float)
+                jumps[0] = 0.0
             parts.append(self.open_loop(xs, profile.time_s[a:b], i[..., a:b], None if temp is None else temp[..., a:b],
-                                        guards=log))
+                                        jumps, guards=log))
         states = parts[0][0] if len(parts) == 1 else np.concatenate([p[0] for p in parts], axis=-2)
         volts = parts[0][1] if len(parts) == 1 else np.concatenate([p[1] for p in parts], axis=-1)
         log.samples += int(np.prod(volts.shape[:-1], dtype=int)) * profile.n
