@@ -25,6 +25,7 @@ from ..errors import ConfigError, DataError, ModelError
 from ..models.registry import make_model
 from ..profile import Profile
 from .fit import FIT_COMPRESSION, FitResult, fit_model
+from .hppc import gap_soc_jumps
 from .temperature import TemperatureFit, fit_temperatures, record_temperature
 
 #: candidate fit settings (keyword arguments of :func:`~socbench.identify.fit.fit_model`)
@@ -41,10 +42,11 @@ FIT_CANDIDATES: dict = {
 def validation_rmse(fit, record: Profile) -> float:
     """Open-loop voltage RMSE of ``fit`` (a :class:`FitResult`, or a model) on ``record``, from the record's reference
     SOC at its start (else the SOC the model reads off its first voltage, ``Model.soc_from_voltage``, as the diagnosis
-    starts its simulations)."""
+    starts its simulations), the charge its reference holds across gaps taken as the fit takes it
+    (:func:`~socbench.identify.hppc.gap_soc_jumps`)."""
     record.require("voltage_v")
     model = make_model(fit.name, fit.params) if isinstance(fit, FitResult) else fit
-    e = record.voltage_v - model.simulate(record).voltage_v
+    e = record.voltage_v - model.simulate(record, soc_jumps=gap_soc_jumps(record, model.capacity_ah)).voltage_v
     return float(np.sqrt(np.mean(e * e))) if np.all(np.isfinite(e)) else float("inf")
 
 
