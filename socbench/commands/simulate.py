@@ -8,8 +8,9 @@ definition (:mod:`socbench.socaxis`).
 A record of several discharges (battery swaps, recharges) is simulated segment by segment, each restarting at its
 reference SOC (:mod:`socbench.segments`); ``--no-segments`` runs it as one piece. Charge the reference SOC says the
 cell delivered across a gap that the current column does not carry (the Panasonic HPPC files leave out the step
-discharges) is taken as a jump of the SOC there (:func:`socbench.identify.hppc.gap_soc_jumps`), as the fit took it;
-the JSON's ``soc_jumps`` says how many and how much. The JSON holds the DESIGN.md keys,
+discharges) is taken as a jump of the SOC there (:func:`socbench.identify.hppc.gap_soc_jumps`), as the fit took
+it, where the simulation starts from the reference (no ``--soc0``, which never reads it) and restarts at its segments
+(no ``--no-segments``); the JSON's ``soc_jumps`` says how many and how much. The JSON holds the DESIGN.md keys,
 ``segments`` (count and the boundaries), ``domain`` (:func:`socbench.domain.domain_report`: samples with SOC outside
 [0, 1], OCV extrapolated, guards, implausible voltage) and ``guard_fractions`` (those counts and the model's guards as
 shares of samples). A warning line is printed when ≥ 1 % of the samples lie outside the model's domain.
@@ -93,8 +94,10 @@ def run(args) -> int:
     soc0 = args.soc0 if args.soc0 is not None else (float(profile.soc_ref[0]) if profile.soc_ref is not None
                                                      else None)
     # charge the cell delivered while the logger was off, which the reference SOC holds and the current column does
-    # not (the Panasonic HPPC files leave out the step discharges): the fit carried it, so does the simulation
-    jumps = gap_soc_jumps(profile, model.capacity_ah)
+    # not (the Panasonic HPPC files leave out the step discharges): the fit carried it, so does the simulation that
+    # starts from the reference and restarts at its segments (--soc0 never reads the reference; --no-segments holds
+    # the current through every gap)
+    jumps = gap_soc_jumps(profile, model.capacity_ah) if args.soc0 is None and not args.no_segments else None
     sim = model.simulate(profile, soc0=None if soc0 is None else float(axis.to_model(soc0)),
                          segments=False if args.no_segments else None, soc_jumps=jumps)
     stats = voltage_error_stats(profile.voltage_v, sim.voltage_v)
