@@ -794,8 +794,10 @@ def render(results: dict) -> str:
     if bench:
         L += ["## Undeclared effects: the randomised benchmark", "",
               "Each case draws a truth cell (NMC-, NCA-like or flat LFP OCV from electrode potentials, 1–50 Ah, "
-              "Thevenin or DP structure with SOC-dependent resistances), a fit test (HPPC in a random layout, "
-              "sometimes with a slow OCV test) and evaluation records (drive cycles, UAV flights or a mission day "
+              "Thevenin or DP structure with SOC-dependent resistances), a fit test (HPPC in a random layout, in a "
+              "quarter of the cases with the Panasonic-style gaps — the step discharges missing from the file, their "
+              "charge only in the reference SOC — sometimes with a slow OCV test) and evaluation records "
+              "(drive cycles, UAV flights or a mission day "
               "with partial recharges, sampled every 0.1–10 s, with voltage noise 0.5–5 mV, current noise 0–1 % C "
               "and offsets), with zero, one or two of the eight effects at magnitudes drawn from physical ranges "
               "(sources and ranges: `socbench/diagnose/randomized.py`). The diagnosis gets the base model's name "

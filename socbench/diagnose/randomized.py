@@ -53,8 +53,11 @@ the fit test too.
 
 Tests and loads
   * fit: an HPPC with 1C discharge pulses of 10, 18 or 30 s, with or without 0.75C charge pulses, rests of 5 min–2 h,
-    SOC steps of 5–10 %, sampled every 0.2–2 s; in a third of the cases also a C/20 slow OCV test (discharge and
-    charge, every 10 s);
+    SOC steps of 5–10 %, sampled every 0.2–2 s; in a quarter of the cases (:data:`GAPPED_SHARE`, drawn from a stream
+    of its own so the other draws stay as they were) the file has the Panasonic-style gaps
+    (:func:`gapped_fit_test`: every step discharge but the last and 25 % to all but 2 min of the rest after it
+    missing, their charge only in the reference SOC); in a third of the cases also a C/20 slow OCV test (discharge
+    and charge, every 10 s);
   * evaluation (sampled every 0.1–10 s, log-uniform): **drive** cycles (a random speed trace through a road-load model,
     regenerative braking), **UAV** flights (:class:`socbench.scenarios.mission.Mission` power with random payloads,
     rests and partial recharges between flights), or a **mission day** (drives or flights, rests of 10 min–2 h and
@@ -83,7 +86,7 @@ from ..models import Lookup, ModelParams, make_model
 from ..models.effects import EFFECTS, augment, make_effect, n_cells
 from ..models.scaling import refittable_params, scaled_model
 from ..ocv import OCVCurve
-from ..profile import Profile, ProfileMeta
+from ..profile import Profile, ProfileMeta, true_runs
 from .search import BASE_OFFSET_V, BASE_SCALE, TWIN_TAU
 
 EFFECT_NAMES = tuple(EFFECTS)
@@ -190,6 +193,32 @@ def hppc_current(rng, q: float, dt: float) -> tuple[np.ndarray, np.ndarray, dict
     t, i = _segments(segs, dt)
     return t, i, {"pulse_s": pulse, "charge_pulses": charge, "rest_s": round(rest), "step": round(step, 3),
                   "dt_s": dt}
+
+
+#: the share of the cases whose fit HPPC file has the Panasonic-style gaps (:func:`gapped_fit_test`)
+GAPPED_SHARE = 0.25
+#: the stream the gaps are drawn from (``default_rng([seed, index, GAPPED_STREAM])``): a case's other draws do not move
+GAPPED_STREAM = 7
+
+
+def gapped_fit_test(profile: Profile, rng) -> Profile:
+    """``profile`` (an HPPC from :func:`hppc_current`) as a logger that pauses during the step discharges writes it
+    (the Panasonic HPPC files): each step but the last (held at 1C for more than 60 s) is missing, and with it 25 % to
+    all but 2 min of the rest after it; the reference SOC keeps the charge they moved."""
+    t, i, q = profile.time_s, profile.current_a, profile.meta.capacity_ah
+    on, n = np.abs(i - q) < 0.2 * q, profile.n
+    steps = [(a, b) for a, b in true_runs(on) if t[b - 1] - t[a] > 60.0]
+    keep = np.ones(n, dtype=bool)
+    for a, b in steps[:-1]:
+        end = b
+        while end < n and abs(i[end]) < 0.2 * q:
+            end += 1
+        rest = float(t[end - 1] - t[b]) if end > b else 0.0
+        share = rng.uniform(0.25, max(0.25, 1.0 - 120.0 / max(rest, 1.0)))
+        keep &= ~((t >= t[a]) & (t < t[b] + share * rest))
+    return profile.with_(**{f: getattr(profile, f)[keep] for f in ("time_s", "current_a", "voltage_v",
+                                                                   "temperature_c", "soc_ref")
+                            if getattr(profile, f) is not None})
 
 
 def slow_ocv_current(q: float, dt: float = 10.0):
@@ -471,6 +500,10 @@ def draw_case(index: int, seed: int = 0) -> Case:
     i_off_fit = float(rng.uniform(-0.003, 0.003)) * q
     fit_prof, _ = _measure(truth_fit, t, i, np.full(t.size, 25.0), 1.0, rng, v_sd_fit, v_off_fit, i_sd_fit, i_off_fit,
                            q, "fit-hppc")
+    rng_gaps = np.random.default_rng([seed, index, GAPPED_STREAM])
+    layout["gaps"] = bool(rng_gaps.random() < GAPPED_SHARE)
+    if layout["gaps"]:
+        fit_prof = gapped_fit_test(fit_prof, rng_gaps)
     fits = [fit_prof]
     slow = bool(rng.random() < 1.0 / 3.0)
     if slow:
