@@ -192,7 +192,7 @@ def test_the_fit_test_gain_is_judged_in_the_base_form_where_constant_mode_hides_
     first step; judged in constant mode only, the search names nothing."""
     from socbench.diagnose.randomized import draw_case
 
-    case = draw_case(69, 4242)
+    case = draw_case(69, 4242, gaps=False)
     assert case.effects == ("hysteresis",)
     d = diagnose(case.base, case.fit, case.evals, soc=False)
     report = next(r for r in d.fit["fit_test_effect"]["reports"] if r["effect"] == "hysteresis")

@@ -449,8 +449,10 @@ def _measure(model, t, i_true, temp, soc0, rng, v_sd, v_off, i_sd, i_off, q, nam
     return Profile(t, i_meas, voltage_v=v, temperature_c=temp, soc_ref=soc, meta=meta), sim
 
 
-def draw_case(index: int, seed: int = 0) -> Case:
-    """Case ``index`` of the benchmark run with base seed ``seed`` (everything drawn from ``(seed, index)``)."""
+def draw_case(index: int, seed: int = 0, gaps: bool | None = None) -> Case:
+    """Case ``index`` of the benchmark run with base seed ``seed`` (everything drawn from ``(seed, index)``).
+    ``gaps``: whether the fit HPPC file has the Panasonic-style gaps (None: drawn, :data:`GAPPED_SHARE`; a test that
+    pins a case read before the gaps were drawn asks for ``False``, the case it was written on)."""
     rng = np.random.default_rng([seed, index])
     kind, k = case_kind(index)
     if kind == "null":
@@ -501,7 +503,7 @@ def draw_case(index: int, seed: int = 0) -> Case:
     fit_prof, _ = _measure(truth_fit, t, i, np.full(t.size, 25.0), 1.0, rng, v_sd_fit, v_off_fit, i_sd_fit, i_off_fit,
                            q, "fit-hppc")
     rng_gaps = np.random.default_rng([seed, index, GAPPED_STREAM])
-    layout["gaps"] = bool(rng_gaps.random() < GAPPED_SHARE)
+    layout["gaps"] = bool(rng_gaps.random() < GAPPED_SHARE) if gaps is None else bool(gaps)
     if layout["gaps"]:
         fit_prof = gapped_fit_test(fit_prof, rng_gaps)
     fits = [fit_prof]
