@@ -415,7 +415,14 @@ def discharged_ah(profile: Profile, current_offset_a: float = 0.0) -> tuple[np.n
     return ah, "current"
 
 
-def unrecorded_charge(profile: Profile, threshold_frac: float = 1e-3, current_offset_a: float = 0.0) -> np.ndarray:
+def gap_step_ah(ah: np.ndarray, frac: float = JUMP_FRAC) -> float:
+    """The charge [Ah] beyond which one step of the count ``ah`` is a record gap rather than a sample's own charge:
+    ``frac`` of the record's charge (a rest moves none; a gap whose charge the reference holds moves a step's)."""
+    return frac * max(float(np.max(np.abs(ah))), 1e-12)
+
+
+def unrecorded_charge(profile: Profile, threshold_frac: float = JUMP_FRAC,
+                      current_offset_a: float = 0.0) -> np.ndarray:
     """Per sample, the charge [Ah] discharged in the step *into* the sample that the current column does not carry
     (0 where the column, less the offset ``current_offset_a``, and the reference agree to ``threshold_frac`` of the
     record's charge; non-zero only where :func:`discharged_ah` takes the reference, i.e. across gaps)."""
@@ -424,7 +431,7 @@ def unrecorded_charge(profile: Profile, threshold_frac: float = 1e-3, current_of
     if src != "soc_ref":
         return out
     extra = np.diff(ah) - np.diff(_counted_ah(profile, current_offset_a))
-    thr = threshold_frac * max(float(np.max(np.abs(ah))), 1e-12)
+    thr = gap_step_ah(ah, threshold_frac)
     out[1:] = np.where(np.abs(extra) > thr, extra, 0.0)
     return out
 
@@ -799,7 +806,7 @@ def reference_placement(profile: Profile, ah: np.ndarray, k_full: int, k_empty: 
     if np.count_nonzero(inside) < 10 or not moved > 0:
         return None
     slopes, weights = [], []
-    jump = JUMP_FRAC * max(float(np.max(np.abs(ah))), 1e-12)
+    jump = gap_step_ah(ah)
     for r in rests:
         if r.start >= lo and r.stop <= hi + 1 and r.duration_s >= REFERENCE_REST_S and r.stop - r.start >= 3 \
                 and abs(float(ah[r.stop - 1] - ah[r.start])) <= jump:  # not across a gap whose charge ``ah`` holds
