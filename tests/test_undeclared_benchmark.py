@@ -170,3 +170,21 @@ def test_pooled_rates_count_every_run_and_split_by_what_the_records_show(tmp_pat
         files[-1].write_text(json.dumps(run))
     assert script.main(["--pool", *map(str, files), "--md", str(tmp_path / "pool.md")]) == 0
     assert (tmp_path / "pool.md").read_text() == text
+
+
+def test_a_rate_is_never_printed_on_the_other_side_of_its_target():
+    """Rounded to a whole percent, 273 of 288 null cases (94.79 %) printed as "95 %" beside a 95 % target, which
+    reads as met. Every hits/n up to 400 cases, against every target of the benchmark: the printed rate stands on the
+    same side of the target as the rate, the table's "met" says the same, and without a target it is a whole
+    percent."""
+    from socbench.diagnose.randomized import TARGETS, _pct, fraction, met
+
+    for n in range(1, 401):
+        for hits in range(n + 1):
+            rate = hits / n
+            assert _pct(rate) == f"{100 * rate:.0f} %"
+            for target in set(TARGETS.values()):
+                printed = float(_pct(rate, target).rstrip(" %"))
+                assert (printed >= 100 * target) == (rate >= target) == met({"rate": rate}, target), (hits, n, target)
+    assert fraction({"hits": 273, "n": 288, "rate": 273 / 288}, 0.95) == "273/288 = 94.8 %"
+    assert fraction({"hits": 38, "n": 40, "rate": 38 / 40}, 0.95) == "38/40 = 95 %"
