@@ -504,6 +504,8 @@ def write_selected(w, results: dict, names: list) -> None:
       f"{mv(sel[best]['validation_rmse_v'][sel[best]['chosen']])} mV); its held-out US06 RMS is "
       f"**{mv(sel[best]['us06_rmse_v'])} mV**, {verdict} the 25 mV target "
       f"({mv(sel[best]['us06_raw_rmse_v'])} mV on the raw record with its skew). "
+      + "How much such a number owes to where each fit starts: docs/fit_start_sensitivity.md (the dp `dense` fit "
+      "from 15 starts). "
       + ("The best on the US06 itself is the same model." if best_us == best else
          f"The best on the US06 itself would be {best_us} ({mv(sel[best_us]['us06_rmse_v'])} mV), but choosing by "
          "the test record is not allowed here.")

@@ -113,6 +113,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.optimize import isotonic_regression
 
 from ..errors import DataError
 from ..metrics import lag1_autocorrelation
@@ -593,6 +594,36 @@ def _rest_end_voltage(t: np.ndarray, v: np.ndarray, start: int, stop: int, durat
     return float(intercept)
 
 
+#: the log-time window of :func:`relaxation_curve`'s running mean: a sample's neighbours within this factor of its
+#: time since the rest began
+RELAXATION_WINDOW = 1.1
+
+
+def relaxation_curve(t: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The rest voltage ``v`` (at times ``t``) without its noise, for reading recovery times off:
+
+    1. each sample averaged with its neighbours whose time since the rest began lies within a factor
+       :data:`RELAXATION_WINDOW` of its own (a relaxation changes on a log-time scale, so the window widens as it
+       slows: the first seconds stay sharp, the slow end, where 95 % of the recovery is read, averages many samples);
+    2. the least-squares monotone fit of that (isotonic regression), rising where the rest ends above its start,
+       falling where it ends below: a relaxation after a pulse runs one way.
+
+    Read off the samples themselves, the first one whose noise lifted it over ``1 − 1/e`` of a recovery as small as
+    the noise gave the time: a 29 s branch recovering 9 mV under 4.6 mV of voltage noise read 0.03 s. No shape is
+    imposed (a diffusion tail is no exponential); on noise-free records the window moves the readings by −7 to +1 %
+    (60 random draws of tests/hppc_records.py, seeds 47 000+)."""
+    if v.size < 4 or not np.all(np.isfinite(v)):
+        return v
+    k = max(1, v.size // 10)
+    rising = float(np.mean(v[-k:])) >= float(np.mean(v[:k]))
+    s = t - t[0]
+    csum = np.concatenate([[0.0], np.cumsum(v - v[0])])
+    lo = np.searchsorted(s, s / RELAXATION_WINDOW, side="left")
+    hi = np.searchsorted(s, s * RELAXATION_WINDOW, side="right")
+    smooth = v[0] + (csum[hi] - csum[lo]) / (hi - lo)
+    return np.asarray(isotonic_regression(smooth, increasing=rising).x, dtype=float)
+
+
 def _recovery_tau(t: np.ndarray, v: np.ndarray, level: float = 1.0 - np.exp(-1.0)) -> float:
     """Time for ``v − v[0]`` to reach ``level`` (default ``1 − 1/e``) of ``v[-1] − v[0]`` (linear interpolation)."""
     if v.size < 4:
@@ -1035,6 +1066,7 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
     level = -1
     last_stop_ah = None
     unresolved = 0
+    gap_jump = gap_step_ah(ah)
     for a, b, dur in candidates:
         if dur > max_pulse_s:
             continue
@@ -1056,6 +1088,10 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
         tau = tau_slow = float("nan")
         if nxt is not None and nxt.stop - nxt.start >= 4:
             tr, vr = t[nxt.start:nxt.stop], v[nxt.start:nxt.stop]
+            # a rest with a record gap in it holds two rests at two SOCs, which a monotone fit would join into one
+            # (a 6 s branch read 1800 s): its samples are read as they are
+            if not np.any(np.abs(np.diff(ah[nxt.start:nxt.stop])) > gap_jump):
+                vr = relaxation_curve(tr, vr)
             tau = _recovery_tau(tr, vr)
             tau_slow = _recovery_tau(tr, vr, 0.95) / 3.0
         pulses.append(Pulse(a, b, cur, dur, float(soc[a - 1]), level, r_inst, r_off, r_pulse, tau, tau_slow))
