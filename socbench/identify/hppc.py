@@ -422,6 +422,12 @@ def gap_step_ah(ah: np.ndarray, frac: float = JUMP_FRAC) -> float:
     return frac * max(float(np.max(np.abs(ah))), 1e-12)
 
 
+def spans_gap(ah: np.ndarray, start: int, stop: int, jump: float) -> bool:
+    """Whether the rest ``[start, stop)`` runs across a record gap: the discharged charge ``ah`` (which holds a gap's
+    charge from the reference) moves over it by more than ``jump`` (:func:`gap_step_ah`), where a rest moves none."""
+    return abs(float(ah[stop - 1] - ah[start])) > jump
+
+
 def unrecorded_charge(profile: Profile, threshold_frac: float = JUMP_FRAC,
                       current_offset_a: float = 0.0) -> np.ndarray:
     """Per sample, the charge [Ah] discharged in the step *into* the sample that the current column does not carry
@@ -840,7 +846,7 @@ def reference_placement(profile: Profile, ah: np.ndarray, k_full: int, k_empty: 
     jump = gap_step_ah(ah)
     for r in rests:
         if r.start >= lo and r.stop <= hi + 1 and r.duration_s >= REFERENCE_REST_S and r.stop - r.start >= 3 \
-                and abs(float(ah[r.stop - 1] - ah[r.start])) <= jump:  # not across a gap whose charge ``ah`` holds
+                and not spans_gap(ah, r.start, r.stop, jump):
             slopes.append(float(np.polyfit(time[r.start:r.stop], soc_ref[r.start:r.stop], 1)[0]))
             weights.append(r.duration_s)
     drift = _weighted_median(slopes, weights) if slopes else 0.0
@@ -1090,7 +1096,7 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
             tr, vr = t[nxt.start:nxt.stop], v[nxt.start:nxt.stop]
             # a rest with a record gap in it holds two rests at two SOCs, which a monotone fit would join into one
             # (a 6 s branch read 1800 s): its samples are read as they are
-            if not np.any(np.abs(np.diff(ah[nxt.start:nxt.stop])) > gap_jump):
+            if not spans_gap(ah, nxt.start, nxt.stop, gap_jump):
                 vr = relaxation_curve(tr, vr)
             tau = _recovery_tau(tr, vr)
             tau_slow = _recovery_tau(tr, vr, 0.95) / 3.0
