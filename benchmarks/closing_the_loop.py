@@ -802,8 +802,9 @@ def render(results: dict) -> str:
         L += ["## Undeclared effects: the randomised benchmark", "",
               "Each case draws a truth cell (NMC-, NCA-like or flat LFP OCV from electrode potentials, 1–50 Ah, "
               "Thevenin or DP structure with SOC-dependent resistances), a fit test (HPPC in a random layout, in a "
-              "quarter of the cases with the Panasonic-style gaps — the step discharges missing from the file, their "
-              "charge only in the reference SOC — sometimes with a slow OCV test) and evaluation records "
+              "quarter of the cases with the Panasonic-style gaps — the step discharges but the last missing from "
+              "the file, their charge only in the reference SOC, each gap simulated in the fit as the step the file "
+              "shows, `socbench.identify.gap_fill` — sometimes with a slow OCV test) and evaluation records "
               "(drive cycles, UAV flights or a mission day "
               "with partial recharges, sampled every 0.1–10 s, with voltage noise 0.5–5 mV, current noise 0–1 % C "
               "and offsets), with zero, one or two of the eight effects at magnitudes drawn from physical ranges "

@@ -172,6 +172,27 @@ def test_pooled_rates_count_every_run_and_split_by_what_the_records_show(tmp_pat
     assert (tmp_path / "pool.md").read_text() == text
 
 
+def test_pooled_rates_are_split_by_whether_the_fit_file_has_gaps():
+    """The pooled report gives the headline rates apart for the cases whose fit HPPC file has the Panasonic-style gaps
+    and for the others, and the effects named that are not there."""
+    from socbench.diagnose.randomized import pooled_markdown
+
+    def gapped(r, gaps):
+        return {**r, "hppc": {"gaps": gaps}}
+
+    run = {"seed": 1, "cases": 4, "results": [
+        gapped(_scored("single", ["hysteresis"], ["hysteresis", "capacity"], {"hysteresis": 5.0}), True),
+        gapped(_scored("null", [], ["extra_rc"], {}), True),
+        gapped(_scored("single", ["extra_rc"], [], {"extra_rc": 0.5}, after=0.01), False),
+        gapped(_scored("null", [], [], {}), False)]}
+    rows = {line.split(" | ")[0]: line for line in pooled_markdown([run]).splitlines() if line.startswith("| with")}
+    assert set(rows) == {"| with gaps", "| without"}
+    assert rows["| with gaps"] == ("| with gaps | 2 | 1/1 = 100 % | 1/1 = 100 % | 0/1 = 0 % | 0/0 = – | 2/2 = 100 % | "
+                                   "1/1 = 100 % |")
+    assert rows["| without"] == ("| without | 2 | 0/1 = 0 % | 0/1 = 0 % | 1/1 = 100 % | 0/0 = – | 2/2 = 100 % | "
+                                 "0/1 = 0 % |")
+
+
 def test_a_rate_is_never_printed_on_the_other_side_of_its_target():
     """Rounded to a whole percent, 273 of 288 null cases (94.79 %) printed as "95 %" beside a 95 % target, which
     reads as met. Every hits/n up to 400 cases, against every target of the benchmark: the printed rate stands on the

@@ -842,6 +842,23 @@ def both_named_where_shown(results) -> dict:
     return _share(set(r["effects"]) <= set(r["added"]) for r in shown)
 
 
+def by_fit_file(results) -> list:
+    """The Markdown lines of the headline rates, and the effects named that are not there, apart for the cases whose
+    fit HPPC file has the Panasonic-style gaps (:func:`gapped_fit_test`) and the others."""
+    L = ["", "By the fit test's file (a quarter of the cases log no step discharge but the last: "
+             "`socbench.identify.gap_fill` simulates each gap as that step):", "",
+         "| HPPC file | cases | " + " | ".join(LABELS[k] for k in TARGETS) + " | an effect named that is not there "
+         "(cases with a hidden effect) |", "|---" * (3 + len(TARGETS)) + "|"]
+    for label, gapped in (("with gaps", True), ("without", False)):
+        part = [r for r in results if bool(r.get("hppc", {}).get("gaps")) == gapped]
+        if not part:
+            continue
+        R = rates(part)
+        L.append(f"| {label} | {len(part)} | " + " | ".join(fraction(R[k]) for k in TARGETS)
+                 + f" | {fraction(R['false_effect_hidden'])} |")
+    return L
+
+
 def pooled_markdown(summaries) -> str:
     """The rates over the cases of several runs of the benchmark together (``--pool``): every seed's cases in one
     set, the headline rates and the tables by detectability. Where the headline misses its target, these say how much
@@ -859,6 +876,7 @@ def pooled_markdown(summaries) -> str:
     both = both_named_where_shown(results)
     L += ["", f"Two-effect cases whose effects both stand at least the noise beyond the base: both named in "
               f"{fraction(both)}."]
+    L += by_fit_file(results)
     return "\n".join(L) + "\n"
 
 

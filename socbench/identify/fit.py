@@ -14,7 +14,8 @@ measured by the HPPC analysis (:mod:`socbench.identify.hppc`). Positive quantiti
 
 The OCV curve, when not given, is built from the HPPC rest points (:func:`~socbench.identify.hppc.ocv_from_hppc`);
 the capacity defaults to the charge the HPPC discharges from full to empty. Records with gaps whose charge only the
-reference SOC knows (the Panasonic HPPC files) get the missing charge added to the SOC at the gaps. The current
+reference SOC knows (the Panasonic HPPC files) get the missing charge added to the SOC at the gaps, and where the
+record holds a step of its own, the gap simulated as such a step (:mod:`socbench.identify.gap_fill`). The current
 sensor's offset, measured on the HPPC rests (where the cell carries no current), is removed from the current the
 model is fitted on (:meth:`FitProblem.fit_profile`), so the fitted SOC axis is the one the OCV points sit on.
 
@@ -43,6 +44,7 @@ from ..models.registry import model_class, model_names
 from ..models.scaling import branch_index
 from ..ocv import OCVCurve
 from ..profile import Profile
+from .gap_fill import GapSteps, fill_gaps, gap_steps
 from .hppc import FULL_TOL, analyze_hppc, edge_resistance, unrecorded_charge
 from .lsq import LsqResult, fit_parameters
 from .specs import ConstantForm, Guess, LookupForm, ParamSpec, PolyForm, param_spec
@@ -212,6 +214,9 @@ class FitProblem:
     #: per sample of the record, 0 where it is left out of the fit (before or after the HPPC test, beyond the OCV's rest
     #: points by ``OCV_FIT_MARGIN``: :func:`_fitted_samples`), 1 elsewhere; None: every sample
     weights: np.ndarray | None = None
+    #: record gaps simulated as the step that moved their charge (:mod:`socbench.identify.gap_fill`); None: their
+    #: charge is a jump of the SOC (``soc_jumps``) alone
+    gap_steps: GapSteps | None = None
 
     @property
     def n_base(self) -> int:
@@ -236,6 +241,16 @@ class FitProblem:
         if self.current_offset_a == 0.0:
             return profile
         return profile.with_(current_a=profile.current_a - self.current_offset_a)
+
+    def open_loop(self, model, profile: Profile, soc0: float | None = None):
+        """``(states, voltage)`` of ``model`` on the samples of ``profile`` (the record, :meth:`fit_profile` applied)
+        as the fit simulates it: from :attr:`soc0` (or the ``soc0`` given), with its SOC jumps and its gaps filled
+        with their step."""
+        filled = fill_gaps(profile, self.soc_jumps, float(model.capacity_ah), self.gap_steps)
+        rec = filled.profile
+        states, volts = model.open_loop(model.x0(self.soc0 if soc0 is None else soc0), rec.time_s, rec.current_a,
+                                        rec.temperature_c, filled.jumps)
+        return states[..., filled.measured, :], volts[..., filled.measured]
 
     def params(self, theta, clamp: bool = False) -> ModelParams:
         """The parameter set of ``theta``; ``clamp``: polynomials fitted on part of the SOC axis are stored clamped
@@ -408,13 +423,17 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
                              "last step's voltage + current × the lowest pulse set's pulse resistance)")
         if soc0 is None:
             soc0 = float(analysis.soc[0])
-        extra = unrecorded_charge(profile, current_offset_a=offset)
+        extra = unrecorded = unrecorded_charge(profile, current_offset_a=offset)
         if np.any(extra):
             notes.append(f"{int(np.count_nonzero(extra))} record gaps: {float(np.sum(extra)):.4g} Ah not in the "
                          "current column added to SOC from the reference")
         if analysis.count_correction_ah is not None:  # pulses counted alike (socbench.identify.hppc, 3)
             extra = extra + analysis.count_correction_ah
         jumps = -extra / q if np.any(extra) else None
+        gaps = gap_steps(profile, unrecorded, q, analysis.step_current_a) if np.any(unrecorded) else None
+        if gaps is not None:
+            notes.append(f"{gaps.fitting(profile, q)} of the {gaps.sample.size} record gaps simulated as a step of "
+                         f"the record's own {gaps.current_a:.4g} A from the gap's start (socbench.identify.gap_fill)")
         level_knots = np.unique(np.clip(np.round(analysis.level_soc, 3), 0.0, 1.0))
         weights = _fitted_samples(analysis, ocv, profile, notes)
         # the SOC range the test covers on this axis: a cold HPPC counted with a warmer capacity ends above 0, a test
@@ -438,6 +457,7 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
             raise DataError("unknown capacity: pass capacity_ah or give the profile meta.capacity_ah", file=src)
         r_inst = abs(edge_resistance(profile))
         r_pulse, tau, tau_slow, jumps, level_knots, weights = 2.0 * r_inst, 30.0, 300.0, None, np.array([]), None
+        gaps = None
         domain = (0.0, 1.0)
     q = float(capacity_ah) if capacity_ah else float(q)
     zg = np.linspace(0.05, 0.95, 19)
@@ -489,7 +509,7 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
     notes.append(f"fitted by socbench.identify ({mode} mode) on {src}")
     return FitProblem(name, tuple(specs), tuple(forms), tuple(labels), tuple(slices), np.concatenate(th0),
                       np.asarray(lo), np.asarray(hi), q, ocv, options, soc0, jumps, guess, tuple(notes), offset,
-                      effects, effect_specs, weights)
+                      effects, effect_specs, weights, gaps)
 
 
 def _fitted_samples(analysis, ocv, profile: Profile, notes: list) -> np.ndarray | None:
@@ -587,7 +607,8 @@ def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
         const = setup_fit(name, profile, "constant", prob.ocv, prob.capacity_ah, prob.soc0, None, prob.options,
                           effects, fit_effects, start)
         cres = fit_parameters(const.build, profile, const.theta0, const.lower, const.upper, names=const.labels,
-                              soc0=prob.soc0, soc_jumps=prob.soc_jumps, weights=const.weights, compress=compress,
+                              soc0=prob.soc0, soc_jumps=prob.soc_jumps, gap_steps=prob.gap_steps,
+                              weights=const.weights, compress=compress,
                               max_nfev=max_nfev, time_weighted=time_weighted, loss=loss, segments=segments)
         for sl, ct in zip(prob.slices, cres.theta):  # one constant per parameter, in the same order
             theta0[sl] = ct
@@ -595,7 +616,8 @@ def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
         theta0 = np.clip(theta0, prob.lower, prob.upper)
     def solve(start, penalty):
         return fit_parameters(prob.build, profile, start, prob.lower, prob.upper, names=prob.labels, soc0=prob.soc0,
-                              soc_jumps=prob.soc_jumps, weights=prob.weights, compress=compress, max_nfev=max_nfev,
+                              soc_jumps=prob.soc_jumps, gap_steps=prob.gap_steps, weights=prob.weights,
+                              compress=compress, max_nfev=max_nfev,
                               time_weighted=time_weighted, loss=loss, segments=segments, penalty=penalty)
 
     res = solve(theta0, prob.positivity if prob.positive_polynomials else None)

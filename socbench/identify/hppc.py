@@ -287,6 +287,11 @@ class HPPCAnalysis:
     #: zero-order hold is taken as its current × the mean counted length of its kind (:func:`pulse_count_correction`;
     #: included in ``ah`` and ``soc``); None where no pulse was corrected
     count_correction_ah: np.ndarray | None = None
+    #: the current [A] the test's recorded discharge steps hold (held discharge phases longer than the longest pulse,
+    #: median of their levels, offset removed): what moved the charge of a record gap
+    #: (:mod:`socbench.identify.gap_fill`); NaN where no step is recorded (the Panasonic files: every step falls in a
+    #: gap) or the test steps by charging
+    step_current_a: float = float("nan")
 
     @property
     def current_offset_a(self) -> float:
@@ -1007,20 +1012,22 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
     # pulse candidates: held phases that start from a rest and end inside the record
     sign = np.sign(di)
     candidates = []
+    held = []  # (duration, level) of every held phase from a rest: the pulses, and the steps a record shows
     for a, b in true_runs(active):
         for pa, pb in _phases(a, b, sign, t_after, t):
             if pa != a or pa == 0 or pb >= n:
                 continue
             dur = float(t[pb] - t[pa])
-            before = rest_by_stop.get(pa)
-            if before is None or before.duration_s < PULSE_REST_RATIO * dur:
-                continue  # an HPPC rests before every pulse; a drive cycle crosses zero for a moment
             seg = di[pa:pb]
             level = float(np.median(seg))
             if float(np.median(np.abs(seg - level))) > max(lev.lo_a, PULSE_FLATNESS * abs(level)):
                 continue  # not a held current (driving, a ramp)
             if abs(level) < PULSE_SNR * lev.hi_a:
                 continue  # hardly above the rest threshold: a wobble of a current that has no clear rest level
+            held.append((dur, level))
+            before = rest_by_stop.get(pa)
+            if before is None or before.duration_s < PULSE_REST_RATIO * dur:
+                continue  # an HPPC rests before every pulse; a drive cycle crosses zero for a moment
             candidates.append((pa, pb, dur))
     # which way the test steps: down from full (the usual HPPC: what comes before full is pre-conditioning) or up to
     # it (an HPPC in the charge direction, whose levels are reached by charging: the whole record before full is the
@@ -1174,9 +1181,11 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
                     f"{100 * moved:.2g} points")
             return replace(again, notes=again.notes + (note,))
     rests = [replace(r, v_end=v_end(r)) for r in rests]
+    steps = [level for dur, level in held if dur > max_pulse_s and level > 0.0]
+    step_current = float(np.median(steps)) if steps and not ascending else float("nan")
     return HPPCAnalysis(tuple(rests), tuple(pulses), np.asarray(ocv_z), np.asarray(ocv_v), q, soc, ah, ah_source,
                         level_soc, tuple(notes), lev, float(max_pulse_s), start_ocv, start,
-                        "charge" if ascending else "discharge", end, bottom, count_correction)
+                        "charge" if ascending else "discharge", end, bottom, count_correction, step_current)
 
 
 def pulse_count_correction(t: np.ndarray, di: np.ndarray, pulses, lev: RestLevel) -> np.ndarray | None:

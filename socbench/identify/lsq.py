@@ -39,6 +39,7 @@ from ..profile import Profile
 from ..segments import resolve as resolve_segments
 from ..segments import restart_soc
 from .compress import compress_profile
+from .gap_fill import fill_gaps
 
 #: residual substituted for a non-finite model voltage, or for parameters the model rejects (ModelError) [V]: keeps
 #: the optimiser away from unstable parameter regions
@@ -183,6 +184,7 @@ def fit_parameters(
     soc0: float | None = None,
     x0=None,
     soc_jumps: np.ndarray | None = None,
+    gap_steps=None,
     segments=None,
     weights: np.ndarray | None = None,
     compress: bool | dict = True,
@@ -213,6 +215,9 @@ def fit_parameters(
         a full initial state.
     soc_jumps : array (T,) on the *original* samples, optional
         SOC added after the step into a sample (unrecorded charge at gaps; see :func:`simulate_voltage`).
+    gap_steps : :class:`~socbench.identify.gap_fill.GapSteps`, optional
+        Gaps whose jump is simulated as the step that moved it (:mod:`socbench.identify.gap_fill`); the samples
+        the step adds have weight 0.
     segments :
         A record of several discharges (:mod:`socbench.segments`) is fitted segment by segment, each later segment
         from rest at its reference SOC (else the SOC read off its first voltage): None finds the segments (with
@@ -250,9 +255,11 @@ def fit_parameters(
     theta0 = np.clip(theta0, lower + inner, upper - inner)
 
     model0 = build(theta0)
-    view = fitting_view(profile, model0, segments, compress, soc_jumps)  # the data the residual is computed on
+    view = fitting_view(profile, model0, segments, compress, soc_jumps, gap_steps)  # the data the residual is on
     prof, idx, jumps, restarts = view.profile, view.index, view.jumps, view.restarts
     w = None if weights is None else np.asarray(weights, dtype=float)[idx]
+    if view.measured is not None:
+        w = (np.ones(idx.size) if w is None else w) * view.measured
     if time_weighted:
         # each kept sample stands for the time until the next one: weight its squared residual by that span, as a
         # fit of the uniformly sampled record would (normalised to a mean weight of 1)
@@ -392,15 +399,20 @@ class FittingView:
     index: np.ndarray
     jumps: np.ndarray | None
     restarts: list | None
+    #: per sample, whether it is one of the record's (False: a sample a record gap's filled step added, which
+    #: measures nothing; :mod:`socbench.identify.gap_fill`); None: all are
+    measured: np.ndarray | None = None
 
 
 def fitting_view(profile: Profile, model, segments=None, compress: bool | dict = True,
-                 soc_jumps=None) -> FittingView:
+                 soc_jumps=None, gap_steps=None) -> FittingView:
     """The :class:`FittingView` of ``profile`` for ``model`` (its OCV and capacity find the segments and their restart
     SOC; ``segments`` as :func:`fit_parameters` takes it): every segment compressed on its own (``compress``: True,
     or a dict of :func:`~socbench.identify.compress.compress_profile` options; a merged step never spans a segment
     boundary nor moves more than :data:`MAX_SOC_STEP` of the capacity), and the jumps landing in
-    ``(idx_{j−1}, idx_j]`` applied at ``idx_j``."""
+    ``(idx_{j−1}, idx_j]`` applied at ``idx_j``; the gaps of ``gap_steps``
+    (:class:`~socbench.identify.gap_fill.GapSteps`) filled with their step
+    (:func:`~socbench.identify.gap_fill.fill_gaps`), the samples it adds marked not ``measured``."""
     segs = resolve_segments(segments, profile, model.ocv, getattr(model, "capacity_ah", None))
     if compress:
         opts = dict(compress) if isinstance(compress, dict) else {}
@@ -421,6 +433,14 @@ def fitting_view(profile: Profile, model, segments=None, compress: bool | dict =
         cum = np.concatenate([[0.0], np.cumsum(np.asarray(soc_jumps, dtype=float))])
         jumps = np.diff(cum[idx + 1], prepend=0.0)
         jumps[0] = 0.0
+    if gap_steps is not None and jumps is not None:
+        filled = fill_gaps(prof, jumps, float(model.capacity_ah), gap_steps, gap_steps.on(idx))
+        if filled.added:
+            pos = np.flatnonzero(filled.measured)  # each old sample's place in the filled view
+            src = np.cumsum(filled.measured) - 1  # an added sample belongs to the step into the sample after it
+            idx = idx[np.minimum(src + ~filled.measured, idx.size - 1)]
+            restarts = [(int(pos[k]), z) for k, z in restarts] if restarts else restarts
+            return FittingView(filled.profile, idx, filled.jumps, restarts, filled.measured)
     return FittingView(prof, idx, jumps, restarts)
 
 

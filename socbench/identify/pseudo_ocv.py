@@ -89,7 +89,7 @@ def refine_ocv(fit: FitResult, profile: Profile, bin_soc: float = BIN_SOC,
     prof = prob.fit_profile(profile)
     model = make_model(fit.name, fit.params)
     with np.errstate(all="ignore"):
-        xs, y = model.open_loop(model.x0(prob.soc0), prof.time_s, prof.current_a, prof.temperature_c, prob.soc_jumps)
+        xs, y = prob.open_loop(model, prof)
     # the segments in the direction of the HPPC's steps: its rest points follow them (one hysteresis branch)
     direction = step_direction(profile, fit.params.capacity_ah, soc0)
     i = prof.current_a * (-1.0 if direction == "charge" else 1.0)

@@ -67,8 +67,7 @@ def overpotential_at_rest_ends(name: str, params, profile: Profile, soc0: float 
     idx = np.asarray(idx)
     model = make_model(name, params)
     rec = prob.fit_profile(profile)
-    states, _ = model.open_loop(model.x0(float(np.clip(prob.soc0, 0.0, 1.0))), rec.time_s, rec.current_a,
-                               rec.temperature_c, prob.soc_jumps)
+    states, _ = prob.open_loop(model, rec, float(np.clip(prob.soc0, 0.0, 1.0)))
     x = states[idx]
     temp = None if rec.temperature_c is None else rec.temperature_c[idx]
     eta = equilibrium(model, x[:, 0], temp)[0] - model.output(x, np.zeros(idx.size), temp)[0]

@@ -117,12 +117,13 @@ class _Rests:
         prob = setup_fit(fit.name, profile, "constant", fit.params.ocv, fit.params.capacity_ah)
         self.base = make_model(fit.name, fit.params.replace(effects=()))
         view = fitting_view(prob.fit_profile(profile), self.base, None,
-                            {"max_step_s": REST_STEP_S, "growth": 1.5}, prob.soc_jumps)
+                            {"max_step_s": REST_STEP_S, "growth": 1.5}, prob.soc_jumps, prob.gap_steps)
         self.view, self.windows = view, windows
         # a segment restarts from rest where the record has a gap: a rest there relaxes from a step the record does not
         # hold, which no branch of the model can follow
         starts = {int(view.index[k]) for k, _ in view.restarts or ()}
-        kept = [np.flatnonzero((view.index >= a) & (view.index < b)) for a, b in windows
+        measured = np.ones(view.index.size, dtype=bool) if view.measured is None else view.measured
+        kept = [np.flatnonzero((view.index >= a) & (view.index < b) & measured) for a, b in windows
                 if not any(a - 1 <= k < b for k in starts)]
         kept = [k for k in kept if k.size >= 2]
         self.idx = np.concatenate(kept) if kept else np.zeros(0, dtype=int)
