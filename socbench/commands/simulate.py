@@ -8,9 +8,12 @@ definition (:mod:`socbench.socaxis`).
 A record of several discharges (battery swaps, recharges) is simulated segment by segment, each restarting at its
 reference SOC (:mod:`socbench.segments`); ``--no-segments`` runs it as one piece. Charge the reference SOC says the
 cell delivered across a gap that the current column does not carry (the Panasonic HPPC files leave out the step
-discharges) is taken as a jump of the SOC there (:func:`socbench.identify.hppc.gap_soc_jumps`), as the fit took
-it, where the simulation starts from the reference (no ``--soc0``, which never reads it) and restarts at its segments
-(no ``--no-segments``); the JSON's ``soc_jumps`` says how many and how much. The JSON holds the DESIGN.md keys,
+discharges) is taken as a jump of the SOC there (:func:`socbench.identify.hppc.gap_soc_jumps`), as the fit takes
+it on such files, where the simulation starts from the reference (no ``--soc0``, which never reads it) and restarts at
+its segments (no ``--no-segments``); the JSON's ``soc_jumps`` says how many and how much. (Where an HPPC file holds a
+step of its own, the fit simulates each gap as that step, :mod:`socbench.identify.gap_fill`; the simulation keeps the
+jump there too, so the rests after those gaps start from the relaxed state: a parameter set does not carry the step
+current.) The JSON holds the DESIGN.md keys,
 ``segments`` (count and the boundaries), ``domain`` (:func:`socbench.domain.domain_report`: samples with SOC outside
 [0, 1], OCV extrapolated, guards, implausible voltage) and ``guard_fractions`` (those counts and the model's guards as
 shares of samples). A warning line is printed when ≥ 1 % of the samples lie outside the model's domain.
