@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..profile import Profile
 
 #: the added step starts this long after the last sample before the gap [s] (at most 1 % of the gap)
@@ -93,6 +94,7 @@ class Filled:
 
     @property
     def added(self) -> int:
+        """How many samples the filling added (two per gap filled)."""
         return int(np.count_nonzero(~self.measured))
 
 
@@ -100,10 +102,13 @@ def fill_gaps(profile: Profile, jumps: np.ndarray | None, capacity_ah: float, st
               at: np.ndarray | None = None) -> Filled:
     """``profile`` (with the SOC ``jumps`` on its samples) with each gap of ``steps`` filled by a step (module
     docstring). ``at``: each gap's sample in ``profile`` (default ``steps.sample``: the record itself; a compressed view
-    passes :meth:`GapSteps.on` of its index). The model's ``capacity_ah`` turns a jump into its charge."""
+    passes :meth:`GapSteps.on` of its index). The model's ``capacity_ah`` turns a jump into its charge. A plain
+    profile (one run: a fit's record)."""
     n = profile.n
     if steps is None or jumps is None:
         return Filled(profile, jumps, np.ones(n, dtype=bool))
+    if profile.batched:
+        raise ConfigError("fill_gaps needs a plain profile (one run)")
     at = steps.sample if at is None else np.asarray(at)
     t, i = profile.time_s, profile.current_a
     jumps = np.array(jumps, dtype=float)
