@@ -51,10 +51,9 @@ class GapSteps:
     def fitting(self, profile: Profile, capacity_ah: float) -> int:
         """How many of the gaps of the record ``profile`` (its own samples) hold their step at :attr:`current_a`, on
         the SOC axis of ``capacity_ah`` (:func:`fill_gaps` keeps the jump of any other)."""
-        t = profile.time_s
-        span = t[self.sample] - self.start_s
-        return int(np.count_nonzero(self.start_s + np.minimum(LEAD_S, 0.01 * span)
-                                    + step_duration_s(self.soc, capacity_ah, self.current_a) < t[self.sample]))
+        jumps = np.zeros(profile.n)
+        jumps[self.sample] = self.soc
+        return fill_gaps(profile, jumps, capacity_ah, self).added // 2
 
     def on(self, index: np.ndarray) -> np.ndarray:
         """Each gap's position in a view of the record whose samples are the record's ``index`` (sorted): the first
