@@ -15,7 +15,9 @@ the outcome (seed 7 of socbench.diagnose.randomized; the CI rates run its first 
   twin beside a looked-up branch buys that branch a new SOC shape: base-fit error, not a branch the structure lacks);
 * nor is an extra branch anywhere when two of the base's own branches lie within ×TWIN_TAU of each other (one of them
   is spare; the extra one is where it belongs): the rule on the paper's DP, and on a null case of the development
-  seed 47 whose lookup fit put both DP branches at one time constant;
+  seed 47 whose lookup fit put both DP branches at one time constant; nor when a base branch is slower than any
+  branch (a ramp): the rule on the paper's DP with its slow branch moved there, and on the same null case with its
+  HPPC file's gaps (its step discharges unlogged: the DP fit leaves its slow branch at τ ≈ 10¹⁰ s);
 * where neither an effect nor the base refit cuts the error alone in the first round, the effect fitted jointly with
   the refit can (a hidden branch on the development seed 31, part of which the HPPC fit gave to the base's own
   parameters: alone it finds the base holding that part, the refit alone cannot make a branch the structure lacks);
@@ -178,9 +180,44 @@ def test_two_base_branches_at_one_time_constant_leave_one_to_spare():
     moved = s.refitted_taus(apart)
     assert np.isclose(moved[b2], t2 * 2.0 * TWIN_TAU) and np.isclose(moved[b1], t1)
     # and one that brings a branch far from the other next to it makes one again
-    far = {f"log_R{b2[1]}": float(np.log(4.0)), f"log_C{b2[1]}": float(np.log(4.0))}  # ×16
+    far = {f"log_R{b2[1]}": float(np.log(2.0)), f"log_C{b2[1]}": float(np.log(3.0))}  # ×6, still under 10⁴ s
     assert s.spare_branch(far) is None
-    assert s.spare_branch({**far, f"log_C{b1[1]}": float(np.log(16.0 * t2 / t1))}) is not None
+    assert s.spare_branch({**far, f"log_C{b1[1]}": float(np.log(6.0 * t2 / t1))}) is not None
+
+
+def test_a_base_branch_slower_than_any_branch_is_spare():
+    """``Search.spare_branch``: a base branch whose time constant (as the base refit made it) lies beyond the slowest
+    an extra branch may have (the upper end of its ``log10_tau`` range) is spare on its own; brought back within
+    that range by the refit's scales, and clear of the other branch, it is not."""
+    from socbench.identify.fit import branch_time_constants
+    from socbench.models import make_model, paper_params
+
+    dp = make_model("dp", paper_params("dp"))
+    (b1, t1), (b2, t2) = sorted(branch_time_constants(dp.params, dp.required_params()).items(),
+                                key=lambda kv: kv[1])
+    fast = {f"log_C{b1[1]}": float(np.log(20.0 / t1))}  # the fast branch at 20 s: no pair within ×TWIN_TAU
+    s = _search_on(dp)
+    slowest = 10.0 ** s.bounds["extra_rc"]["log10_tau"][1]
+    assert s.spare_branch(fast) is None  # 20 s and the paper's slow branch: nothing to spare
+    ramp = {**fast, f"log_R{b2[1]}": float(np.log(4.0)), f"log_C{b2[1]}": float(np.log(4.0))}  # ×16 the slow branch
+    dead = s.refitted_taus(ramp)[b2]
+    assert dead > slowest and t2 < slowest  # the premise
+    assert s.spare_branch(ramp) == ((b2, dead), None)
+    # the same branch scaled back under the range's end is a branch again
+    back = {**fast, f"log_C{b2[1]}": float(np.log(0.5 * slowest / t2))}
+    assert s.spare_branch(back) is None
+
+
+def test_an_extra_branch_is_not_named_beside_a_base_branch_left_as_a_ramp():
+    """The null case of the test below with its HPPC file's Panasonic-style gaps (as the benchmark draws it): a DP fit
+    on it leaves the slow branch as a ramp, and the extra branch the search would name in its place (it did before
+    the rule, with base refit: 21.5 → 7.3 mV) is scored out and says why."""
+    case = draw_case(111, 47)
+    assert case.effects == () and case.base == "dp" and case.draws["hppc"]["gaps"]
+    d = diagnose(case.base, case.fit, case.evals, soc=False)
+    assert d.effects_added == [], d.effects_added
+    spared = [c for r in d.rounds for c in r["candidates"] if c.effect == "extra_rc" and "a ramp" in c.evidence]
+    assert spared and all(c.score == -np.inf for c in spared)
 
 
 def test_an_extra_branch_is_not_named_where_the_base_has_one_to_spare():
