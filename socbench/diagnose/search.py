@@ -49,9 +49,11 @@ both base branches in one place the search cannot tell a missing branch from the
 guesses. A base branch slower than any extra branch may be (10⁴ s, the end of its range where the extra branch is
 itself a ramp) is spare too: its capacitor takes the charge the records move without relaxing, so the structure has a
 branch it does not use, and a DP fitted on a test that shows no slow branch (short pulses, the step discharges logged
-in a gap) leaves its second branch there; an extra branch is where that one belongs. On the randomised benchmark's
-reported seeds and the calibration seeds 9101–9103, 14 cases named an extra branch on such a base, 13 of them where no
-branch was hidden. Once the base refit is in the model the branches
+in a gap) leaves its second branch there; an extra branch is where that one belongs. Over the randomised benchmark's
+eight reported runs (1440 cases) this changed 17 outcomes: an effect named that is not there 138 → 128, nulls 272 →
+273 of 288, named first 579 → 581 of 864, at the cost of one pair (seed 2026 case 13, a fade and a hidden branch
+beside a DP whose slow branch the fit left as a ramp: without the branch the fade no longer passes), one cut and one
+SOC case. Once the base refit is in the model the branches
 are those the refit made (``τ_j·s_Rj·s_Cj``, the refit's scales of the candidate's own fit): beside a refitted branch, a
 twin buys the branch the freedom the refit's scaling lacks — a new SOC shape of its resistance (a constant twin beside
 a looked-up branch), a time constant beyond the refit's bounds — which is base-fit error, not a branch the structure
