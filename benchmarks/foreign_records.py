@@ -334,7 +334,7 @@ def branch_verdict(diagnosis: dict) -> dict:
     floor = noise_floor(noise, "base_refit" in steps[:k])
     if c["score"] is None:
         verdict = "signature too weak to fit"
-    elif "lies within" in c["evidence"]:
+    elif "lies within" in c["evidence"] or "is spare" in c["evidence"]:  # the twin rule; the spare-branch rule
         verdict = "refused beside a base branch"
     elif c["score"] <= 0:
         verdict = "no held-out gain"
@@ -451,7 +451,8 @@ def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
          "held-out error (the residual is something else: an OCV read from few rest points between which the curve "
          "bends, a branch the base fit already took); *signature too weak to fit* — its residual signature was too "
          "small for the search to fit it; *refused beside a base branch* — its time constant lay next to one of the "
-         "base model's; *another candidate won* — it passed every rule, and the round added another effect. The last "
+         "base model's, or the base had a branch to spare (two at one time constant, or one slower than 10⁴ s); "
+         "*another candidate won* — it passed every rule, and the round added another effect. The last "
          "column is what the diagnosis left (`diagnosis.md`'s \"What is left\", "
          "`socbench.diagnose.leftover`): the held-out structure above the voltage noise, the share of its variance "
          "that follows the SOC and the current, and, with an OCV read from rest points, how many and the widest SOC "

@@ -52,6 +52,13 @@ def _diagnosis(before_v, after_v, score, evidence="residual signature LP_τ(I)",
     (dict(before_v=10 * NOISE_V, after_v=10 * NOISE_V, score=None), "signature too weak to fit"),
     (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=-float("inf"),
           evidence="…; its τ = 40 s lies within ×3 of the base model's branch 1"), "refused beside a base branch"),
+    # the spare-branch rule's two wordings (socbench.diagnose.search, Search._scored): a pair, a ramp
+    (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=-float("inf"),
+          evidence="…; the base model's branches R1C1 and R2C2 lie within ×3 of each other (τ = 40 and 90 s): one of "
+                   "them is spare, and this branch is where it belongs"), "refused beside a base branch"),
+    (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=-float("inf"),
+          evidence="…; the base model's branch R2C2 lies at τ = 7.4e+07 s, slower than any branch (a ramp): it is "
+                   "spare, and this branch is where it belongs"), "refused beside a base branch"),
     (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=0.5, added=("current_bias", "extra_rc")), "named"),
 ])
 def test_branch_verdict_reads_the_search_rules(case, verdict):
