@@ -845,7 +845,7 @@ def both_named_where_shown(results) -> dict:
 def by_fit_file(results) -> list:
     """The Markdown lines of the headline rates, and the effects named that are not there, apart for the cases whose
     fit HPPC file has the Panasonic-style gaps (:func:`gapped_fit_test`) and the others."""
-    L = ["", "By the fit test's file (a quarter of the cases log no step discharge but the last: "
+    L = ["", f"By the fit test's file ({100 * GAPPED_SHARE:.0f} % of the cases log no step discharge but the last: "
              "`socbench.identify.gap_fill` simulates each gap as that step):", "",
          "| HPPC file | cases | " + " | ".join(LABELS[k] for k in TARGETS) + " | an effect named that is not there "
          "(cases with a hidden effect) |", "|---" * (3 + len(TARGETS)) + "|"]
