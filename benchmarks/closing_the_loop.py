@@ -519,7 +519,9 @@ def render_real(r) -> list:
          + " | held-out SOC RMSE, EKF [%] | UKF [%] |",
          "|---|---|" + "---|" * len(b["rmse_v_per_record"]) + "---|---|"]
     added = " + ".join([d["model"]] + d["effects_added"]) + (" (base refitted)" if any(
-        st["effect"] == "base_refit" for st in d["steps"]) else "")
+        st["effect"] == "base_refit" for st in d["steps"]) else "") + "".join(
+        f" ({st['effect']} as the base's own branch)" for st in d["steps"]
+        if st["kind"] == "base" and st["effect"] != "base_refit")
     for label, x in (("before: " + d["model"], b), ("after: " + added, a)):
         L.append(f"| {label} | {_mv(x['rmse_v'])} | " + " | ".join(_mv(v) for v in x["rmse_v_per_record"].values())
                  + f" | {_soc(x, 'ekf')} | {_soc(x, 'ukf')} |")

@@ -16,8 +16,9 @@ the outcome (seed 7 of socbench.diagnose.randomized; the CI rates run its first 
 * nor is an extra branch anywhere when two of the base's own branches lie within ×TWIN_TAU of each other (one of them
   is spare; the extra one is where it belongs): the rule on the paper's DP, and on a null case of the development
   seed 47 whose lookup fit put both DP branches at one time constant; nor when a base branch is slower than any
-  branch (a ramp): the rule on the paper's DP with its slow branch moved there, and on the same null case with its
-  HPPC file's gaps (its step discharges unlogged: the DP fit leaves its slow branch at τ ≈ 10¹⁰ s);
+  branch (a ramp): the rule on the paper's DP with its slow branch moved there; on the same null case with its
+  HPPC file's gaps (its step discharges unlogged: the DP fit leaves its slow branch at τ ≈ 10¹¹ s) the extra branch
+  is that branch put back, kept in the model as base-fit error and not named;
 * where neither an effect nor the base refit cuts the error alone in the first round, the effect fitted jointly with
   the refit can (a hidden branch on the development seed 31, part of which the HPPC fit gave to the base's own
   parameters: alone it finds the base holding that part, the refit alone cannot make a branch the structure lacks);
@@ -208,17 +209,22 @@ def test_a_base_branch_slower_than_any_branch_is_spare():
     assert s.spare_branch(back) is None
 
 
-def test_an_extra_branch_is_not_named_beside_a_base_branch_left_as_a_ramp():
+def test_an_extra_branch_beside_a_base_branch_left_as_a_ramp_is_kept_unnamed():
     """The null case of the test below with its HPPC file's Panasonic-style gaps (as the benchmark draws it): a DP fit
-    on it leaves the slow branch as a ramp, and the extra branch the search would name in its place (it did before
-    the rule, with base refit: 21.5 → 7.3 mV) is scored out and says why."""
+    on it leaves the slow branch as a ramp (τ ≈ 10¹¹ s as refitted), and the extra branch the search finds there is
+    the DP's own slow branch put back. It stays in the model (base-fit error, like the base refit: the held-out error
+    falls with it) and is not named; its evidence says why."""
     case = draw_case(111, 47)
     assert case.effects == () and case.base == "dp" and case.draws["hppc"]["gaps"]
     d = diagnose(case.base, case.fit, case.evals, soc=False)
     assert d.effects_added == [], d.effects_added
-    spared = [c for r in d.rounds for c in r["candidates"] if c.effect == "extra_rc" and "a ramp" in c.evidence]
-    assert spared and all(c.score == -np.inf for c in spared)
-    assert all("is spare" in c.evidence for c in spared)  # what benchmarks/foreign_records.py's verdict reads
+    kept = [s for s in d.steps if s.effect == "extra_rc"]
+    assert len(kept) == 1 and not kept[0].named and "a ramp" in kept[0].evidence and "is spare" in kept[0].evidence
+    assert "extra_rc" in [e.name for e in d.final_model.effects]
+    assert [s["kind"] for s in d.to_dict()["steps"] if s["effect"] == "extra_rc"] == ["base"]
+    # the branch put back cuts what the base refit left by more than the search's gain, on held-out data
+    refit = next(s for s in d.steps if s.effect == "base_refit")
+    assert d.after["rmse_v"] <= 0.9 * refit.rmse_after < 0.9 * d.before["rmse_v"]
 
 
 def test_an_extra_branch_is_not_named_where_the_base_has_one_to_spare():

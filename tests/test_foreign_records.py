@@ -6,12 +6,16 @@ from __future__ import annotations
 import importlib.util
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from socbench.diagnose.search import FLOOR_GAIN, NOISE_FLOOR, NOISE_FLOOR_REFIT
 
 REPO = Path(__file__).resolve().parents[1]
 NOISE_V = 0.002
+#: the spare-branch rule's words beside a base branch left as a ramp (socbench.diagnose.search, Search._scored)
+RAMP = ("…; the base model's branch R2C2 lies at τ = 7.4e+07 s, slower than any branch (a ramp): it is spare, and this "
+        "branch is where it belongs, a misfit of the base, kept in the model as base-fit error and not named")
 
 
 def _benchmark():
@@ -21,8 +25,11 @@ def _benchmark():
     return mod
 
 
-def _diagnosis(before_v, after_v, score, evidence="residual signature LP_τ(I)", steps=(), added=()):
-    """A diagnosis report whose last round fitted the extra branch with these numbers, after ``steps``."""
+def _diagnosis(before_v, after_v, score, evidence="residual signature LP_τ(I)", steps=(), added=(), kept=False):
+    """A diagnosis report whose last round fitted the extra branch with these numbers, after ``steps`` (``kept``: and
+    then adopted it as a base branch put back), its scores written as ``Candidate.to_dict`` writes them (a score out
+    as None)."""
+    score = score if score is None or np.isfinite(score) else None
     rounds = [[{"effect": s, "score": 1.0, "evidence": "", "rmse_v_before": 0.02, "rmse_v_after": 0.01}]
               for s in steps]
     rounds.append([{"effect": "extra_rc", "score": score, "evidence": evidence, "rmse_v_before": before_v,
@@ -30,7 +37,8 @@ def _diagnosis(before_v, after_v, score, evidence="residual signature LP_τ(I)",
                    {"effect": "hysteresis", "score": -0.1, "evidence": "", "rmse_v_before": before_v,
                     "rmse_v_after": before_v}])
     return {"effects_added": list(added), "fit": {"voltage_noise_sd_binned_final": NOISE_V},
-            "steps": [{"effect": s} for s in steps], "rounds": rounds}
+            "steps": [{"effect": s, "kind": "base" if s == "base_refit" else "effect"} for s in steps]
+            + ([{"effect": "extra_rc", "kind": "base"}] if kept else []), "rounds": rounds}
 
 
 @pytest.mark.parametrize("case, verdict", [
@@ -52,13 +60,15 @@ def _diagnosis(before_v, after_v, score, evidence="residual signature LP_τ(I)",
     (dict(before_v=10 * NOISE_V, after_v=10 * NOISE_V, score=None), "signature too weak to fit"),
     (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=-float("inf"),
           evidence="…; its τ = 40 s lies within ×3 of the base model's branch 1"), "refused beside a base branch"),
-    # the spare-branch rule's two wordings (socbench.diagnose.search, Search._scored): a pair, a ramp
+    # the spare-branch rule (socbench.diagnose.search, Search._scored): a pair is scored out; beside a ramp the branch
+    # is scored as it is, and kept in the model unnamed when the round adopts it
     (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=-float("inf"),
           evidence="…; the base model's branches R1C1 and R2C2 lie within ×3 of each other (τ = 40 and 90 s): one of "
                    "them is spare, and this branch is where it belongs"), "refused beside a base branch"),
-    (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=-float("inf"),
-          evidence="…; the base model's branch R2C2 lies at τ = 7.4e+07 s, slower than any branch (a ramp): it is "
-                   "spare, and this branch is where it belongs"), "refused beside a base branch"),
+    (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=0.5, kept=True,
+          evidence=RAMP), "kept as the base's own branch"),
+    (dict(before_v=10 * NOISE_V, after_v=9.5 * NOISE_V, score=0.02, evidence=RAMP),
+     "cut below the search's min_gain"),
     (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=0.5, added=("current_bias", "extra_rc")), "named"),
 ])
 def test_branch_verdict_reads_the_search_rules(case, verdict):

@@ -117,7 +117,7 @@ class Diagnosis:
 
     @property
     def effects_added(self) -> list:
-        return [s.effect for s in self.steps if s.effect != BASE_REFIT]
+        return [s.effect for s in self.steps if s.named]
 
     def to_dict(self) -> dict:
         first = self.rounds[0]["candidates"] if self.rounds else []
@@ -127,7 +127,7 @@ class Diagnosis:
             "before": self.before,
             "after": self.after,
             "candidates": [c.to_dict() for c in first],
-            "steps": [{"effect": s.effect, "kind": "base" if s.effect == BASE_REFIT else "effect",
+            "steps": [{"effect": s.effect, "kind": "effect" if s.named else "base",
                        "found_on": "fit test" if s.fit_test else "evaluation data",
                        "rmse_v_before": s.rmse_before, "rmse_v_after": s.rmse_after, "params": s.params,
                        "score": s.score, "evidence": s.evidence} for s in self.steps],
@@ -802,7 +802,7 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
                                min_gain)
         fit_info["fit_test_effect"]["added"] = beside is not None
         # what the search named without the refit beside it, and where it ended: the comparison the refit won or lost
-        fit_info["fit_test_effect"]["without_it"] = {"effects": [s.effect for s in steps if s.effect != BASE_REFIT],
+        fit_info["fit_test_effect"]["without_it"] = {"effects": [s.effect for s in steps if s.named],
                                                      "rmse_v": steps[-1].rmse_after}
         if beside is not None:
             search, (final, steps, rounds, _) = beside
@@ -810,7 +810,7 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
         alt, run, first = search_without_first(make_search, search, steps, min_gain)
         if first is not None:
             fit_info["recheck"] = {
-                "without": first, "effects": [s.effect for s in run[1] if s.effect != BASE_REFIT],
+                "without": first, "effects": [s.effect for s in run[1] if s.named],
                 "rmse_v": run[1][-1].rmse_after if run[1] else run[3], "rmse_v_with_it": steps[-1].rmse_after,
                 "kept": alt is not None}
         if alt is not None:

@@ -50,7 +50,11 @@ def markdown(diag, figures=()) -> str:
               "each time without one block, and every block is scored by the fit that did not see it.", ""]
     for note in diag.fit.get("evaluation_records_cut", ()):
         lines[-1:-1] = [f"Cut at gaps: {note}."]
-    added = " + ".join(diag.effects_added) or "no change"
+    # what the steps put in the model that is not an effect (the base refit, a base branch put back) is said too
+    base = ["refit" if s.effect == "base_refit" else f"{s.effect} as its own branch" for s in diag.steps
+            if not s.named]
+    added = (" + ".join(diag.effects_added) or ("no effect" if base else "no change")) \
+        + (f"; base: {', '.join(base)}" if base else "")
     lines += markdown_table(["", "held-out voltage RMSE [mV]", "held-out SOC RMSE (EKF) [%]"],
                             [[label, _mv(d["rmse_v"]), _pct(d.get("soc_rmse"))]
                              for label, d in (("before (base model)", b), (f"after ({added})", a))])
@@ -61,7 +65,8 @@ def markdown(diag, figures=()) -> str:
     if diag.steps:
         lines += ["", "## Steps", ""]
         for k, s in enumerate(diag.steps, 1):
-            label = "base refit (not an effect)" if s.effect == "base_refit" else s.effect
+            label = ("base refit (not an effect)" if s.effect == "base_refit"
+                     else f"{s.effect}: the base's own branch put back (not an effect)" if not s.named else s.effect)
             lines.append(f"{k}. **{label}** — {_mv(s.rmse_before)} → {_mv(s.rmse_after)} mV held-out; {s.evidence}.")
     fitted = [(c, np.isfinite(c.score)) for c in (diag.rounds[0]["candidates"] if diag.rounds else [])]
     lines += ["", "## Candidates (first round)", ""]

@@ -296,6 +296,14 @@ class Candidate:
     fold_ratio: float = float("nan")
     #: found on the fit test (:mod:`socbench.identify.fit_test_effect`), not by a round of the search
     fit_test: bool = False
+    #: an extra RC branch that puts back a branch the base fit left unused (:meth:`Search.spare_branch`, a ramp):
+    #: base-fit error, kept in the model like the base refit and, like it, never named an effect
+    base_branch: bool = False
+
+    @property
+    def named(self) -> bool:
+        """Whether this step names an effect (not the base refit, nor a base branch put back)."""
+        return self.effect != BASE_REFIT and not self.base_branch
 
     def to_dict(self) -> dict:
         score = round(float(self.score), 6) if np.isfinite(self.score) else None  # None: not fitted (valid JSON)
@@ -1135,6 +1143,7 @@ class Search:
         if far is not None:
             score = -np.inf
             evidence += f"; {far}: as much as its range allows, it stands in for something else"
+        base_branch = False
         if name == "extra_rc":
             refit = dict(zip(dict(layout).get(BASE_REFIT, ()), self._refit_row(layout, row)))
             twin = self.twin_branch(10.0 ** params["log10_tau"], refit)
@@ -1145,20 +1154,21 @@ class Search:
                              f"model's branch {twin[0]} (τ = {twin[1]:.0f} s{', as refitted' if refit else ''}): a "
                              "misfit of that branch, left to the base refit")
             elif spare is not None:  # the base has a branch to spare: this one is where it belongs
-                score = -np.inf
                 (b1, t1), other = spare
                 as_refitted = ", as refitted" if refit else ""
-                if other is None:
+                if other is None:  # the base's own branch put back: kept (scored as it is), never named
+                    base_branch = True
                     evidence += (f"; the base model's branch {b1} lies at τ = {t1:.3g} s{as_refitted}, slower than "
                                  "any branch (a ramp): it is spare, and this branch is where it belongs, a misfit of "
-                                 "the base")
+                                 "the base, kept in the model as base-fit error and not named")
                 else:
+                    score = -np.inf
                     evidence += (f"; the base model's branches {b1} and {other[0]} lie within ×{TWIN_TAU:g} of each "
                                  f"other (τ = {t1:.0f} and {other[1]:.0f} s{as_refitted}): one of them is spare, and "
                                  "this branch is where it belongs, a misfit of the base, left to the base refit")
         return Candidate(name, score, rmse_now, rmse_after, params, r2, evidence,
                          tuple(getattr(final, "effects", ())), seconds + _time.perf_counter() - t0, r_after, sse, fit,
-                         layout)
+                         layout, base_branch=base_branch)
 
     def at_slow_end(self, name: str, params: dict) -> str | None:
         """Where effect ``name``'s fitted ``params`` rest at the slow end of its rate's range (:data:`SLOW_END`, within
