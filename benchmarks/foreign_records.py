@@ -307,7 +307,8 @@ def run_case(seed: int, folder: str, refine_ocv: str = "always") -> dict:
 #: the words of the search's refusals of an extra branch beside the base's own (``Search._scored``): the twin rule,
 #: the spare-pair rule
 REFUSED = ("lies within", "one of them is spare")
-VERDICTS = ("named", "kept as the base's own branch", "held at the noise floor", "cut below the search's min_gain", "no held-out gain",
+VERDICTS = ("named", "kept as the base's own branch", "held at the noise floor", "cut below the search's min_gain",
+            "no held-out gain",
             "refused beside a base branch", "signature too weak to fit", "another candidate won")
 
 
@@ -460,7 +461,8 @@ def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
          "small for the search to fit it; *refused beside a base branch* — its time constant lay next to one of the "
          "base model's, or the base had two branches at one time constant (one of them spare); *kept as the base's "
          "own branch* — it is in the final model, not named: the base fit had left one of its branches slower than "
-         "10⁴ s (a ramp), and the extra one is where that branch belongs; *another candidate won* — it passed every rule, and the round added another effect. The last "
+         "10⁴ s (a ramp), and the extra one is where that branch belongs; "
+         "*another candidate won* — it passed every rule, and the round added another effect. The last "
          "column is what the diagnosis left (`diagnosis.md`'s \"What is left\", "
          "`socbench.diagnose.leftover`): the held-out structure above the voltage noise, the share of its variance "
          "that follows the SOC and the current, and, with an OCV read from rest points, how many and the widest SOC "
