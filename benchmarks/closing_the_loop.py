@@ -625,9 +625,9 @@ WHY_WEAK = {
                 "rescaled) often takes. It is named when, fitted jointly with the refit, it still cuts the error by "
                 "10 % above the noise floor and lies outside that window of the branches as refitted, and when the "
                 f"base has no branch to spare: beside two of its branches within ×{TWIN_TAU:g} of each other (as a "
-                "lookup fit whose branches swap roles over SOC leaves them) it is scored out, and beside one slower "
-                "than 10⁴ s, a ramp (where a DP fitted on an HPPC whose step discharges fall in record gaps can leave "
-                "its slow branch), it is that branch put back, kept in the model as base-fit error and not named.",
+                "lookup fit whose branches swap roles over SOC leaves them) or one slower than 10⁴ s, a ramp (where a "
+                "DP fitted on an HPPC whose step discharges fall in record gaps can leave its slow branch), it is the "
+                "spare branch put back, kept in the model as base-fit error and not named.",
     "butler_volmer": "with I₀ of 0.3–2 C the asinh is nearly linear over the loads' currents, so the base fit's R0 "
                      "absorbs most of it, and averaging a record to at most 4000 bins blurs the current peaks where "
                      "the curvature shows. Where the base refit wins the first round (a slow branch the HPPC "

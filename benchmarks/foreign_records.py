@@ -304,9 +304,8 @@ def run_case(seed: int, folder: str, refine_ocv: str = "always") -> dict:
 
 
 #: why the missing branch of a Thevenin case was not named, read from the diagnosis (``branch_verdict``)
-#: the words of the search's refusals of an extra branch beside the base's own (``Search._scored``): the twin rule,
-#: the spare-pair rule
-REFUSED = ("lies within", "one of them is spare")
+#: the words of the search's refusal of an extra branch beside the base's own (``Search._scored``): the twin rule
+REFUSED = ("lies within",)
 VERDICTS = ("named", "kept as the base's own branch", "held at the noise floor", "cut below the search's min_gain",
             "no held-out gain",
             "refused beside a base branch", "signature too weak to fit", "another candidate won")
@@ -327,12 +326,12 @@ def branch_verdict(diagnosis: dict) -> dict:
     if "extra_rc" in diagnosis["effects_added"]:
         return {"verdict": "named"}
     if any(s["effect"] == "extra_rc" and s["kind"] == "base" for s in diagnosis["steps"]):
-        return {"verdict": "kept as the base's own branch"}  # in the model, in place of a base branch left as a ramp
+        return {"verdict": "kept as the base's own branch"}  # in the model, in place of a spare base branch
     min_gain = inspect.signature(diagnose).parameters["min_gain"].default  # what `socbench diagnose` runs with
     noise = float(diagnosis["fit"].get("voltage_noise_sd_binned_final") or 0.0)
     steps = [s["effect"] for s in diagnosis["steps"]]
     listed = [(k, c) for k, round_ in enumerate(diagnosis["rounds"]) for c in round_ if c["effect"] == "extra_rc"]
-    # a branch the twin or the spare-pair rule scored out (its score None, as every score out) was fitted all the same
+    # a branch the twin rule scored out (its score None, as every score out) was fitted all the same
     refused = [(k, c) for k, c in listed if c["score"] is None and any(w in c["evidence"] for w in REFUSED)]
     fitted = sorted([(k, c) for k, c in listed if c["score"] is not None] + refused, key=lambda kc: kc[0])
     if not listed:
@@ -459,9 +458,9 @@ def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
          "held-out error (the residual is something else: an OCV read from few rest points between which the curve "
          "bends, a branch the base fit already took); *signature too weak to fit* — its residual signature was too "
          "small for the search to fit it; *refused beside a base branch* — its time constant lay next to one of the "
-         "base model's, or the base had two branches at one time constant (one of them spare); *kept as the base's "
-         "own branch* — it is in the final model, not named: the base fit had left one of its branches slower than "
-         "10⁴ s (a ramp), and the extra one is where that branch belongs; "
+         "base model's; *kept as the base's own branch* — it is in the final model, not named: the base fit had left "
+         "two of its branches at one time constant or one slower than 10⁴ s (a ramp), and the extra one is where the "
+         "spare branch belongs; "
          "*another candidate won* — it passed every rule, and the round added another effect. The last "
          "column is what the diagnosis left (`diagnosis.md`'s \"What is left\", "
          "`socbench.diagnose.leftover`): the held-out structure above the voltage noise, the share of its variance "

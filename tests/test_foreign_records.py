@@ -13,9 +13,12 @@ from socbench.diagnose.search import FLOOR_GAIN, NOISE_FLOOR, NOISE_FLOOR_REFIT
 
 REPO = Path(__file__).resolve().parents[1]
 NOISE_V = 0.002
-#: the spare-branch rule's words beside a base branch left as a ramp (socbench.diagnose.search, Search._scored)
-RAMP = ("…; the base model's branch R2C2 lies at τ = 7.4e+07 s, slower than any branch (a ramp): it is spare, and this "
-        "branch is where it belongs, a misfit of the base, kept in the model as base-fit error and not named")
+#: the spare-branch rule's words beside a base branch left as a ramp, and beside two at one time constant
+#: (socbench.diagnose.search, Search._scored)
+SPARE = (": one of its branches is spare, and this branch is where it belongs, a misfit of the base, kept in the model "
+         "as base-fit error and not named")
+RAMP = "…; the base model's branch R2C2 lies at τ = 7.4e+07 s, slower than any branch (a ramp)" + SPARE
+PAIR = "…; the base model's branches R1C1 and R2C2 lie within ×3 of each other (τ = 40 and 90 s)" + SPARE
 
 
 def _benchmark():
@@ -60,13 +63,12 @@ def _diagnosis(before_v, after_v, score, evidence="residual signature LP_τ(I)",
     (dict(before_v=10 * NOISE_V, after_v=10 * NOISE_V, score=None), "signature too weak to fit"),
     (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=-float("inf"),
           evidence="…; its τ = 40 s lies within ×3 of the base model's branch 1"), "refused beside a base branch"),
-    # the spare-branch rule (socbench.diagnose.search, Search._scored): a pair is scored out; beside a ramp the branch
-    # is scored as it is, and kept in the model unnamed when the round adopts it
-    (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=-float("inf"),
-          evidence="…; the base model's branches R1C1 and R2C2 lie within ×3 of each other (τ = 40 and 90 s): one of "
-                   "them is spare, and this branch is where it belongs"), "refused beside a base branch"),
-    (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=0.5, kept=True,
-          evidence=RAMP), "kept as the base's own branch"),
+    # the spare-branch rule (socbench.diagnose.search, Search._scored): beside a pair of base branches at one time
+    # constant or a ramp the branch is scored as it is, and kept in the model unnamed when the round adopts it
+    (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=0.5, kept=True, evidence=PAIR),
+     "kept as the base's own branch"),
+    (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=0.5, kept=True, evidence=RAMP),
+     "kept as the base's own branch"),
     (dict(before_v=10 * NOISE_V, after_v=9.5 * NOISE_V, score=0.02, evidence=RAMP),
      "cut below the search's min_gain"),
     (dict(before_v=10 * NOISE_V, after_v=5 * NOISE_V, score=0.5, added=("current_bias", "extra_rc")), "named"),

@@ -1158,19 +1158,16 @@ class Search:
                 evidence += (f"; its τ = {10.0 ** params['log10_tau']:.0f} s lies within ×{TWIN_TAU:g} of the base "
                              f"model's branch {twin[0]} (τ = {twin[1]:.0f} s{', as refitted' if refit else ''}): a "
                              "misfit of that branch, left to the base refit")
-            elif spare is not None:  # the base has a branch to spare: this one is where it belongs
+            elif spare is not None:  # the base's own branch put back: kept (scored as it is), never named
+                base_branch = True
                 (b1, t1), other = spare
                 as_refitted = ", as refitted" if refit else ""
-                if other is None:  # the base's own branch put back: kept (scored as it is), never named
-                    base_branch = True
-                    evidence += (f"; the base model's branch {b1} lies at τ = {t1:.3g} s{as_refitted}, slower than "
-                                 "any branch (a ramp): it is spare, and this branch is where it belongs, a misfit of "
-                                 "the base, kept in the model as base-fit error and not named")
-                else:
-                    score = -np.inf
-                    evidence += (f"; the base model's branches {b1} and {other[0]} lie within ×{TWIN_TAU:g} of each "
-                                 f"other (τ = {t1:.0f} and {other[1]:.0f} s{as_refitted}): one of them is spare, and "
-                                 "this branch is where it belongs, a misfit of the base, left to the base refit")
+                where = (f"branch {b1} lies at τ = {t1:.3g} s{as_refitted}, slower than any branch (a ramp)"
+                         if other is None else
+                         f"branches {b1} and {other[0]} lie within ×{TWIN_TAU:g} of each other (τ = {t1:.0f} and "
+                         f"{other[1]:.0f} s{as_refitted})")
+                evidence += (f"; the base model's {where}: one of its branches is spare, and this branch is where it "
+                             "belongs, a misfit of the base, kept in the model as base-fit error and not named")
         return Candidate(name, score, rmse_now, rmse_after, params, r2, evidence,
                          tuple(getattr(final, "effects", ())), seconds + _time.perf_counter() - t0, r_after, sse, fit,
                          layout, base_branch=base_branch)
