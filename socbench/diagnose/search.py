@@ -300,8 +300,8 @@ class Candidate:
     fold_ratio: float = float("nan")
     #: found on the fit test (:mod:`socbench.identify.fit_test_effect`), not by a round of the search
     fit_test: bool = False
-    #: an extra RC branch that puts back a branch the base fit left unused (:meth:`Search.spare_branch`, a ramp):
-    #: base-fit error, kept in the model like the base refit and, like it, never named an effect
+    #: an extra RC branch that puts back a branch the base fit left spare (:meth:`Search.spare_branch`: a ramp, or two
+    #: branches at one time constant): base-fit error, kept in the model like the base refit and, like it, never named
     base_branch: bool = False
 
     @property
@@ -686,6 +686,7 @@ class Search:
             steps = [start]
             names, thetas, build, model, rmse_now, r_now, sse_now = self._adopt(start)
         for _ in range(self.max_steps + 1):  # max_steps effects, and the base refit once
+            # a base branch put back counts (it adds parameters fitted on the records), as it did when it was named
             if sum(st.effect != BASE_REFIT for st in steps) >= self.max_steps:
                 break
             trajs = self.trajectories(build, thetas)
