@@ -311,6 +311,11 @@ VERDICTS = ("named", "kept as the base's own branch", "held at the noise floor",
             "refused beside a base branch", "signature too weak to fit", "another candidate won")
 
 
+def _refused(candidate: dict) -> bool:
+    """Whether a round's extra-branch entry of ``diagnosis.json`` is the twin rule's score out (:data:`REFUSED`)."""
+    return candidate["score"] is None and any(w in candidate["evidence"] for w in REFUSED)
+
+
 def branch_verdict(diagnosis: dict) -> dict:
     """Where the extra RC branch stood in the diagnosis of a Thevenin case (the truth has a second branch): the last
     round in which it was fitted (else the last it was listed in) and why it was not named there, the first of
@@ -332,14 +337,13 @@ def branch_verdict(diagnosis: dict) -> dict:
     steps = [s["effect"] for s in diagnosis["steps"]]
     listed = [(k, c) for k, round_ in enumerate(diagnosis["rounds"]) for c in round_ if c["effect"] == "extra_rc"]
     # a branch the twin rule scored out (its score None, as every score out) was fitted all the same
-    refused = [(k, c) for k, c in listed if c["score"] is None and any(w in c["evidence"] for w in REFUSED)]
-    fitted = sorted([(k, c) for k, c in listed if c["score"] is not None] + refused, key=lambda kc: kc[0])
+    fitted = [(k, c) for k, c in listed if c["score"] is not None or _refused(c)]
     if not listed:
         return {"verdict": "signature too weak to fit"}
     k, c = (fitted or listed)[-1]
     now, after = c["rmse_v_before"], c["rmse_v_after"]
     floor = noise_floor(noise, "base_refit" in steps[:k])
-    if any(c is r for _, r in refused):
+    if _refused(c):
         verdict = "refused beside a base branch"
     elif c["score"] is None:
         verdict = "signature too weak to fit"
