@@ -40,10 +40,10 @@ import numpy as np
 from socbench.datasets import load
 from socbench.datasets.panasonic import find_panasonic
 from socbench.diagnose import diagnose, fit_base, randomized
-from socbench.diagnose.core import IGNORE_VOLTAGE, model_soc_errors, soc_attribution
+from socbench.diagnose.core import SOC_WORSE, model_soc_errors, soc_attribution, soc_grew
 from socbench.diagnose.cv import cv_residual
 from socbench.diagnose.leftover import sentence
-from socbench.diagnose.report import figures, markdown_table, write_report
+from socbench.diagnose.report import attribution_lines, figures, markdown_table, write_report
 from socbench.diagnose.search import (
     BASE_SCALE,
     FIELD_REST_MIN_S,
@@ -196,8 +196,8 @@ def _soc_cells(r) -> list:
 
 
 def _soc_grew(r) -> bool:
-    """Whether a filter's held-out SOC error grew by more than 0.2 points in the table row ``r``."""
-    return any(r["soc"]["after"].get(k, 0.0) > r["soc"]["before"].get(k, 0.0) + 0.002 for k in r["soc"]["before"])
+    """Whether a filter's held-out SOC error grew by more than :data:`SOC_WORSE` in the table row ``r``."""
+    return bool(soc_grew(r["soc"]["before"], r["soc"]["after"]))
 
 
 def _named(r) -> str:
@@ -225,7 +225,8 @@ def render_calce_sequence(rows) -> list:
                  f"{soc[0]} | {soc[1]} |")
     worse = [r for r in rows if _soc_grew(r)]
     faded = [r for r in rows if r["fitted_fade"] is not None]
-    L += ["", f"A filter's held-out SOC error grows by more than 0.2 points in {len(worse)} of {len(rows)} rows."]
+    L += ["", f"A filter's held-out SOC error grows by more than {100 * SOC_WORSE:.1f} points in {len(worse)} of "
+          f"{len(rows)} rows."]
     if faded and rows[0].get("reference_capacity_ah"):
         model_q = ", ".join(f"{r['fit_capacity_ah'] * (1 - r['fitted_fade']):.3f}" for r in faded)
         same = {id(r) for r in worse} == {id(r) for r in faded}
@@ -317,7 +318,7 @@ def render_pairs(rows) -> list:
                          for r in cross if r.get("oracle_soc"))
         L.append(f"{model}: across temperatures, the closed loop is within 1.5 × of the oracle in {within} of "
                  f"{len(cross)} pairs (voltage) and in {soc_within} of {len(cross)} (both filters' SOC); the held-out "
-                 "SOC error of a filter grows by more than 0.2 points in "
+                 f"SOC error of a filter grows by more than {100 * SOC_WORSE:.1f} points in "
                  + (", ".join(f"{r['fit_c']} → {r['eval_c']} °C" for r in worse) or "none") + ".")
     for r in rows:
         if r["fit_c"] == r["eval_c"] and r["added"]:
@@ -532,10 +533,11 @@ def render_real(r) -> list:
     if d.get("left"):
         L += [f"What is left (`socbench.diagnose.leftover`): {sentence(d['left'])}.", ""]
     for name in ("ekf", "ukf"):
-        if name in b.get("soc", {}) and a["soc"][name]["soc_rmse"] > b["soc"][name]["soc_rmse"] + 0.002:
-            L += [f"**The {name.upper()}'s held-out SOC error grew by more than 0.2 points** "
+        if name in b.get("soc", {}) and soc_grew({name: b["soc"][name]["soc_rmse"]},
+                                                  {name: a["soc"][name]["soc_rmse"]}):
+            L += [f"**The {name.upper()}'s held-out SOC error grew by more than {100 * SOC_WORSE:.1f} points** "
                   f"({_soc(b, name)} → {_soc(a, name)} %) although the voltage error fell.", ""]
-            L += render_attribution(r.get("soc_attribution"), name)
+            L += attribution_lines(r.get("soc_attribution"), name)
     if "oracle" in r:
         o = r["oracle"]
         ratio = o["loop_rmse_v"] / o["rmse_v"]
@@ -573,31 +575,6 @@ def render_real(r) -> list:
                               "–" if x["knee"] is None else _mv(x["knee"])] for x in r["alone"]])
     L += [""] + [f"![{Path(f).stem}]({f})" for f in r["figures"]] + [""]
     return L
-
-
-def render_attribution(att, name) -> list:
-    """Where the SOC change comes from (:func:`socbench.diagnose.core.soc_attribution`), for filter ``name``."""
-    if not att:
-        return []
-    b, a = att["before"], att["after"]
-    pct = lambda x: f"{100 * x:.2f}"  # noqa: E731
-    grew = a["own"][name] - b["own"][name]
-    noise_share = a["own"][name] - a["other"][name]
-    L = [f"Where it comes from (`socbench.diagnose.core.soc_attribution`, same filters and folds, {name.upper()} "
-         "held-out SOC RMSE [%]):", "",
-         "| model | own filter voltage noise | the other model's | voltage ignored (noise × "
-         f"{IGNORE_VOLTAGE:g}) |", "|---|---|---|---|",
-         f"| before | {pct(b['own'][name])} | {pct(b['other'][name])} | {pct(b['voltage_ignored'][name])} |",
-         f"| after | {pct(a['own'][name])} | {pct(a['other'][name])} | {pct(a['voltage_ignored'][name])} |", "",
-         f"Of the {100 * grew:.2f} points, {100 * noise_share:.2f} come from the smaller filter voltage noise of the "
-         f"better voltage model (the filter trusts the voltage more), {100 * (grew - noise_share):.2f} from the "
-         "model at equal filter noise."]
-    if b["own"][name] > b["voltage_ignored"][name] and a["own"][name] > a["voltage_ignored"][name]:
-        L[-1] += (" Both models' filters do worse than counting the current alone "
-                  f"({pct(b['voltage_ignored'][name])} / {pct(a['voltage_ignored'][name])} %): the voltage error "
-                  "left in either model misleads the SOC more than it corrects it, so a smaller but still "
-                  "SOC-biasing voltage error, trusted a little more, moves the estimate further off.")
-    return L + [""]
 
 
 #: what makes an effect hard to name at its physical magnitudes (the rates above say how often it happens)
@@ -764,7 +741,7 @@ def render_evtol_fade(report: dict | None) -> list:
          f"metadata. `{report['command']}` (docs/evtol_fade.md):", "",
          "| base | checks | capacity named (measured fade ≥ 3 %) | error of the fitted fade against the measured, "
          "median / worst [points] | other effects named | held-out RMSE, median [mV] | EKF SOC RMSE, median [%] | "
-         "a filter's SOC worse by > 0.2 points |", "|---|---|---|---|---|---|---|---|"]
+         f"a filter's SOC worse by > {100 * SOC_WORSE:.1f} points |", "|---|---|---|---|---|---|---|---|"]
     for model in report["models"]:
         s = report["summary"][model]
         err = ("–" if s["fade_error_pt_median"] is None

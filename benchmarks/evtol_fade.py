@@ -50,6 +50,7 @@ from nissan_leaf import data_dir  # noqa: E402
 
 from socbench.datasets import load  # noqa: E402
 from socbench.datasets.cmu_evtol import capacity_check_record, capacity_checks, mission_record  # noqa: E402
+from socbench.diagnose.core import SOC_WORSE, soc_grew  # noqa: E402
 from socbench.io import atomic_write_text  # noqa: E402
 from socbench.socaxis import REFERENCE_CAPACITY_KEY  # noqa: E402
 
@@ -121,7 +122,7 @@ def summary(rows: list[dict], model: str) -> dict:
     named = [r for r in big if "capacity" in r["added"]]
     signed = [100 * (r["fitted_fade"] - r["fade"]) for r in named]
     err = [abs(x) for x in signed]
-    worse = [r for r in rs if any(r["soc_after"][k] > r["soc_before"][k] + 0.002 for k in r["soc_before"])]
+    worse = [r for r in rs if soc_grew(r["soc_before"], r["soc_after"])]
     return {"checks": len([r for r in rows if r["model"] == model]), "ok": len(rs), "fade_cases": len(big),
             "capacity_named": len(named), "fade_error_pt_median": float(np.median(err)) if err else None,
             "fade_error_pt_max": float(np.max(err)) if err else None,
@@ -202,7 +203,7 @@ def markdown(res: dict) -> str:
               + (", ".join(s["ocv_unloaded"]) or "no cell") + ";",
               f"* median held-out voltage RMSE {s['median_rmse_mv'][0]:.1f} → {s['median_rmse_mv'][1]:.1f} mV, "
               f"median EKF SOC RMSE {s['median_soc_ekf'][0]:.2f} → {s['median_soc_ekf'][1]:.2f} %; a filter's SOC "
-              f"error grew by more than 0.2 points in {s['soc_worse']}"
+              f"error grew by more than {100 * SOC_WORSE:.1f} points in {s['soc_worse']}"
               + (f" ({', '.join(s['soc_worse_checks'])}, cell/check)" if s["soc_worse"] else "") + ".", "",
               "| cell | check | day | measured capacity [Ah] | measured fade | effects named | fitted fade | "
               "held-out RMSE before → after [mV] | EKF SOC before → after [%] | UKF SOC before → after [%] |",

@@ -140,7 +140,9 @@ def score(case: dict) -> dict:
     others = [a for a in added if a != "current_bias"]
     soc_worse = None
     if case.get("soc_before") is not None and case.get("soc_after") is not None:
-        soc_worse = case["soc_after"] > case["soc_before"] + 0.002
+        from socbench.diagnose.core import SOC_WORSE  # the generator above stays numpy-only
+
+        soc_worse = case["soc_after"] > case["soc_before"] + SOC_WORSE
     return {"named": expected in added if expected else not others,
             "first": (others[:1] == [expected]) if expected else not others,
             "false": [a for a in others if a != expected], "soc_worse": soc_worse}
@@ -174,9 +176,11 @@ def _fmt(x, digits=1):
 
 def kinds_table(s: dict) -> list:
     """The Markdown table of :func:`summary`'s rates per kind (this benchmark's doc and docs/closing_the_loop.md)."""
+    from socbench.diagnose.core import SOC_WORSE
+
     lines = ["| hidden (kind) | expected name | cases | named | named first | an effect named that is not there | "
              "held-out RMSE before → after, median mV | EKF SOC RMSE before → after, median % | EKF SOC worse by > "
-             "0.2 points |", "|---|---|---|---|---|---|---|---|---|"]
+             f"{100 * SOC_WORSE:.1f} points |", "|---|---|---|---|---|---|---|---|---|"]
     for kind, row in s["kinds"].items():
         n = row["cases"]
         lines.append(f"| {kind} | {EXPECTED[kind] or 'nothing'} | {n} | {row['named']}/{n} | {row['first']}/{n} | "

@@ -544,6 +544,15 @@ FILTER_NOISE = "held_out"
 SOC_ESTIMATORS = ("ekf", "ukf")
 #: the current-sensor noise the filters assume [fraction of the capacity, A per A·h]
 SOC_CURRENT_SD = 0.01
+#: a filter whose held-out SOC RMSE grows by more than this after the search is reported as made worse (0.2 points
+#: of full charge, issue #13's bound; :func:`soc_grew`)
+SOC_WORSE = 0.002
+
+
+def soc_grew(before: dict, after: dict) -> list:
+    """The filters of ``before`` (``{estimator: held-out SOC RMSE}``) whose error in ``after`` is more than
+    :data:`SOC_WORSE` larger."""
+    return [k for k, b in before.items() if after.get(k) is not None and after[k] > b + SOC_WORSE]
 
 
 def _batched(profile: Profile, runs: int, offsets=None, record: int = 0) -> Profile:
@@ -847,14 +856,21 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
         if sb is not None and sa is not None:
             before_d["soc_rmse"], after_d["soc_rmse"] = sb["ekf"]["soc_rmse"], sa["ekf"]["soc_rmse"]
             before_d["soc"], after_d["soc"] = sb, sa
+            grew = soc_grew({k: v["soc_rmse"] for k, v in sb.items()}, {k: v["soc_rmse"] for k, v in sa.items()})
             soc_info = {"estimators": list(SOC_ESTIMATORS), "voltage_sd": {"before": vsd_b.tolist(),
                                                                             "after": vsd_a.tolist()},
                         "effect_state_sd": {k: list(v) for k, v in isd.items()},
+                        "worse": grew,
                         "note": "EKF and UKF on every record once per fold, block j scored with fold j's model; "
                                 "filter voltage noise = the held-out residual outside each fold's block as "
                                 "white-noise equivalent σ·√((1+ρ)/(1−ρ)); current "
                                 f"noise {100 * SOC_CURRENT_SD:g} % of C; an added state's initial SD = the spread of "
                                 "its fitted initial value over the folds"}
+            if grew:  # reported with where it comes from (the other model's filter noise, the voltage ignored)
+                soc_info["attribution"] = _attribution(
+                    {"before": lambda layout, fold=None: (base, None),
+                     "after": lambda layout, fold=None: search.fold_models(last, layout, isd, fold)},
+                    {"before": vsd_b, "after": vsd_a}, soc_folds, soc0s, {"before": sb, "after": sa})
         else:
             refused = [f"{p.name}: {p.soc_ref_error.message}" for p in eval_profiles
                        if getattr(p, "soc_ref_error", None) is not None]
@@ -915,7 +931,8 @@ def soc_attribution(diag: Diagnosis, eval_profiles, dt: float = 1.0) -> dict | N
     * with the voltage ignored (noise × :data:`IGNORE_VOLTAGE`: the current counted through the filter): when a
       filter does worse than that, the voltage model's remaining error misleads it whatever the model.
 
-    Returns ``{"before"|"after": {"own"|"other"|"voltage_ignored": {estimator: SOC RMSE}}}``."""
+    Returns ``{"before"|"after": {"own"|"other"|"voltage_ignored": {estimator: SOC RMSE}}}``. :func:`diagnose` itself
+    gives it (``diagnosis.json`` → ``soc.attribution``) where a filter's SOC grew by more than :data:`SOC_WORSE`."""
     vsd = diag.soc.get("voltage_sd")
     if not vsd or not diag.steps or diag.search is None:
         return None
@@ -926,12 +943,17 @@ def soc_attribution(diag: Diagnosis, eval_profiles, dt: float = 1.0) -> dict | N
     isd = fold_spread_sd(last, base)
     models = {"before": lambda layout, fold=None: (base, None),
               "after": lambda layout, fold=None: search.fold_models(last, layout, isd, fold)}
-    noise = {"before": np.asarray(vsd["before"]), "after": np.asarray(vsd["after"])}
+    return _attribution(models, {k: np.asarray(v) for k, v in vsd.items()}, folds, soc0s)
+
+
+def _attribution(models, noise, folds: Folds, soc0s, own=None) -> dict:
+    """:func:`soc_attribution`'s runs of ``models`` (``{"before"|"after": model_for}``, :func:`soc_errors`) with
+    ``noise`` (each model's per-fold filter voltage noise); ``own``: each model's own runs where already made."""
     out = {}
     for key, other in (("before", "after"), ("after", "before")):
         runs = {"own": noise[key], "other": noise[other], "voltage_ignored": IGNORE_VOLTAGE * noise[key]}
         out[key] = {}
         for label, v in runs.items():
-            r = soc_errors(models[key], folds, soc0s, v)
+            r = own[key] if label == "own" and own is not None else soc_errors(models[key], folds, soc0s, v)
             out[key][label] = {name: x["soc_rmse"] for name, x in r.items()}
     return out

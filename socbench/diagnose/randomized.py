@@ -87,6 +87,7 @@ from ..models.effects import EFFECTS, augment, make_effect, n_cells
 from ..models.scaling import refittable_params, scaled_model
 from ..ocv import OCVCurve
 from ..profile import Profile, ProfileMeta, true_runs
+from .core import SOC_WORSE, soc_grew
 from .search import BASE_OFFSET_V, BASE_SCALE, TWIN_TAU
 
 EFFECT_NAMES = tuple(EFFECTS)
@@ -533,8 +534,6 @@ def draw_case(index: int, seed: int = 0, gaps: bool | None = None) -> Case:
 # ------------------------------------------------------------------------------------------------ scoring
 #: a hidden effect counts as "cut" when the held-out voltage RMSE falls by at least this share
 CUT = 0.30
-#: the SOC estimate counts as "not worse" when neither filter's held-out SOC RMSE grows by more than this
-SOC_SLACK = 0.002
 
 
 def _effect_voltages(case: Case, only: str | None, dt: float, max_samples: int):
@@ -660,10 +659,11 @@ def _share(flags) -> dict:
 
 
 def soc_not_worse(r: dict) -> bool | None:
-    """Neither filter's held-out SOC RMSE grew by more than :data:`SOC_SLACK` (None without SOC numbers)."""
+    """Neither filter's held-out SOC RMSE grew by more than :data:`~socbench.diagnose.core.SOC_WORSE` (None without
+    SOC numbers)."""
     if "soc_before" not in r:
         return None
-    return all(r["soc_after"][k] <= r["soc_before"][k] + SOC_SLACK for k in r["soc_before"])
+    return not soc_grew(r["soc_before"], r["soc_after"])
 
 
 def rates(results) -> dict:
@@ -775,7 +775,7 @@ LABELS = {
     "cut_30_single": f"held-out voltage RMSE cut ≥ {100 * CUT:.0f} % (single-effect cases)",
     "nothing_added_null": "nothing added (null cases)",
     "both_named_pair": "both effects named (two-effect cases)",
-    "soc_not_worse": f"held-out SOC RMSE not worse by > {100 * SOC_SLACK:.1f} points, EKF and UKF (all cases)",
+    "soc_not_worse": f"held-out SOC RMSE not worse by > {100 * SOC_WORSE:.1f} points, EKF and UKF (all cases)",
 }
 
 

@@ -30,6 +30,43 @@ def _pct(v):
     return "–" if v is None else f"{100 * v:.2f}"
 
 
+def soc_worse_sentence(name: str, before: float, after: float) -> str:
+    """The line that says a filter's held-out SOC error grew by more than
+    :data:`~socbench.diagnose.core.SOC_WORSE` (``before``, ``after``: its SOC RMSE)."""
+    from .core import SOC_WORSE
+
+    return (f"**The {name.upper()}'s held-out SOC error grew by more than {100 * SOC_WORSE:.1f} points** "
+            f"({_pct(before)} → {_pct(after)} %) with what the search added.")
+
+
+def attribution_lines(att, name: str) -> list:
+    """Where a change of filter ``name``'s SOC error comes from (:func:`socbench.diagnose.core.soc_attribution`):
+    a table and what it says, as Markdown lines (ending with an empty one); none without ``att``."""
+    from .core import IGNORE_VOLTAGE
+
+    if not att:
+        return []
+    b, a = att["before"], att["after"]
+    pct = lambda x: f"{100 * x:.2f}"  # noqa: E731
+    grew = a["own"][name] - b["own"][name]
+    noise_share = a["own"][name] - a["other"][name]
+    L = [f"Where it comes from (`socbench.diagnose.core.soc_attribution`, same filters and folds, {name.upper()} "
+         "held-out SOC RMSE [%]):", "",
+         "| model | own filter voltage noise | the other model's | voltage ignored (noise × "
+         f"{IGNORE_VOLTAGE:g}) |", "|---|---|---|---|",
+         f"| before | {pct(b['own'][name])} | {pct(b['other'][name])} | {pct(b['voltage_ignored'][name])} |",
+         f"| after | {pct(a['own'][name])} | {pct(a['other'][name])} | {pct(a['voltage_ignored'][name])} |", "",
+         f"Of the {100 * grew:.2f} points, {100 * noise_share:.2f} come from the smaller filter voltage noise of the "
+         f"better voltage model (the filter trusts the voltage more), {100 * (grew - noise_share):.2f} from the "
+         "model at equal filter noise."]
+    if b["own"][name] > b["voltage_ignored"][name] and a["own"][name] > a["voltage_ignored"][name]:
+        L[-1] += (" Both models' filters do worse than counting the current alone "
+                  f"({pct(b['voltage_ignored'][name])} / {pct(a['voltage_ignored'][name])} %): the voltage error "
+                  "left in either model misleads the SOC more than it corrects it, so a smaller but still "
+                  "SOC-biasing voltage error, trusted a little more, moves the estimate further off.")
+    return L + [""]
+
+
 def markdown_table(header, rows) -> list:
     """A Markdown table as lines: ``header`` the column titles, ``rows`` lists of cells (formatted by ``str``)."""
     return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + \
@@ -55,11 +92,16 @@ def markdown(diag, figures=()) -> str:
             if not s.named]
     added = (" + ".join(diag.effects_added) or ("no effect" if base else "no change")) \
         + (f"; base: {', '.join(base)}" if base else "")
-    lines += markdown_table(["", "held-out voltage RMSE [mV]", "held-out SOC RMSE (EKF) [%]"],
-                            [[label, _mv(d["rmse_v"]), _pct(d.get("soc_rmse"))]
+    filters = list(b.get("soc") or {})
+    lines += markdown_table(["", "held-out voltage RMSE [mV]"] + [f"held-out SOC RMSE ({k.upper()}) [%]"
+                                                                   for k in filters],
+                            [[label, _mv(d["rmse_v"])] + [_pct(d["soc"][k]["soc_rmse"]) for k in filters]
                              for label, d in (("before (base model)", b), (f"after ({added})", a))])
     if diag.soc.get("note"):
         lines += ["", f"SOC: {diag.soc['note']}."]
+    for name in diag.soc.get("worse", ()):
+        lines += ["", soc_worse_sentence(name, b["soc"][name]["soc_rmse"], a["soc"][name]["soc_rmse"])]
+        lines += [""] + attribution_lines(diag.soc.get("attribution"), name)[:-1]
     if diag.left:
         lines += ["", f"What is left: {sentence(diag.left)}."]
     if diag.steps:
