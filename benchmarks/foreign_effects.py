@@ -236,7 +236,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     cases = fr.run_cases(run_case, args)
     s = summary(cases)
-    command = f"python benchmarks/foreign_effects.py --cases {args.cases} --seed {args.seed} --jobs {args.jobs}"
+    command = (f"python benchmarks/foreign_effects.py --cases {args.cases} --seed {args.seed} --jobs {args.jobs}"
+               + fr.doc_argument(args.doc, "foreign_effects.md"))
     write_doc(Path(args.doc), s, cases, command, time.perf_counter() - t0)
     Path(args.doc).with_suffix(".json").write_text(json.dumps({"command": command, "summary": s, "cases": cases},
                                                               indent=1))

@@ -524,6 +524,15 @@ def case_arguments(ap, cases: int, doc: str) -> None:
     ap.add_argument("--doc", default=str(REPO / "docs" / doc))
 
 
+def doc_argument(doc: str, default: str) -> str:
+    """``" --doc PATH"`` for a command line that reproduces a report written elsewhere than ``docs/default`` (the
+    path relative to the repository where it lies inside it), else nothing."""
+    path = Path(doc).resolve()
+    if path == (REPO / "docs" / default).resolve():
+        return ""
+    return f" --doc {path.relative_to(REPO) if path.is_relative_to(REPO) else path}"
+
+
 def run_cases(run, args, *extra) -> list:
     """``run(seed, folder, *extra)`` for each of ``args.cases`` seeds from ``args.seed`` on ``args.jobs`` processes,
     the records in ``args.out`` (default: a new temporary folder)."""
@@ -544,7 +553,8 @@ def main(argv=None) -> int:
     cases = run_cases(run_case, args, args.refine_ocv)
     s = summary(cases)
     command = (f"python benchmarks/foreign_records.py --cases {args.cases} --seed {args.seed} --jobs {args.jobs}"
-               + (f" --refine-ocv {args.refine_ocv}" if args.refine_ocv != "always" else ""))
+               + (f" --refine-ocv {args.refine_ocv}" if args.refine_ocv != "always" else "")
+               + doc_argument(args.doc, "foreign_records.md"))
     write_doc(Path(args.doc), s, cases, command, time.perf_counter() - t0)
     Path(args.doc).with_suffix(".json").write_text(json.dumps({"summary": s, "cases": cases}, indent=1))
     print(json.dumps({k: v for k, v in s.items() if k != "spurious"}), flush=True)

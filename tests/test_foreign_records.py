@@ -83,3 +83,13 @@ def test_branch_verdict_reports_the_round_it_read():
     assert out["round"] == 1
     assert out["rmse_before_mv"] == pytest.approx(8.0) and out["rmse_after_mv"] == pytest.approx(5.0)
     assert out["noise_mv"] == pytest.approx(1e3 * NOISE_V)
+
+
+def test_a_report_written_elsewhere_names_its_doc_in_the_command(tmp_path):
+    """The command a report quotes reproduces that report: a run written beside the default one (a held-out seed's
+    doc) says where, so that running it again does not overwrite the default report."""
+    fr = _benchmark()
+    assert fr.doc_argument(str(REPO / "docs" / "foreign_records.md"), "foreign_records.md") == ""
+    assert fr.doc_argument(str(REPO / "docs" / "foreign_records_seed9.md"), "foreign_records.md") == \
+        " --doc docs/foreign_records_seed9.md"
+    assert fr.doc_argument(str(tmp_path / "x.md"), "foreign_records.md") == f" --doc {tmp_path / 'x.md'}"
