@@ -44,7 +44,7 @@ from socbench.diagnose import diagnose, fit_base, randomized
 from socbench.diagnose.core import SOC_WORSE, model_soc_errors, soc_attribution, soc_grew
 from socbench.diagnose.cv import cv_residual
 from socbench.diagnose.leftover import sentence
-from socbench.diagnose.report import attribution_lines, figures, markdown_table, write_report
+from socbench.diagnose.report import attribution_lines, figures, markdown_table, soc_worse_sentence, write_report
 from socbench.diagnose.search import (
     BASE_SCALE,
     FIELD_REST_MIN_S,
@@ -536,8 +536,7 @@ def render_real(r) -> list:
     for name in ("ekf", "ukf"):
         if name in b.get("soc", {}) and soc_grew({name: b["soc"][name]["soc_rmse"]},
                                                   {name: a["soc"][name]["soc_rmse"]}):
-            L += [f"**The {name.upper()}'s held-out SOC error grew by more than {100 * SOC_WORSE:.1f} points** "
-                  f"({_soc(b, name)} → {_soc(a, name)} %) although the voltage error fell.", ""]
+            L += [soc_worse_sentence(name, b["soc"][name]["soc_rmse"], a["soc"][name]["soc_rmse"]), ""]
             L += attribution_lines(r.get("soc_attribution"), name)
     if "oracle" in r:
         o = r["oracle"]

@@ -29,7 +29,7 @@ def _soc(d, key) -> dict:
     return {k: v["soc_rmse"] for k, v in getattr(d, key)["soc"].items()}
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _worse_case():
     case = draw_case(111, 47)
     return case, diagnose(case.base, case.fit, case.evals)

@@ -11,6 +11,7 @@ import numpy as np
 
 from ..io import atomic_write_text
 from ..models.params import save_params
+from .core import IGNORE_VOLTAGE, SOC_WORSE
 from .leftover import sentence
 
 
@@ -33,8 +34,6 @@ def _pct(v):
 def soc_worse_sentence(name: str, before: float, after: float) -> str:
     """The line that says a filter's held-out SOC error grew by more than
     :data:`~socbench.diagnose.core.SOC_WORSE` (``before``, ``after``: its SOC RMSE)."""
-    from .core import SOC_WORSE
-
     return (f"**The {name.upper()}'s held-out SOC error grew by more than {100 * SOC_WORSE:.1f} points** "
             f"({_pct(before)} → {_pct(after)} %) with what the search added.")
 
@@ -42,8 +41,6 @@ def soc_worse_sentence(name: str, before: float, after: float) -> str:
 def attribution_lines(att, name: str) -> list:
     """Where a change of filter ``name``'s SOC error comes from (:func:`socbench.diagnose.core.soc_attribution`):
     a table and what it says, as Markdown lines (ending with an empty one); none without ``att``."""
-    from .core import IGNORE_VOLTAGE
-
     if not att:
         return []
     b, a = att["before"], att["after"]
