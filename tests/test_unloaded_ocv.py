@@ -188,8 +188,12 @@ def test_the_diagnosed_model_file_runs_in_estimate(tmp_path):
     without.write_text(json.dumps({**saved, "effects": []}))
     rmse = {}
     for name, params in (("with", tmp_path / "out" / "model.json"), ("without", without)):
-        cli("estimate", "--data", ev, "--params", params, "--estimator", "ekf", "--out", tmp_path / name)
+        done = cli("estimate", "--data", ev, "--params", params, "--estimator", "ekf", "--out", tmp_path / name)
         rmse[name] = json.loads((tmp_path / name / "metrics.json").read_text())["soc_rmse"]
+        # its model error is in sample, and it says on which records; `fit`'s advice (refit with --validation) is
+        # not an option for a diagnosed model
+        assert "`socbench diagnose` fitted its effects on (aged), in sample" in done.stderr, done.stderr
+        assert "--validation" not in done.stderr, done.stderr
     assert rmse["with"] < 0.5 * rmse["without"], rmse
 
 

@@ -120,9 +120,16 @@ def run(args) -> int:
                           SocbenchWarning, stacklevel=2)
         noise_mode = "sensor"
     if noise_mode == "model" and stats.measured_on == "identification":
-        warnings.warn(f"{args.params}: its model error was measured on the identification records only (`socbench fit` "
-                      "without --validation): on a drive cycle the ±3σ band is likely too narrow; refit with "
-                      "--validation DRIVE... for an honest band", SocbenchWarning, stacklevel=2)
+        if (params_block(args.params, "fit") or {}).get("from") == "socbench diagnose":
+            # the diagnosis measures it on its evaluation records, where its effects were fitted: `fit`'s advice
+            # (--validation) is not an option there
+            warnings.warn(f"{args.params}: its model error was measured on the records `socbench diagnose` fitted its "
+                          f"effects on ({', '.join(stats.records)}), in sample: on other records the ±3σ band is "
+                          "likely too narrow", SocbenchWarning, stacklevel=2)
+        else:
+            warnings.warn(f"{args.params}: its model error was measured on the identification records only "
+                          "(`socbench fit` without --validation): on a drive cycle the ±3σ band is likely too narrow; "
+                          "refit with --validation DRIVE... for an honest band", SocbenchWarning, stacklevel=2)
     form = estimator_class(args.estimator).model_error_form
     run_model, noise = recipe.apply(model, sensor, stats, profile, noise=noise_mode, form=form)
     # each slow-scale state's share of the measured slow SD on this record (κ; the states form only)
