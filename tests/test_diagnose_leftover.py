@@ -86,3 +86,54 @@ def test_a_diagnosis_that_cannot_name_the_effect_says_where_it_lies(hidden, allo
     other = "current_share" if follows == "soc_share" else "soc_share"
     assert left[follows] > 0.5 and left[follows] > left[other]
 
+
+
+def test_the_hidden_fade_is_the_fade_whose_voltage_equals_the_noise():
+    """``hidden_fade`` from the OCV's slope is the fade that, simulated on the curve itself (not linearised), moves
+    a record's voltage, its mean removed, by the noise, and a steep curve hides less than LFP's plateau; 1 where the
+    curve is flat."""
+    from socbench.diagnose.leftover import hidden_fade
+    from socbench.ocv import OCVCurve
+    from tests.hppc_records import OCV_SHAPES
+
+    rng = np.random.default_rng(5)
+    amps = np.clip(rng.normal(0.6, 0.5, 3600), -0.5, 2.5)  # 1 h of a drive at 0.6 C mean on a 1 Ah cell
+    ah = np.r_[0.0, np.cumsum(amps[:-1]) / 3600.0]
+    sigma = 2e-3
+    out = {}
+    for shape in ("nmc", "lfp"):
+        ocv = OCVCurve(*OCV_SHAPES[shape], shape)
+        z = 0.85 - ah  # from 85 % on the fit's axis, never near empty
+        f = hidden_fade(ocv.value_and_slope(z)[1], ah, 1.0, [z.size], sigma)
+
+        def footprint(fade, ocv=ocv, z=z):  # the fade simulated on the curve, each record's mean removed
+            dv = ocv(z - ah * fade / (1.0 - fade)) - ocv(z)
+            return float(np.sqrt(np.mean((dv - dv.mean()) ** 2)))
+
+        # first order in the fade: within 20 % of the noise at f* (LFP's kinks bend it most), and f* parts what the
+        # record shows from what it does not
+        assert footprint(f) == pytest.approx(sigma, rel=0.2), shape
+        assert footprint(0.5 * f) < sigma < footprint(2.0 * f), shape
+        out[shape] = f
+    assert out["nmc"] < 0.5 * out["lfp"], out  # a steep curve hides less than the plateau
+    assert hidden_fade(np.zeros(10), np.linspace(0.0, 0.5, 10), 1.0, [10], sigma) == 1.0
+
+
+def test_a_record_on_a_flat_curve_is_said_to_hide_a_fade(tmp_path):
+    """A drive that keeps an LFP cell on its plateau cannot show a capacity fade above its noise, and the report
+    says how large a fade it hides; the same drive of an NMC cell shows a fade of a fraction of a percent, and the
+    report says nothing of it."""
+    from socbench.diagnose.leftover import FADE_HINT
+    from tests.hppc_records import Cell, Instrument, Layout, drive_record, hppc_record
+
+    ins = Instrument(dt=1.0, i_noise_c=0.002, v_noise=2e-3, phase=0.0)
+    hidden = {}
+    for shape in ("lfp", "nmc"):
+        cell = Cell(5.0, shape, 0.02, ((0.01, 30.0),))
+        fit = hppc_record(cell, Layout(), ins, seed=1).profile
+        ev = drive_record(cell, ins, seed=2, duration_s=3600.0, soc0=0.85).profile
+        assert ev.soc_ref.min() > 0.3  # LFP's plateau: no knee in the record
+        d = diagnose("thevenin", [fit], [ev], soc=False)
+        hidden[shape] = d.left["hidden_fade"]
+        assert ("a capacity fade of up to" in sentence(d.left)) == (shape == "lfp"), sentence(d.left)
+    assert hidden["lfp"] >= FADE_HINT > 1.5 * hidden["nmc"], hidden

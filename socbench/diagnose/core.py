@@ -84,7 +84,7 @@ from ..profile import Profile
 from ..socaxis import soc_axis
 from .cv import cv_residual
 from .data import Folds, bin_average, make_folds, split_at_gaps
-from .leftover import leftover, ocv_gap
+from .leftover import hidden_fade, leftover, ocv_gap
 from .search import BASE_REFIT, SOC_DRIFT, TWIN_TAU, Search, format_params, initial_soc, residual_noise, rest_current
 
 #: a fit record whose |I| never exceeds this C-rate is a slow OCV test
@@ -887,9 +887,14 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
         soc_path = np.concatenate([final.simulate(p, soc0=z0).soc for p, z0 in zip(cv.records, search.soc0s)])
     except (DataError, ValueError, FloatingPointError):
         soc_path = None
+    sizes = [p.n for p in cv.records]
+    # the largest fade the records hide below their noise, where the model holds none (a fade named is measured)
+    fade = None if soc_path is None or "capacity" in [s.effect for s in steps] else hidden_fade(
+        base.ocv.value_and_slope(soc_path)[1], np.concatenate([p.amp_hours() for p in cv.records]), base.capacity_ah,
+        sizes, search.noise_sd)
     left = {} if soc_path is None else leftover(
-        residuals["after"], soc_path, np.concatenate([p.current_a for p in cv.records]), [p.n for p in cv.records],
-        search.noise_sd, getattr(base.ocv, "soc", None) if fit_info.get("ocv_from_rest_points") else None)
+        residuals["after"], soc_path, np.concatenate([p.current_a for p in cv.records]), sizes,
+        search.noise_sd, getattr(base.ocv, "soc", None) if fit_info.get("ocv_from_rest_points") else None, fade)
     return Diagnosis(model_name, base, final, steps, rounds, before_d, after_d, cv, fit_info, seconds, soc_info,
                      domain, residuals, search, left)
 
