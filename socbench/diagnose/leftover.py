@@ -144,6 +144,6 @@ def sentence(left: dict) -> str:
                   "OCV test (given to `--fit` beside the HPPC) or finer HPPC steps would measure it")
     if left.get("hidden_fade", 0.0) >= FADE_HINT:
         s += (f"; a capacity fade of up to {100 * left['hidden_fade']:.0f} % would move these records' voltage by "
-              f"less than their noise (the OCV's slope along the SOC they cover): they can hardly show one; a "
+              "less than their noise (the OCV's slope along the SOC they cover): they can hardly show one; a "
               "capacity test, or a record that reaches the end-of-discharge knee, would")
     return s
