@@ -533,11 +533,10 @@ def render_real(r) -> list:
           f"SOC filters {r['seconds']['soc']:.0f} s (wall).", ""]
     if d.get("left"):
         L += [f"What is left (`socbench.diagnose.leftover`): {sentence(d['left'])}.", ""]
-    for name in ("ekf", "ukf"):
-        if name in b.get("soc", {}) and soc_grew({name: b["soc"][name]["soc_rmse"]},
-                                                  {name: a["soc"][name]["soc_rmse"]}):
-            L += [soc_worse_sentence(name, b["soc"][name]["soc_rmse"], a["soc"][name]["soc_rmse"]), ""]
-            L += attribution_lines(r.get("soc_attribution"), name)
+    before, after = ({k: v["soc_rmse"] for k, v in x.get("soc", {}).items()} for x in (b, a))
+    for name in soc_grew(before, after):
+        L += [soc_worse_sentence(name, before[name], after[name]), ""]
+        L += attribution_lines(r.get("soc_attribution"), name)
     if "oracle" in r:
         o = r["oracle"]
         ratio = o["loop_rmse_v"] / o["rmse_v"]

@@ -96,14 +96,12 @@ def run(args) -> int:
         print(f"  note: {diag.fit['capacity_note']}")
     for note in diag.fit.get("evaluation_records_cut", ()):
         print(f"  note: {note}")
-    att = diag.soc.get("attribution") or {}
-    for name in diag.soc.get("worse", ()):
+    for name in diag.soc.get("worse", ()):  # the diagnosis gives "attribution" wherever a filter got worse
         grew = a["soc"][name]["soc_rmse"] - b["soc"][name]["soc_rmse"]
-        counted = att.get("after", {}).get("voltage_ignored", {}).get(name)
+        counted = diag.soc["attribution"]["after"]["voltage_ignored"][name]
         print(f"  note: the {name.upper()}'s held-out SOC error grew by {100 * grew:.2f} points with what the search "
-              f"added (more than {100 * SOC_WORSE:.1f})"
-              + (f"; with the voltage ignored (the current counted) its filter reaches {100 * counted:.2f} %"
-                 if counted is not None else "") + "; diagnosis.md says where it comes from")
+              f"added (more than {100 * SOC_WORSE:.1f}); with the voltage ignored (the current counted) its filter "
+              f"reaches {100 * counted:.2f} %; diagnosis.md says where it comes from")
     for p in evals:
         check_current_against_reference(p, p.meta.capacity_ah or diag.base_model.capacity_ah,
                                         "the voltage and SOC errors")

@@ -843,16 +843,16 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
         soc_folds = soc_folds_of(eval_profiles, folds, dt)
         soc0s = [initial_soc(base, p) for p in soc_folds.records]
         vsd_b = fold_filter_sd(base, soc_folds, soc0s)
-        sb = soc_errors(lambda layout, fold=None: (base, None), soc_folds, soc0s, vsd_b)
+        last = steps[-1] if steps else None
+        isd = fold_spread_sd(last, base) if steps else {}
+        models = soc_models(base, search, last, isd)
+        sb = soc_errors(models["before"], soc_folds, soc0s, vsd_b)
         if steps:
-            last = steps[-1]
-            isd = fold_spread_sd(last, base)
             vsd_a = fold_filter_sd(search.builder([n for n, _ in last.layout])[0], soc_folds, soc0s,
                                    last.fit.folds())
-            sa = soc_errors(lambda layout, fold=None: search.fold_models(last, layout, isd, fold), soc_folds, soc0s,
-                            vsd_a)
+            sa = soc_errors(models["after"], soc_folds, soc0s, vsd_a)
         else:
-            vsd_a, sa, isd = vsd_b, sb, {}
+            vsd_a, sa = vsd_b, sb
         if sb is not None and sa is not None:
             before_d["soc_rmse"], after_d["soc_rmse"] = sb["ekf"]["soc_rmse"], sa["ekf"]["soc_rmse"]
             before_d["soc"], after_d["soc"] = sb, sa
@@ -867,10 +867,8 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
                                 f"noise {100 * SOC_CURRENT_SD:g} % of C; an added state's initial SD = the spread of "
                                 "its fitted initial value over the folds"}
             if grew:  # reported with where it comes from (the other model's filter noise, the voltage ignored)
-                soc_info["attribution"] = _attribution(
-                    {"before": lambda layout, fold=None: (base, None),
-                     "after": lambda layout, fold=None: search.fold_models(last, layout, isd, fold)},
-                    {"before": vsd_b, "after": vsd_a}, soc_folds, soc0s, {"before": sb, "after": sa})
+                soc_info["attribution"] = _attribution(models, {"before": vsd_b, "after": vsd_a}, soc_folds, soc0s,
+                                                       {"before": sb, "after": sa})
         else:
             refused = [f"{p.name}: {p.soc_ref_error.message}" for p in eval_profiles
                        if getattr(p, "soc_ref_error", None) is not None]
@@ -945,10 +943,18 @@ def soc_attribution(diag: Diagnosis, eval_profiles, dt: float = 1.0) -> dict | N
     base = diag.base_model  # the base as fitted without any effect (the search's may be refitted with one)
     folds = soc_folds_of(eval_profiles, diag.split.k, dt)
     soc0s = [initial_soc(base, p) for p in folds.records]
-    isd = fold_spread_sd(last, base)
-    models = {"before": lambda layout, fold=None: (base, None),
-              "after": lambda layout, fold=None: search.fold_models(last, layout, isd, fold)}
-    return _attribution(models, {k: np.asarray(v) for k, v in vsd.items()}, folds, soc0s)
+    return _attribution(soc_models(base, search, last, fold_spread_sd(last, base)),
+                        {k: np.asarray(v) for k, v in vsd.items()}, folds, soc0s)
+
+
+def soc_models(base, search: Search, last, initial_sd: dict) -> dict:
+    """``{"before"|"after": model_for}`` (:func:`soc_errors`) of the SOC comparison: ``base`` (nothing of it fitted
+    on the records) and, after the search's ``last`` step (None: none), each fold's model of it, its added states
+    starting from ``initial_sd`` (:func:`fold_spread_sd`)."""
+    out = {"before": lambda layout, fold=None: (base, None)}
+    if last is not None:
+        out["after"] = lambda layout, fold=None: search.fold_models(last, layout, initial_sd, fold)
+    return out
 
 
 def _attribution(models, noise, folds: Folds, soc0s, own=None) -> dict:
