@@ -23,6 +23,7 @@ from socbench.diagnose.core import SOC_WORSE, soc_grew
 from socbench.diagnose.randomized import draw_case
 from socbench.diagnose.report import write_report
 from socbench.diagnose.synthetic import hidden_case
+from tests.hppc_records import write_canonical
 
 
 def _soc(d, key) -> dict:
@@ -33,11 +34,6 @@ def _soc(d, key) -> dict:
 def _worse_case():
     case = draw_case(111, 47)
     return case, diagnose(case.base, case.fit, case.evals)
-
-
-def _write(profile, path):
-    profile.to_frame().to_csv(path, index=False)
-    path.with_suffix(".json").write_text(json.dumps({"name": path.stem, "capacity_ah": profile.meta.capacity_ah}))
 
 
 def test_soc_grew_is_the_bound_of_the_issue():
@@ -75,8 +71,8 @@ def test_a_filter_made_worse_is_flagged_with_where_it_comes_from(tmp_path):
 
 def test_the_command_line_says_which_filter_got_worse(tmp_path, capsys):
     case, d = _worse_case()
-    _write(case.fit[0], tmp_path / "fit.csv")
-    _write(case.evals[0], tmp_path / "eval.csv")
+    write_canonical(case.fit[0], tmp_path / "fit.csv")
+    write_canonical(case.evals[0], tmp_path / "eval.csv")
     rc = main(["diagnose", "--fit", str(tmp_path / "fit.csv"), "--eval", str(tmp_path / "eval.csv"),
                "--model", case.base, "--out", str(tmp_path / "out"), "--no-figures"])
     assert rc == 0
