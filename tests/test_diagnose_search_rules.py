@@ -409,54 +409,29 @@ def test_a_deferred_hysteresis_is_tried_beside_the_search_within_its_noise_floor
     assert without["rmse_v"] <= search.noise_floor(d.fit["voltage_noise_sd_binned_final"], False)
 
 
-def test_another_drift_is_chosen_beside_the_base_refit_where_it_explains_the_records_better_by_the_gain(monkeypatch):
+def test_the_drift_a_cold_record_holds_is_chosen_beside_the_base_refit():
     """Case 43 of the development seed 47: a leak (0.19 %/h) on a cell used at −3 °C (hidden temperature effect),
-    over a 7-hour mission day. After the temperature, a fade wins the round alone and passes the nested test against
-    the base refit; the round's other drifts are then fitted jointly with the refit, and one that explains the day
-    ``min_gain`` better than the fade, alone and beside the refit, is named instead (``DRIFT_BESIDE_REFIT``).
-
-    Before stop 76 the leak did so here (8.7 against 10.4 mV held-out) and was named. Since the search's fits weight
-    each kept sample of the compressed records by the samples it stands for, the fade beside the refit reaches 9.5 mV
-    and the best other drift beside it, an efficiency, 9.2 mV: not 10 % below, so the fade stays (a wrong drift, the
-    leak's). The rule is checked on the call the diagnosis makes: at the search's gain it keeps the fade; at a gain of
-    zero (any drift below both wins) it takes the better drift, fitted jointly with the refit."""
-    from socbench.diagnose.search import BASE_REFIT, SOC_DRIFT, Search
-
-    calls = []
-    rule = Search._drift_beside_refit
-
-    def spy(self, *args):
-        out = rule(self, *args)
-        calls.append((self, args, out))
-        return out
-
-    monkeypatch.setattr(Search, "_drift_beside_refit", spy)
+    over a 7-hour mission day. After the temperature, a fade wins the round alone (the leak alone fits worse than
+    nothing: the base's resistances, off at the cold, are what the refit fixes) and passes the nested test against
+    the base refit. Fitted jointly with the refit, the leak explains the day 10 % better than the fade does, alone or
+    beside the refit, and it is the one named (``DRIFT_BESIDE_REFIT``; without the rule the fade is named, 10.4
+    against 8.7 mV held-out, EKF SOC 1.69 against 0.67 %), with its rate within a factor of two of the truth's."""
     case = draw_case(43, 47, gaps=False)
     assert set(case.effects) == {"self_discharge", "temperature"}
     d = diagnose(case.base, case.fit, case.evals, soc=False)
-    assert d.effects_added[0] == "temperature"
-    (s, args, out), = calls  # the fade won the round after the temperature and passed the nested test
-    best, joint = args[0], args[1]
-    assert best.effect == "capacity" and out is best
-    assert joint.rmse_after < best.rmse_after  # beside the refit the fade explains more than alone
-    s.min_gain = 0.0
-    other = rule(s, *args)
-    assert other.effect in SOC_DRIFT and other.effect != "capacity", other.effect
-    assert [n for n, _ in other.layout][-2:] == [BASE_REFIT, other.effect]  # fitted jointly with the refit
-    assert other.rmse_after < min(best.rmse_after, joint.rmse_after)
-    assert other.rmse_after > 0.9 * joint.rmse_after  # … by less than the search's gain: the fade stayed
-    assert "in place of capacity" in other.evidence, other.evidence
+    assert d.effects_added == ["temperature", "self_discharge"], d.effects_added
+    step = next(s for s in d.steps if s.effect == "self_discharge")
+    assert "in place of capacity" in step.evidence, step.evidence
+    assert 0.5 <= step.params["rate"] / case.draws["self_discharge"]["rate"] <= 2.0, step.params
 
 
 def test_an_effect_the_fit_test_found_goes_only_where_the_records_do_no_worse_without_it():
     """Case 189 of the development seed 777: an NMC cell with a hysteresis (M = 4.1 mV), UAV flights with partial
     recharges. The fit test finds it (M within 25 % of the truth) and it predicts the flights 10 % better with nothing
     of it fitted on them; the base refit then takes most of what is left. Refitted without the hysteresis (the prune's
-    own trial), the model is worse: 2.73 against 3.41 mV held-out, 20 % (before stop 76, when the search's fits did not
-    weight the compressed records' samples, 9 %: less than the search's 10 %). An effect the search fitted on the
-    records is dropped at the end where the model without it is within the search's gain; one the fit test found, only
-    where the records do no worse without it (``FIT_TEST_KEPT``). The prune is run again with a gain of 25 %, which the
-    hysteresis' 20 % falls short of: it stays as an effect the fit test found, and goes as one the search found."""
+    own trial), the model is worse, but by less than the search's 10 %: the bar of an effect the search fitted on the
+    records would drop it (as before stop 64); an effect the fit test found goes only where the records do no worse
+    without it (``FIT_TEST_KEPT``), so it is named."""
     from socbench.diagnose.search import BASE_REFIT, effective_samples
 
     case = draw_case(189, 777, gaps=False)
@@ -470,13 +445,5 @@ def test_an_effect_the_fit_test_found_goes_only_where_the_records_do_no_worse_wi
     assert rest == [BASE_REFIT]
     without = s._try(rest[-1], rest[:-1], None, {g: {} for g in s.groups}, None, final.rmse_after,
                      effective_samples(final.held_residual), start=rows)
-    gain = 0.25
-    assert (1.0 - gain) * without.rmse_after < final.rmse_after < without.rmse_after  # worse without it, by < 25 %
-    assert s.found_on_fit_test == {"hysteresis"}
-    s.min_gain = gain
-    kept = s._prune(list(d.steps), final.held_residual)
-    assert [st.effect for st in kept if st.named] == ["hysteresis"]
-    s.found_on_fit_test = set()  # as if the search had fitted it on the records
-    dropped = s._prune(list(d.steps), final.held_residual)
-    assert [st.effect for st in dropped if st.named] == []
-    assert "hysteresis dropped at the end" in dropped[-1].evidence
+    assert final.rmse_after < without.rmse_after  # the records do worse without it …
+    assert final.rmse_after >= (1.0 - s.min_gain) * without.rmse_after  # … by less than the search's gain

@@ -142,18 +142,15 @@ def _fade(seed: int) -> float:
 def test_a_branch_a_fade_hides_on_the_evaluation_record_is_tried_beside_it(monkeypatch):
     """The cell has lost 10–20 % of its capacity since its HPPC: the evaluation record's error is the fade's, and the
     branch the HPPC shows (fitted there) predicts it no better alone. Deferred (the default), the refit is tried again
-    beside what the search adds: the branch is named beside the fade in at least half the draws and in no fewer than
+    beside what the search adds: the branch is named beside the fade in at least half the draws and in more than
     without the deferral, and where the deferred refit is kept, the held-out RMSE ends 10 % below the diagnosis
-    without it. (Before stop 76 the deferral named the branch in 4 draws against 3 without it. Since the search's
-    fits weight each kept sample by the samples it stands for, the search without the deferral names the branch
-    beside the fade in draw 1 too, at 2.59 mV held-out against 1.22 mV with it, and in draw 3 the fade is named as a
-    leak with and without it: 3 draws each.) "Without it" is what the diagnosis reports of its search before the
-    deferral (``fit_test_effect.without_it``); on the first draw where the deferral is kept, a diagnosis with the
-    deferral off gives exactly that.
+    without it. "Without it" is what the diagnosis reports of its search before the deferral
+    (``fit_test_effect.without_it``); on the first draw where the deferral is kept, a diagnosis with the deferral off
+    gives exactly that.
 
     The deferral is measured with the rests' evidence off (``REST_GAIN`` above 1): where the HPPC's rests show the
     branch it is a first step held only to "not worse" on the evaluation record, and named beside the fade without
-    any deferral (4 of these 6 draws, with and without it; 5 before stop 76, draw 0's fade now named as a leak)."""
+    any deferral (5 of these 6 draws, with and without it)."""
     monkeypatch.setattr(fit_test_effect, "REST_GAIN", 2.0)
     named = {True: 0, False: 0}
     checked = False
@@ -176,7 +173,7 @@ def test_a_branch_a_fade_hides_on_the_evaluation_record_is_tried_beside_it(monke
                 assert plain.after["rmse_v"] == pytest.approx(without["rmse_v"], rel=1e-12)
                 checked = True
     assert checked
-    assert named[True] >= DRAWS // 2 and named[True] >= named[False], named
+    assert named[True] >= DRAWS // 2 and named[True] > named[False], named
 
 
 @pytest.mark.slow

@@ -13,16 +13,7 @@ the compiled step loop where the model lowers, else the whole-record open loop,
 :meth:`~socbench.models.base.Model.open_loop`; its cost grows with the parameter batch, so nothing is gained by
 batching the folds), every Jacobian the ``P`` forward differences as one parameter batch. This is
 :func:`socbench.identify.fit_parameters` for several records and several masks at once; it fits on the same compressed
-records (:func:`~socbench.identify.compress.compress_profile`), each kept sample weighted by the binned samples it
-stands for::
-
-    ‖m_g ⊙ e‖²  ≈  Σ_k n_k m_g,k e_k²      (k the kept samples, n_k the binned samples from k up to the next kept one)
-
-so that the fit minimises the error the held-out score counts, every binned sample once. Compression keeps the samples
-after every current edge densely and a long steady stretch sparsely (its spacing doubles up to a minute); unweighted,
-the fit spends the parameters on the transients: a base refit fitted so could leave the error over every sample of
-its own training blocks higher than where it started (seed 2026 case 119 of the randomised benchmark: 3.11 → 3.21 mV
-in sample, weighted 2.83 mV, fitted on every sample 2.82 mV).
+records (:func:`~socbench.identify.compress.compress_profile`).
 
 :func:`cv_residual` then scores: every sample of block ``j`` by fold ``j``'s parameters (measured − model, on every
 sample of the binned records, not the compressed ones).
@@ -112,12 +103,11 @@ def fit_folds(build, folds: Folds, theta0, lower, upper, soc0s, *, groups=None, 
             opts = dict(compress)
             opts.setdefault("max_ah", MAX_SOC_STEP * cap or None)
             c = compress_profile(p, **opts)
-            prof, idx, counts = c.profile, c.index, c.stands_for
+            prof, idx = c.profile, c.index
         else:
-            prof, idx, counts = p, np.arange(p.n), np.ones(p.n)
+            prof, idx = p, np.arange(p.n)
         recs.append(prof)
-        # √n_k on the residual: its square counts every binned sample the kept one stands for
-        masks.append(np.stack([folds.train_mask(r, g)[idx] * np.sqrt(counts) for g in groups]).astype(float))
+        masks.append(np.stack([folds.train_mask(r, g)[idx] for g in groups]).astype(float))
     v_meas = [p.voltage_v for p in recs]
 
     def residuals(thetas, rows):

@@ -39,13 +39,6 @@ class Compression:
     def ratio(self) -> float:
         return float(self.index[-1] + 1) / self.index.size if self.index.size else 1.0
 
-    @property
-    def stands_for(self) -> np.ndarray:
-        """How many original samples each kept sample stands for: itself and those up to the next kept one (the last
-        sample is always kept). A fit on the compressed profile that weights each squared residual by it counts every
-        original sample once, as the error on the original record does."""
-        return np.diff(self.index, append=self.index[-1] + 1) if self.index.size else np.zeros(0, dtype=int)
-
 
 def _targets(max_len: float, first_step_s: float, growth: float, max_step_s: float) -> np.ndarray:
     """Kept times after a run start: 0, d0, d0·g, d0·g², … with spacing capped at ``max_step_s``, up to ``max_len``."""
