@@ -14,7 +14,7 @@ from ..checks import check_current_against_reference, check_same_cell
 from ..datasets import load
 from ..diagnose import diagnose
 from ..diagnose.core import COARSE_OCV_GAP, SOC_WORSE
-from ..diagnose.report import write_report
+from ..diagnose.report import alike_sentence, write_report
 from ..domain import warn_outside
 from ..errors import ConfigError, SocbenchWarning
 from ..identify.hppc import NO_KNEE
@@ -102,6 +102,10 @@ def run(args) -> int:
         print(f"  note: the {name.upper()}'s held-out SOC error grew by {100 * grew:.2f} points with what the search "
               f"added (more than {100 * SOC_WORSE:.1f}); with the voltage ignored (the current counted) its filter "
               f"reaches {100 * counted:.2f} %; diagnosis.md says where it comes from")
+    for s in diag.steps:
+        alike = diag.alike(s)
+        if alike:
+            print(f"  note: {alike_sentence(s.effect, alike)}")
     for p in evals:
         check_current_against_reference(p, p.meta.capacity_ah or diag.base_model.capacity_ah,
                                         "the voltage and SOC errors")

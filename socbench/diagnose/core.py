@@ -119,6 +119,10 @@ class Diagnosis:
     def effects_added(self) -> list:
         return [s.effect for s in self.steps if s.named]
 
+    def alike(self, step) -> list:
+        """The other SOC drifts the records hardly tell from the one ``step`` names (:meth:`Search.alike`)."""
+        return [] if self.search is None else self.search.alike(step, self.rounds)
+
     def to_dict(self) -> dict:
         first = self.rounds[0]["candidates"] if self.rounds else []
         return {
@@ -130,7 +134,7 @@ class Diagnosis:
             "steps": [{"effect": s.effect, "kind": "effect" if s.named else "base",
                        "found_on": "fit test" if s.fit_test else "evaluation data",
                        "rmse_v_before": s.rmse_before, "rmse_v_after": s.rmse_after, "params": s.params,
-                       "score": s.score, "evidence": s.evidence} for s in self.steps],
+                       "score": s.score, "evidence": s.evidence, "alike": self.alike(s)} for s in self.steps],
             "split": self.split.describe(),
             "rounds": [[c.to_dict() for c in r["candidates"]] for r in self.rounds],
             "fit": self.fit,

@@ -38,6 +38,14 @@ def soc_worse_sentence(name: str, before: float, after: float) -> str:
             f"({_pct(before)} → {_pct(after)} %) with what the search added.")
 
 
+def alike_sentence(effect: str, alike: list) -> str:
+    """What :meth:`~socbench.diagnose.search.Search.alike` found beside the drift ``effect`` named, in one sentence."""
+    others = ", ".join(f"{r['effect']} ({_mv(r['rmse_v_after'])} mV)" for r in alike)
+    return (f"The records hardly tell {effect} from {others}: fitted alone in the round {effect} was added in, it "
+            f"reached {_mv(alike[0]['named_rmse_v_after'])} mV held-out. A rest of hours (a leak goes on, a fade does "
+            "not) or a capacity test would tell them apart.")
+
+
 def attribution_lines(att, name: str) -> list:
     """Where a change of filter ``name``'s SOC error comes from (:func:`socbench.diagnose.core.soc_attribution`):
     a table and what it says, as Markdown lines (ending with an empty one); none without ``att``."""
@@ -107,6 +115,9 @@ def markdown(diag, figures=()) -> str:
             label = ("base refit (not an effect)" if s.effect == "base_refit"
                      else f"{s.effect}: the base's own branch put back (not an effect)" if not s.named else s.effect)
             lines.append(f"{k}. **{label}** — {_mv(s.rmse_before)} → {_mv(s.rmse_after)} mV held-out; {s.evidence}.")
+            alike = diag.alike(s)
+            if alike:
+                lines.append(f"   {alike_sentence(s.effect, alike)}")
     fitted = [(c, np.isfinite(c.score)) for c in (diag.rounds[0]["candidates"] if diag.rounds else [])]
     lines += ["", "## Candidates (first round)", ""]
     lines += markdown_table(["effect", "score", "signature R²", "held-out RMSE after [mV]", "evidence"],

@@ -821,6 +821,30 @@ class Search:
         return (name == "current_bias" and bool(self.bias_measured)) or (name == "temperature"
                                                                          and self.temperature_measured)
 
+    def alike(self, step: Candidate, rounds) -> list:
+        """The other SOC drifts the records hardly tell from the drift ``step`` names: in the last round in which
+        ``step``'s drift was a candidate (the round it was added in), each other drift fitted alone there whose held-out
+        RMSE the named drift's does not undercut by :attr:`min_gain` (the bar any effect must clear to be added).
+        ``[{"effect", "rmse_v_after", "named_rmse_v_after"}]``; empty for any other step, and for a drift the records
+        measure (:meth:`measured_input`), on either side.
+
+        The four drifts move the SOC along nearly the same path (charge moved, time, charge put in), and the search
+        names one by rules beyond the held-out error (the nested test against the base refit, the swap beside it,
+        the bounds); where another explains the records within the gain, which one the cell has is not settled by
+        them: a rest of hours (a leak goes on, a fade does not) or a capacity test is. Reported, not acted on."""
+        if step.effect not in SOC_DRIFT or not step.named or self.measured_input(step.effect):
+            return []
+        for rnd in reversed(rounds):
+            own = next((c for c in rnd["candidates"] if c.effect == step.effect and np.isfinite(c.score)), None)
+            if own is not None:
+                break
+        else:
+            return []
+        return [{"effect": c.effect, "rmse_v_after": float(c.rmse_after), "named_rmse_v_after": float(own.rmse_after)}
+                for c in rnd["candidates"] if c.effect in SOC_DRIFT and c.effect != step.effect
+                and not self.measured_input(c.effect) and np.isfinite(c.score)
+                and own.rmse_after > (1.0 - self.min_gain) * c.rmse_after]
+
     @staticmethod
     def _columns(layout) -> list:
         """The slice of the parameter row (θ's columns) that each ``(name, params)`` entry of ``layout`` holds, in
