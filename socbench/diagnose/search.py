@@ -822,9 +822,10 @@ class Search:
                                                                          and self.temperature_measured)
 
     def alike(self, step: Candidate, rounds) -> list:
-        """The other SOC drifts the records hardly tell from the drift ``step`` names: in the last round in which
-        ``step``'s drift was a candidate (the round it was added in), each other drift fitted alone there whose held-out
-        RMSE the named drift's does not undercut by :attr:`min_gain` (the bar any effect must clear to be added).
+        """The other SOC drifts the records hardly tell from the drift ``step`` names: in the last round that fitted
+        ``step``'s drift (the round it was added in; for a drift swapped in at the end, :meth:`_swap_drift`, the last
+        one that tried it), each other drift fitted there beside what was added before whose held-out RMSE the named
+        drift's does not undercut by :attr:`min_gain` (the bar any effect must clear to be added).
         ``[{"effect", "rmse_v_after", "named_rmse_v_after"}]``; empty for any other step, and for a drift the records
         measure (:meth:`measured_input`), on either side.
 
