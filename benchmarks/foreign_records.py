@@ -360,9 +360,11 @@ def branch_verdict(diagnosis: dict) -> dict:
 
 
 def summary(cases: list) -> dict:
+    from socbench.diagnose.core import SOC_WORSE
     from socbench.diagnose.leftover import suggests_ocv  # what `diagnosis.md` suggests (the generator stays numpy-only)
 
     ran = [c for c in cases if c["added"] is not None]
+    with_soc = [c for c in ran if c.get("soc_rmse_before_ekf") is not None and c.get("soc_rmse_after_ekf") is not None]
     offset = [c for c in ran if abs(c["offset_c"]) >= OFFSET_NAMED_FRAC]
     thev = [c for c in ran if c["model"] == "thevenin"]
     spurious = [(c["seed"], e, c.get("protocol", "")) for c in ran for e in c["added"]
@@ -381,11 +383,20 @@ def summary(cases: list) -> dict:
             "branch_verdicts": {v: n for v in VERDICTS
                                 if (n := sum((c.get("branch") or {}).get("verdict") == v for c in thev))},
             "spurious": spurious,
+            # issue #13's bound on what the search's effects may cost the SOC estimate, on records it did not make
+            "soc_cases": len(with_soc),
+            "soc_worse": [(c["seed"], c["added"]) for c in with_soc
+                          if c["soc_rmse_after_ekf"] > c["soc_rmse_before_ekf"] + SOC_WORSE],
             "by_metadata": {m: _axis_summary([c for c in cases if c.get("metadata") == m]) for m in METADATA},
             "by_protocol": {p: {"cases": sum(c.get("protocol") == p for c in cases),
                                 "fit_ok": sum(c.get("protocol") == p and c["fit_exit"] == 0 for c in cases),
                                 "diagnose_ok": sum(c.get("protocol") == p and c["diagnose_exit"] == 0 for c in cases)}
                             for p in PROTOCOLS}}
+
+
+def _cases_with_effects(pairs) -> str:
+    """``case 5 (current_bias + extra_rc), …`` of ``[(seed, effects added)]`` (``none`` for no pair)."""
+    return ", ".join(f"case {k} ({' + '.join(a) or 'nothing added'})" for k, a in pairs) or "none"
 
 
 def _median_worst(values) -> tuple:
@@ -408,6 +419,7 @@ def _axis_summary(cases: list) -> dict:
 
 
 def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
+    from socbench.diagnose.core import SOC_WORSE
     from socbench.diagnose.leftover import OCV_HINT_GAP
 
     w = ["# Records socbench did not make: fit and diagnose", "",
@@ -440,6 +452,9 @@ def write_doc(path: Path, s: dict, cases: list, command: str, wall: float):
          f"{', '.join(str(k) for k in s['left_points_at_ocv']) or 'none'}) |",
          f"| effects named that are not in the data | {len(s['spurious'])} "
          f"({', '.join(f'case {k} ({p}, {e})' for k, e, p in s['spurious']) or 'none'}) |",
+         f"| held-out EKF SOC RMSE worse by more than {100 * SOC_WORSE:.1f} points after the search (the issue's "
+         f"bound: in at most 10 % of the cases) | {len(s['soc_worse'])}/{s['soc_cases']} "
+         f"({_cases_with_effects(s['soc_worse'])}) |",
          "| fit / diagnose exit 0 per HPPC protocol | " + "; ".join(
              f"{p}: {v['fit_ok']}/{v['cases']} / {v['diagnose_ok']}/{v['cases']}" for p, v in s["by_protocol"].items())
          + " |", "",
@@ -557,7 +572,7 @@ def main(argv=None) -> int:
                + doc_argument(args.doc, "foreign_records.md"))
     write_doc(Path(args.doc), s, cases, command, time.perf_counter() - t0)
     Path(args.doc).with_suffix(".json").write_text(json.dumps({"summary": s, "cases": cases}, indent=1))
-    print(json.dumps({k: v for k, v in s.items() if k != "spurious"}), flush=True)
+    print(json.dumps({k: v for k, v in s.items() if k not in ("spurious", "soc_worse")}), flush=True)
     return 0 if s["fit_ok"] == s["diagnose_ok"] == s["cases"] and not s["tracebacks"] else 1
 
 

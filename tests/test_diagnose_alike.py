@@ -79,3 +79,30 @@ def test_the_command_line_says_which_drifts_the_records_hardly_tell_apart(tmp_pa
         others = ", ".join(a["effect"] for a in s["alike"])
         assert f"note: The records hardly tell {s['effect']} from" in out and all(
             a["effect"] in out for a in s["alike"]), (out, others)
+
+
+def test_the_benchmark_stores_the_flags_and_counts_the_wrong_drifts():
+    from socbench.diagnose.randomized import alike_lines, alike_rates, rates, run_case
+
+    r = run_case(draw_case(67, 47), soc=False)
+    assert r["drifts_alike"] == {"capacity": ["self_discharge"]}, r["drifts_alike"]
+    # the rates over hand-made results: a leak named as a fade, flagged, the leak listed; a fade named right, flagged;
+    # an efficiency named where a branch is hidden, not flagged; a fade named right, not flagged; a leak in a null
+    # case, flagged; a result written before the flags existed, not counted
+    results = [
+        {"effects": ["self_discharge"], "drifts_alike": {"capacity": ["self_discharge"]}},
+        {"effects": ["capacity"], "drifts_alike": {"capacity": ["coulombic_efficiency"]}},
+        {"effects": ["extra_rc"], "drifts_alike": {"coulombic_efficiency": []}},
+        {"effects": ["capacity", "hysteresis"], "drifts_alike": {"capacity": []}},
+        {"effects": [], "drifts_alike": {"self_discharge": ["capacity"]}},
+        {"effects": ["coulombic_efficiency"]},
+    ]
+    a = alike_rates(results)
+    assert (a["flagged_wrong"]["hits"], a["flagged_wrong"]["n"]) == (2, 3)
+    assert (a["not_flagged_wrong"]["hits"], a["not_flagged_wrong"]["n"]) == (1, 2)
+    assert (a["hidden_listed"]["hits"], a["hidden_listed"]["n"]) == (1, 1)  # the null case has no drift to list
+    assert alike_rates([{"effects": []}]) is None
+    text = "\n".join(alike_lines({"drifts_alike": a}))
+    assert "| 3 | 2/3 = 67 % |" in text and "| 2 | 1/2 = 50 % |" in text
+    assert alike_lines({"drifts_alike": None}) == []
+    assert rates([{**r, "kind": "single"}])["drifts_alike"]["flagged_wrong"]["hits"] == 1

@@ -93,3 +93,26 @@ def test_a_report_written_elsewhere_names_its_doc_in_the_command(tmp_path):
     assert fr.doc_argument(str(REPO / "docs" / "foreign_records_seed9.md"), "foreign_records.md") == \
         " --doc docs/foreign_records_seed9.md"
     assert fr.doc_argument(str(tmp_path / "x.md"), "foreign_records.md") == f" --doc {tmp_path / 'x.md'}"
+
+
+def test_the_summary_counts_the_cases_whose_soc_the_search_made_worse():
+    """Issue #13's bound on the SOC (a filter's held-out error not worse by more than SOC_WORSE) counted on the
+    foreign records as on the project's own: a case 0.3 points worse is listed with what was added, one 0.1 point
+    worse and one better are not, a case without SOC numbers is not counted."""
+    from socbench.diagnose.core import SOC_WORSE
+
+    fr = _benchmark()
+
+    def case(seed, before, after, added):
+        return {"seed": seed, "added": added, "offset_c": 0.0, "model": "dp", "protocol": fr.PROTOCOLS[0],
+                "fit_exit": 0, "diagnose_exit": 0, "traceback": False, "leaks": [], "fit_s": 1.0, "diagnose_s": 1.0,
+                "i_step_c": 0.0, "capacity_ah": 2.0, "metadata": fr.METADATA[0], "capacity_fit_ah": 2.0,
+                "soc_rmse_before_ekf": before, "soc_rmse_after_ekf": after}
+
+    s = fr.summary([case(1, 0.004, 0.004 + 1.5 * SOC_WORSE, ["current_bias"]),
+                    case(2, 0.004, 0.004 + 0.5 * SOC_WORSE, ["hysteresis"]),
+                    case(3, 0.010, 0.002, ["capacity"]), case(4, None, None, [])])
+    assert s["soc_cases"] == 3
+    assert s["soc_worse"] == [(1, ["current_bias"])]
+    assert fr._cases_with_effects(s["soc_worse"]) == "case 1 (current_bias)"
+    assert fr._cases_with_effects([]) == "none"

@@ -88,7 +88,7 @@ from ..models.scaling import refittable_params, scaled_model
 from ..ocv import OCVCurve
 from ..profile import Profile, ProfileMeta, true_runs
 from .core import SOC_WORSE, soc_grew
-from .search import BASE_OFFSET_V, BASE_SCALE, TWIN_TAU
+from .search import BASE_OFFSET_V, BASE_SCALE, SOC_DRIFT, TWIN_TAU
 
 EFFECT_NAMES = tuple(EFFECTS)
 
@@ -630,11 +630,22 @@ def run_case(case: Case, **diagnose_options) -> dict:
            "rounds": [[[c.effect, round(float(c.score), 4), round(1000 * c.rmse_after, 3),
                         round(float(c.fold_ratio), 3) if np.isfinite(c.fold_ratio) else None]
                        for c in r["candidates"] if np.isfinite(c.score)][:ROUND_CANDIDATES] for r in d.rounds],
-           "noise_sd_binned": d.fit.get("voltage_noise_sd_binned")}
+           "noise_sd_binned": d.fit.get("voltage_noise_sd_binned"),
+           "drifts_alike": drifts_alike(d)}
     if "soc" in b:
         out["soc_before"] = {k: v["soc_rmse"] for k, v in b["soc"].items()}
         out["soc_after"] = {k: v["soc_rmse"] for k, v in a["soc"].items()}
     return out
+
+
+def drifts_alike(d) -> dict:
+    """``{drift: [other drifts]}``: every SOC drift diagnosis ``d`` named that the records do not measure (a leak, a
+    fade, an efficiency, an offset the rests do not read), with the drifts the records hardly tell from it
+    (:meth:`~socbench.diagnose.core.Diagnosis.alike`; an empty list: none)."""
+    if d.search is None:
+        return {}
+    return {s.effect: [a["effect"] for a in d.alike(s)] for s in d.steps
+            if s.named and s.effect in SOC_DRIFT and not d.search.measured_input(s.effect)}
 
 
 def oracle_accepted(case: Case, **diagnose_options) -> bool | None:
@@ -701,6 +712,7 @@ def rates(results) -> dict:
                      "median_footprint_beyond_base": _median(own_footprint(r, name, BEYOND_BASE) for r in s),
                      "wrongly_first": sum(r["first"] == name for r in results if name not in r["effects"])})
     out["rows"] = rows
+    out["drifts_alike"] = alike_rates(results)
     out["by_footprint"] = by_footprint(results)
     out["by_footprint_beyond_base"] = by_footprint(results, BEYOND_BASE)
     oracle = [r for r in single if r.get("oracle_added") is not None]
@@ -712,6 +724,40 @@ def rates(results) -> dict:
             row["oracle_accepted"] = _share(r["oracle_added"] for r in oracle if r["effects"][0] == row["effect"])[
                 "rate"]
     return out
+
+
+def alike_rates(results) -> dict | None:
+    """How often a named SOC drift is the wrong one, as the diagnosis flags it (:func:`drifts_alike`): ``flagged`` and
+    ``not_flagged`` (each a share of the named drifts that are not hidden), and ``hidden_listed`` (of the flagged
+    wrong drifts in cases where some drift the records do not measure is hidden, those whose list holds it). None
+    when no result stores the flags (a run written before they existed)."""
+    stored = [r for r in results if "drifts_alike" in r]
+    if not stored:
+        return None
+    flagged, plain, listed = [], [], []
+    for r in stored:
+        hidden = set(r["effects"])
+        for drift, others in r["drifts_alike"].items():
+            (flagged if others else plain).append(drift not in hidden)
+            if others and drift not in hidden and hidden & (set(SOC_DRIFT) - {"current_bias"}):
+                listed.append(bool(hidden & set(others)))
+    return {"flagged_wrong": _share(flagged), "not_flagged_wrong": _share(plain), "hidden_listed": _share(listed)}
+
+
+def alike_lines(R: dict) -> list:
+    """The Markdown lines of :func:`alike_rates` (none for a run that did not store the flags)."""
+    a = R.get("drifts_alike")
+    if not a:
+        return []
+    return ["", "SOC drifts named that the records do not measure (a leak, a fade, an efficiency, an offset the rests "
+                "do not read), by whether the diagnosis says the records hardly tell them from another drift "
+                "(`diagnosis.json` steps[].alike):", "",
+            "| named drift | drifts | not the hidden one |", "|---|---|---|",
+            f"| flagged: another drift explains the records within the search's gain | {a['flagged_wrong']['n']} | "
+            f"{fraction(a['flagged_wrong'])} |",
+            f"| not flagged | {a['not_flagged_wrong']['n']} | {fraction(a['not_flagged_wrong'])} |", "",
+            f"Of the flagged drifts that are not the hidden one, where a leak, a fade or an efficiency is hidden: the "
+            f"hidden drift among the ones listed in {fraction(a['hidden_listed'])}."]
 
 
 #: detectability classes: the hidden effect's own footprint (RMS voltage it adds) over the voltage noise
@@ -873,6 +919,7 @@ def pooled_markdown(summaries) -> str:
         L.append(f"| {LABELS[key]} | {fraction(v, target)} | ≥ {100 * target:.0f} % | "
                  f"{'yes' if met(v, target) else '**no**'} |")
     L += strata_tables(R)
+    L += alike_lines(R)
     both = both_named_where_shown(results)
     L += ["", f"Two-effect cases whose effects both stand at least the noise beyond the base: both named in "
               f"{fraction(both)}."]
@@ -918,6 +965,7 @@ def markdown(summary: dict) -> str:
                  f"{_pct(row['soc_not_worse'])} | {fp} | {beyond} | {row['pairs']} | "
                  f"{_pct(row['named_in_pair'])} | {row['wrongly_first']} |")
     L += strata_tables(R)
+    L += alike_lines(R)
     if "oracle_accepted_single" in R:
         o, n = R["oracle_accepted_single"], R["named_first_where_oracle_accepted"]
         L += ["", "Only the hidden effect offered (`--oracle`: each single-effect case diagnosed again with the hidden "
