@@ -97,22 +97,46 @@ def test_a_report_written_elsewhere_names_its_doc_in_the_command(tmp_path):
 
 def test_the_summary_counts_the_cases_whose_soc_the_search_made_worse():
     """Issue #13's bound on the SOC (a filter's held-out error not worse by more than SOC_WORSE) counted on the
-    foreign records as on the project's own: a case 0.3 points worse is listed with what was added, one 0.1 point
-    worse and one better are not, a case without SOC numbers is not counted."""
+    foreign records as on the project's own: the cases 0.3 and 0.4 points worse are listed with what was added, one
+    0.1 point worse and one better are not, a case without SOC numbers is not counted."""
     from socbench.diagnose.core import SOC_WORSE
 
     fr = _benchmark()
 
-    def case(seed, before, after, added):
-        return {"seed": seed, "added": added, "offset_c": 0.0, "model": "dp", "protocol": fr.PROTOCOLS[0],
-                "fit_exit": 0, "diagnose_exit": 0, "traceback": False, "leaks": [], "fit_s": 1.0, "diagnose_s": 1.0,
+    def case(seed, before, after, added, alone=None):
+        return {"soc_offset_alone": alone, "seed": seed, "added": added, "offset_c": 0.0, "model": "dp",
+                "protocol": fr.PROTOCOLS[0], "fit_exit": 0, "diagnose_exit": 0, "traceback": False, "leaks": [],
+                "fit_s": 1.0, "diagnose_s": 1.0,
                 "i_step_c": 0.0, "capacity_ah": 2.0, "metadata": fr.METADATA[0], "capacity_fit_ah": 2.0,
                 "soc_rmse_before_ekf": before, "soc_rmse_after_ekf": after}
 
-    s = fr.summary([case(1, 0.004, 0.004 + 1.5 * SOC_WORSE, ["current_bias"]),
+    s = fr.summary([case(1, 0.004, 0.004 + 1.5 * SOC_WORSE, ["current_bias"],
+                         {"base": 0.004, "offset": 0.004 + 1.2 * SOC_WORSE}),
+                    case(5, 0.004, 0.004 + 2.0 * SOC_WORSE, ["current_bias", "hysteresis"],
+                         {"base": 0.004, "offset": 0.004 + 0.5 * SOC_WORSE}),
                     case(2, 0.004, 0.004 + 0.5 * SOC_WORSE, ["hysteresis"]),
                     case(3, 0.010, 0.002, ["capacity"]), case(4, None, None, [])])
-    assert s["soc_cases"] == 3
-    assert s["soc_worse"] == [(1, ["current_bias"])]
-    assert fr._cases_with_effects(s["soc_worse"]) == "case 1 (current_bias)"
+    assert s["soc_cases"] == 4
+    assert s["soc_worse"] == [(1, ["current_bias"]), (5, ["current_bias", "hysteresis"])]
+    # the sensor's own offset, fixed in the base, makes case 1 as much worse (it hid another error of the base); in
+    # case 5 it does not (what else the search added did)
+    assert s["soc_worse_offset_alone"] == [1]
+    assert fr._cases_with_effects(s["soc_worse"][:1]) == "case 1 (current_bias)"
     assert fr._cases_with_effects([]) == "none"
+
+
+def test_the_sensor_offset_alone_is_scored_as_the_diagnosis_scores_its_base(tmp_path):
+    """The attribution's 'base' run is the diagnosis' own *before* (same model, same filter set-up), so that the run
+    with the true offset fixed in differs from it by the offset alone; on case 5018 (a flat LFP cell whose SOC the
+    search's offset made worse), the true offset alone makes it worse by more than SOC_WORSE too."""
+    from socbench.datasets import load
+    from socbench.diagnose import diagnose
+    from socbench.diagnose.core import SOC_WORSE
+
+    fr = _benchmark()
+    info = fr.draw(5018, tmp_path)
+    hppc, field = tmp_path / "case5018_hppc.csv", tmp_path / "case5018_field.csv"
+    d = diagnose("thevenin", [load(hppc)], [load(field)])
+    got = fr.soc_with_sensor_offset(hppc, field, "thevenin", info["offset_c"] * info["capacity_ah"], "always")
+    assert got["base"] == pytest.approx(d.before["soc"]["ekf"]["soc_rmse"], rel=1e-9)
+    assert got["offset"] > got["base"] + SOC_WORSE
