@@ -685,7 +685,19 @@ def render_pooled(pooled: dict | None) -> list:
             f"{share(low['named_first_single'])} and {share(low['cut_30_single'])}. Of the two-effect cases whose "
             f"effects both stand at least the noise beyond the base, both named in {share(both)}. The headline "
             "targets are missed mostly on effects drawn at magnitudes the records cannot show apart from a base "
-            "refit.", ""]
+            "refit." + alike_sentence(R.get("drifts_alike")), ""]
+
+
+def alike_sentence(a: dict | None) -> str:
+    """The pooled rates of the drifts the diagnosis flags as hardly told apart (:func:`randomized.alike_rates`), in
+    one sentence (none for runs that did not store the flags)."""
+    if not a:
+        return ""
+    share = randomized.fraction
+    return (" Where the diagnosis says another SOC drift explains the records within the search's gain "
+            f"(`diagnosis.json` steps[].alike), the drift it named is the wrong one in {share(a['flagged_wrong'])}; "
+            f"where it says none, in {share(a['not_flagged_wrong'])}; of the flagged wrong drifts where a leak, a "
+            f"fade or an efficiency is hidden, the list holds it in {share(a['hidden_listed'])}.")
 
 
 def render_foreign_effects(report: dict | None) -> list:
