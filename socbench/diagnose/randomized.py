@@ -729,8 +729,9 @@ def rates(results) -> dict:
 def alike_rates(results) -> dict | None:
     """How often a named SOC drift is the wrong one, as the diagnosis flags it (:func:`drifts_alike`): ``flagged`` and
     ``not_flagged`` (each a share of the named drifts that are not hidden), and ``hidden_listed`` (of the flagged
-    wrong drifts in cases where some drift the records do not measure is hidden, those whose list holds it). None
-    when no result stores the flags (a run written before they existed)."""
+    wrong drifts in cases where a leak, a fade or an efficiency is hidden, those whose list holds it; a hidden current
+    offset is left out, the rests may measure it). None when no result stores the flags (a run written before they
+    existed)."""
     stored = [r for r in results if "drifts_alike" in r]
     if not stored:
         return None
