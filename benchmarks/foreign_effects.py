@@ -140,9 +140,7 @@ def score(case: dict) -> dict:
     others = [a for a in added if a != "current_bias"]
     soc_worse = None
     if case.get("soc_before") is not None and case.get("soc_after") is not None:
-        from socbench.diagnose.core import SOC_WORSE  # the generator above stays numpy-only
-
-        soc_worse = case["soc_after"] > case["soc_before"] + SOC_WORSE
+        soc_worse = fr.ekf_grew(case["soc_before"], case["soc_after"])
     return {"named": expected in added if expected else not others,
             "first": (others[:1] == [expected]) if expected else not others,
             "false": [a for a in others if a != expected], "soc_worse": soc_worse}

@@ -272,7 +272,6 @@ def _leaks(stderr: str) -> list:
 
 
 def run_case(seed: int, folder: str, refine_ocv: str = "always") -> dict:
-    from socbench.diagnose.core import SOC_WORSE
     from socbench.identify.hppc import NO_KNEE  # the warning's marker (the generator above stays numpy-only)
 
     folder = Path(folder)
@@ -297,7 +296,7 @@ def run_case(seed: int, folder: str, refine_ocv: str = "always") -> dict:
         if model == "thevenin":
             branch = branch_verdict(diagnosis)
     offset_alone = None
-    if soc_before is not None and soc_after is not None and soc_after > soc_before + SOC_WORSE:
+    if ekf_grew(soc_before, soc_after):
         offset_alone = soc_with_sensor_offset(hppc, field, model, out["offset_c"] * out["capacity_ah"], refine_ocv)
     out.update({"model": model, "fit_exit": rc_fit, "diagnose_exit": rc_diag, "fit_s": s_fit, "diagnose_s": s_diag,
                 "traceback": "Traceback" in err_fit + err_diag, "leaks": _leaks(err_fit) + _leaks(err_diag),
@@ -314,14 +313,14 @@ def soc_with_sensor_offset(hppc: Path, field: Path, model: str, offset_a: float,
     :func:`socbench.diagnose.core.model_soc_errors`). Where the offset alone makes it worse too, what the search added
     is right and the SOC had leant on the offset: it hid another error of the base (a capacity read off a reference
     SOC, the OCV of a flat cell)."""
+    from socbench.commands.diagnose import REFINE_OCV_OPTION
     from socbench.datasets import load
     from socbench.diagnose import diagnose
     from socbench.diagnose.core import model_soc_errors
     from socbench.models.effects import augment, make_effect
 
     fit, evals = [load(hppc)], [load(field)]
-    d = diagnose(model, fit, evals, soc=False,
-                 refine_ocv={"coarse": "coarse", "always": True, "never": False}[refine_ocv])
+    d = diagnose(model, fit, evals, soc=False, refine_ocv=REFINE_OCV_OPTION[refine_ocv])
     fixed = augment(d.base_model, [make_effect("current_bias", b0=offset_a, initial_sd=(1e-9,))])
     return {"base": model_soc_errors(d.base_model, evals)["ekf"]["soc_rmse"],
             "offset": model_soc_errors(fixed, evals)["ekf"]["soc_rmse"]}
@@ -384,11 +383,11 @@ def branch_verdict(diagnosis: dict) -> dict:
 
 
 def summary(cases: list) -> dict:
-    from socbench.diagnose.core import SOC_WORSE
     from socbench.diagnose.leftover import suggests_ocv  # what `diagnosis.md` suggests (the generator stays numpy-only)
 
     ran = [c for c in cases if c["added"] is not None]
     with_soc = [c for c in ran if c.get("soc_rmse_before_ekf") is not None and c.get("soc_rmse_after_ekf") is not None]
+    alone = {c["seed"]: c.get("soc_offset_alone") or {} for c in with_soc}
     offset = [c for c in ran if abs(c["offset_c"]) >= OFFSET_NAMED_FRAC]
     thev = [c for c in ran if c["model"] == "thevenin"]
     spurious = [(c["seed"], e, c.get("protocol", "")) for c in ran for e in c["added"]
@@ -410,16 +409,22 @@ def summary(cases: list) -> dict:
             # issue #13's bound on what the search's effects may cost the SOC estimate, on records it did not make
             "soc_cases": len(with_soc),
             "soc_worse": [(c["seed"], c["added"]) for c in with_soc
-                          if c["soc_rmse_after_ekf"] > c["soc_rmse_before_ekf"] + SOC_WORSE],
+                          if ekf_grew(c["soc_rmse_before_ekf"], c["soc_rmse_after_ekf"])],
             # of those, the ones whose base model is as much worse with the sensor's true offset fixed in alone
-            "soc_worse_offset_alone": [c["seed"] for c in with_soc if (c.get("soc_offset_alone") or {}).get("offset")
-                                       is not None and c["soc_offset_alone"]["offset"]
-                                       > c["soc_offset_alone"]["base"] + SOC_WORSE],
+            "soc_worse_offset_alone": [k for k, a in alone.items() if ekf_grew(a.get("base"), a.get("offset"))],
             "by_metadata": {m: _axis_summary([c for c in cases if c.get("metadata") == m]) for m in METADATA},
             "by_protocol": {p: {"cases": sum(c.get("protocol") == p for c in cases),
                                 "fit_ok": sum(c.get("protocol") == p and c["fit_exit"] == 0 for c in cases),
                                 "diagnose_ok": sum(c.get("protocol") == p and c["diagnose_exit"] == 0 for c in cases)}
                             for p in PROTOCOLS}}
+
+
+def ekf_grew(before: float | None, after: float | None) -> bool:
+    """Whether the EKF's held-out SOC RMSE grew from ``before`` to ``after`` by more than the diagnosis' bound
+    (:func:`socbench.diagnose.core.soc_grew`); False where either is missing."""
+    from socbench.diagnose.core import soc_grew
+
+    return before is not None and after is not None and bool(soc_grew({"ekf": before}, {"ekf": after}))
 
 
 def _cases_with_effects(pairs) -> str:

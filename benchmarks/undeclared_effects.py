@@ -38,6 +38,8 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # o
 
 import numpy as np  # noqa: E402
 
+# --refine-ocv → the diagnosis' refine_ocv, read as `socbench diagnose` reads it
+from socbench.commands.diagnose import REFINE_OCV_OPTION as REFINE_OCV  # noqa: E402
 from socbench.diagnose.randomized import (  # noqa: E402
     TARGETS,
     case_kind,
@@ -49,9 +51,6 @@ from socbench.diagnose.randomized import (  # noqa: E402
     run_case,
 )
 from socbench.kernels.engine import share_cores  # noqa: E402
-
-#: ``--refine-ocv`` → the diagnosis' ``refine_ocv`` (socbench.diagnose.core.fit_base)
-REFINE_OCV = {"coarse": "coarse", "always": True, "never": False}
 
 
 def one(index: int, seed: int, oracle: bool = False, refine_ocv: str = "always") -> dict:

@@ -22,6 +22,10 @@ from ..io import output_dir
 from ..models import model_names
 from ..models.effects import effect_names
 
+#: ``--refine-ocv`` → the diagnosis' ``refine_ocv`` (socbench.diagnose.core.fit_base); the benchmarks that run the
+#: diagnosis in-process read the option the same way
+REFINE_OCV_OPTION = {"coarse": "coarse", "always": True, "never": False}
+
 
 def add_arguments(parser) -> None:
     parser.add_argument("--fit", required=True, nargs="+", metavar="PATH",
@@ -41,7 +45,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--effects", help="comma-separated candidate effects (default: all)")
     parser.add_argument("--slow-ocv", default="mean", choices=("mean", "discharge"),
                         help="OCV from a slow test in the fit data: mean of both branches, or the discharge branch")
-    parser.add_argument("--refine-ocv", default="always", choices=("coarse", "always", "never"),
+    parser.add_argument("--refine-ocv", default="always", choices=tuple(REFINE_OCV_OPTION),
                         help="refine an HPPC's rest-point OCV between its points from its step segments (kept "
                              "when the evaluation data validate it): where two points lie more than "
                              f"{100 * COARSE_OCV_GAP:g} %% of SOC apart (coarse), always (default), or never")
@@ -80,7 +84,7 @@ def run(args) -> int:
         check_same_cell(e, fit, "an --eval record")
     diag = diagnose(args.model, fit, evals, mode=args.mode, dt=args.dt, folds=args.folds, candidates=candidates,
                     slow_ocv=args.slow_ocv, soc=not args.no_soc, base_refit=not args.no_base_refit,
-                    refine_ocv={"coarse": "coarse", "always": True, "never": False}[args.refine_ocv],
+                    refine_ocv=REFINE_OCV_OPTION[args.refine_ocv],
                     capacity_ah=args.capacity, soc0=args.soc0)
     write_report(diag, args.out, with_figures=not args.no_figures)
     b, a = diag.before, diag.after
