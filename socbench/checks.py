@@ -10,7 +10,7 @@ from .errors import DataError, SocbenchWarning
 from .models.params import ModelParams
 from .ocv import T_REF_C
 from .profile import Profile, gap_steps
-from .socaxis import REFERENCE_CAPACITY_KEY
+from .socaxis import REFERENCE_CAPACITY_KEY, read_reference_count
 
 #: share of samples outside a temperature-aware set's measured range above which the user is warned
 TEMPERATURE_OUTSIDE_WARN = 0.01
@@ -91,27 +91,14 @@ def check_capacity(profile: Profile, params: ModelParams, params_name: str = "pa
     return ratio
 
 
-#: the least SOC span of a reference from which the capacity it moves with is read (:func:`implied_reference_capacity`)
-IMPLIED_CAPACITY_MIN_SPAN = 0.10
-
-
 def implied_reference_capacity(profile: Profile) -> float | None:
     """The capacity [Ah] a record's reference SOC moves with against its counted current: ``−1/slope`` of the
     least-squares line of ``soc_ref`` on the discharged charge ``Ah`` (``z = z₀ − Ah/Q``) over its samples strictly
     inside (0, 1) (a reference clipped at full or empty stops counting there), when those span at least
-    :data:`IMPLIED_CAPACITY_MIN_SPAN` (else None). A reference that is a charge count, a simulated truth or a good BMS
-    estimate all move so."""
-    ref = profile.soc_ref
-    if ref is None or ref.ndim != 1:
-        return None
-    inside = (ref > 0.0) & (ref < 1.0)
-    if np.count_nonzero(inside) < 3 or float(np.ptp(ref[inside])) < IMPLIED_CAPACITY_MIN_SPAN:
-        return None
-    ah = profile.amp_hours()[inside]
-    if not float(np.ptp(ah)) > 0.0:  # a reference that moves while the current counts nothing: no capacity in it
-        return None
-    slope = float(np.polyfit(ah, ref[inside], 1)[0])
-    return -1.0 / slope if slope < 0.0 else None
+    :data:`~socbench.socaxis.COUNT_MIN_SPAN` (else None): :func:`~socbench.socaxis.read_reference_count` without a
+    current left out. A reference that is a charge count, a simulated truth or a good BMS estimate all move so."""
+    read = read_reference_count([profile], uncounted=False)
+    return None if read is None else read["capacity_ah"]
 
 
 #: a reference SOC that moves by this much or more while the current column counts less than
@@ -119,14 +106,18 @@ def implied_reference_capacity(profile: Profile) -> float | None:
 #: (:func:`check_current_against_reference`)
 DEAD_CURRENT_SPAN = 0.10
 DEAD_CURRENT_SHARE = 0.2
+#: … and a current column that counts more than this many times what the reference moves is on another scale: time
+#: in ms, a current in mA (below the per-sample limits), or a capacity too small (beyond any nominal or temperature
+#: difference, :data:`CAPACITY_RATIO_OK`)
+OVER_COUNT = 3.0
 
 
 def check_current_against_reference(profile: Profile, capacity_ah: float | None, what: str) -> bool:
     """Warn (one line) when the record's reference SOC moves :data:`DEAD_CURRENT_SPAN` or more while its current
     column, counted with ``capacity_ah``, moves less than :data:`DEAD_CURRENT_SHARE` of that (both over the recorded
     steps, gaps left out): a dead, disconnected or mis-scaled current channel (a BMS estimate logged beside it still
-    falls), which every error measured on the record then measures too (``what`` says which). Returns whether it
-    warned."""
+    falls), which every error measured on the record then measures too (``what`` says which); or more than
+    :data:`OVER_COUNT` times that (time in ms, a current in mA, a capacity too small). Returns whether it warned."""
     ref = profile.soc_ref
     if ref is None or ref.ndim != 1 or not capacity_ah or profile.n < 2:
         return False
@@ -135,9 +126,15 @@ def check_current_against_reference(profile: Profile, capacity_ah: float | None,
     recorded = ~gap_steps(profile.dt)
     span = float(np.ptp(np.cumsum(np.diff(ref)[recorded])))
     counted = float(np.ptp(np.cumsum(np.diff(profile.amp_hours())[recorded]))) / float(capacity_ah)
+    src = profile.meta.source or profile.meta.name
+    if span >= DEAD_CURRENT_SPAN and counted > OVER_COUNT * span:
+        warnings.warn(f"{src}: the current column counts {100 * counted:.0f} points of {float(capacity_ah):.4g} Ah, "
+                      f"{counted / span:.0f}× the {100 * span:.0f} points the reference SOC moves: time in ms, current "
+                      f"in mA or a capacity too small? {what} measured on this record measure that too",
+                      SocbenchWarning, stacklevel=2)
+        return True
     if span < DEAD_CURRENT_SPAN or counted >= DEAD_CURRENT_SHARE * span:
         return False
-    src = profile.meta.source or profile.meta.name
     warnings.warn(f"{src}: the reference SOC moves {100 * span:.0f} points but the current column counts "
                   f"{100 * counted:.1f} points of {float(capacity_ah):.4g} Ah: a dead, "
                   f"disconnected or mis-scaled current channel? {what} measured on this record measure that too",

@@ -17,6 +17,20 @@ Which records carry a counted reference: a loader that counts the reference SOC 
 in ``meta.extra["soc_ref_capacity_ah"]`` (Panasonic, CALCE). Anything else (a simulated truth, a BMS estimate, no
 reference at all) is left on the model's axis (ratio 1): there the reference is not a charge count with a known
 capacity, and converting would invent one.
+
+What a reference column counts can also be read off the column itself (:func:`read_reference_count`), to *report*
+how its axis and the model's differ (never to convert: that would score the filter on an axis fitted to its truth).
+Over records ``r`` with a reference, by least squares on every sample::
+
+    z_ref(t) = z_r − (A(t) − c·t)/Q_data          A(t) = ∫₀ᵗ I dt  the records' own count [Ah], t in hours
+
+one start ``z_r`` per record, ``Q_data`` and ``c`` shared: the capacity the reference counts with, and a current
+``c`` [A] the records' sensor reads that the reference does not count. What they hold depends on what the reference
+is. A count of the records' own current (the Panasonic and CALCE loaders') gives their capacity and ``c = 0``: nothing
+the records do not already say. A cycler's count with a nominal capacity gives that nominal. An independent count, or
+the cell's true SOC (a simulation's), holds what the current column misses: a faded cell's capacity, a sensor
+offset, a leak (as a current); :mod:`socbench.diagnose` reports it and never fits on it, since the SOC errors it
+reports are measured against that same reference.
 """
 
 from __future__ import annotations
@@ -31,6 +45,14 @@ from .profile import Profile
 
 #: the meta.extra key a loader sets when its reference SOC is ``1 − Ah/C`` counted from full with capacity C [Ah]
 REFERENCE_CAPACITY_KEY = "soc_ref_capacity_ah"
+
+
+#: the least span of a record's reference SOC (strictly inside (0, 1)) from which :func:`read_reference_count` reads
+#: what it counts
+COUNT_MIN_SPAN = 0.10
+#: where the records' count and their time move together closer than this (|correlation| within records, a steady
+#: current) a capacity cannot be told from a current the reference leaves out: ``c`` is not read (taken as 0)
+COUNT_COLLINEAR = 0.999
 
 
 def reference_capacity(profile: Profile) -> float | None:
@@ -112,6 +134,42 @@ def soc_axis(params, profile: Profile) -> SocAxis:
     q_ref = soc_capacity(params)
     q_data = reference_capacity(profile)
     return SocAxis(q_ref, q_data if q_data is not None else q_ref)
+
+
+def read_reference_count(profiles, uncounted: bool = True) -> dict | None:
+    """What the reference SOC of ``profiles`` counts (module docstring): ``{"capacity_ah": Q_data,
+    "uncounted_current_a": c, "residual_soc_rms": how far the reference lies from that count (RMS, SOC fraction),
+    "span": the largest span of a record's reference, "records": how many were read}``, or None where no record's
+    reference spans :data:`COUNT_MIN_SPAN` or the fit gives no positive capacity. Only the samples strictly inside
+    (0, 1) count (a reference clipped at full or empty stops counting there), and only the records whose reference
+    spans :data:`COUNT_MIN_SPAN` with a current that counts some charge. ``c`` is None with ``uncounted=False`` (the
+    count alone, ``z = z_r − A/Q``) and where a steady current cannot tell it from the capacity
+    (:data:`COUNT_COLLINEAR`)."""
+    cols = []
+    for p in profiles:
+        ref = getattr(p, "soc_ref", None)
+        if ref is None or ref.ndim != 1:
+            continue
+        inside = (ref > 0.0) & (ref < 1.0)
+        if np.count_nonzero(inside) < 3 or float(np.ptp(ref[inside])) < COUNT_MIN_SPAN:
+            continue
+        a = p.amp_hours()[inside]
+        if not float(np.ptp(a)) > 0.0:  # a reference that moves while the current counts nothing: no capacity in it
+            continue
+        cols.append((ref[inside], a, p.time_s[inside] / 3600.0))
+    if not cols:
+        return None
+    # within each record (its mean removed, which takes its start z_r): z_ref = −A/Q + (c/Q)·t
+    z, a, t = (np.concatenate([x - x.mean() for x in xs]) for xs in zip(*cols))
+    steady = not uncounted or abs(np.dot(a, t)) >= COUNT_COLLINEAR * np.sqrt(np.dot(a, a) * np.dot(t, t))
+    design = a[:, None] if steady else np.column_stack([a, t])
+    coef = np.linalg.lstsq(design, z, rcond=None)[0]
+    if not (np.isfinite(coef).all() and coef[0] < 0.0):
+        return None
+    q = -1.0 / float(coef[0])
+    return {"capacity_ah": q, "uncounted_current_a": None if steady else float(coef[1]) * q,
+            "residual_soc_rms": float(np.sqrt(np.mean((z - design @ coef) ** 2))),
+            "span": max(float(np.ptp(c[0])) for c in cols), "records": len(cols)}
 
 
 def run_on_data_axis(estimator, profile: Profile, axis: SocAxis, soc0=None, soc0_sd=None, seed=None, **run_options):

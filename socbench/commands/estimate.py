@@ -33,7 +33,13 @@ from __future__ import annotations
 import json
 import warnings
 
-from ..checks import check_capacity, check_current_against_reference, check_reference_axis, check_temperature_range
+from ..checks import (
+    check_capacity,
+    check_current_against_reference,
+    check_reference_axis,
+    check_temperature_range,
+    check_voltage_level,
+)
 from ..datasets import load
 from ..domain import guard_fractions, warn_outside
 from ..errors import ConfigError, DataError, SocbenchWarning
@@ -104,6 +110,7 @@ def run(args) -> int:
     profile = load(args.data, args.format)
     profile.require("voltage_v")
     name, params = resolve_params(args.params)
+    check_voltage_level(profile, params, f"the '{args.params}' parameter set")
     temperature = check_temperature_range(profile, params, f"the '{args.params}' parameter set",
                                           fitted_at_c(args.params))
     capacity_ratio = check_capacity(profile, params, f"the '{args.params}' parameter set")

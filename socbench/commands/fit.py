@@ -45,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..checks import check_same_cell
+from ..checks import check_current_against_reference, check_same_cell
 from ..datasets import load
 from ..domain import warn_outside
 from ..errors import ConfigError, DataError, SocbenchWarning
@@ -188,6 +188,8 @@ def run(args) -> int:
                 print(f"capacity {capacity:.4g} Ah as the record's sidecar declares it (--capacity overrides)")
             elif why_not:
                 print(f"note: {why_not}")
+        # a capacity the reference SOC contradicts (given in mAh, say): said before the fit counts with it
+        check_current_against_reference(profile, capacity or profile.meta.capacity_ah, "the fitted parameters")
         soc0 = args.soc0
         if soc0 is None and ocv is None and validation:  # an HPPC without a reference placed by the records' one
             soc0, capacity, placed = place_start(args.model, profile, capacity, validation)

@@ -31,7 +31,7 @@ import pandas as pd
 from ..checks import check_capacity, check_current_against_reference, check_temperature_range, check_voltage_level
 from ..datasets import load
 from ..domain import warn_outside
-from ..errors import DataError, SocbenchWarning
+from ..errors import ConfigError, DataError, SocbenchWarning
 from ..identify.hppc import gap_soc_jumps
 from ..io import atomic_write_frame, atomic_write_text, output_file
 from ..metrics import voltage_error_stats
@@ -56,7 +56,12 @@ def resolve_params(spec: str):
     if spec.startswith("paper:"):
         name = spec.split(":", 1)[1]
         return name, paper_params(name)
-    return load_params(spec)
+    name, params = load_params(spec)
+    try:  # an unknown model or a parameter it needs missing, said with the file's name
+        make_model(name, params)
+    except ConfigError as exc:
+        raise ConfigError(f"{spec}: {exc}") from None
+    return name, params
 
 
 def params_block(spec: str, key: str):

@@ -54,11 +54,29 @@ def detect_format(path) -> str:
         hits.remove("canonical")
     if len(hits) == 1:
         return hits[0]
+    if not hits and p.suffix.lower() == ".csv":
+        _missing_canonical_column(p)
     if not hits:
         raise DataError(f"could not detect the format{_first_line(p)}; a canonical CSV is comma-separated with the "
                         "columns time_s, current_a, voltage_v (temperature_c, soc_ref optional); else pass --format "
                         f"(known: {', '.join(FORMATS)})", file=str(path))
     raise DataError(f"ambiguous format: matches {' and '.join(hits)}; pass --format explicitly", file=str(path))
+
+
+def _missing_canonical_column(path: Path) -> None:
+    """A header that names two of the canonical CSV's required columns but not the third: that column is missing (a
+    :class:`DataError` naming it), rather than a format none knows."""
+    from .canonical import REQUIRED
+    from .header import header_columns
+
+    try:
+        cols = {c.lower() for c in header_columns(path)}
+    except (OSError, UnicodeDecodeError):
+        return
+    missing = [c for c in REQUIRED if c not in cols]
+    if len(missing) == 1:
+        raise DataError(f"missing column (a canonical CSV has the columns {', '.join(REQUIRED)})", file=str(path),
+                        column=missing[0])
 
 
 def _first_line(path: Path) -> str:

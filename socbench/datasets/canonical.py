@@ -120,6 +120,11 @@ def _read_frame(path: Path) -> pd.DataFrame:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise DataError(f"cannot parse: {first}", file=src) from None
     df.columns = [str(c).strip() for c in df.columns]
+    if path.suffix.lower() != ".parquet":  # pandas renames a repeated name ('voltage_v.1'): read the header itself
+        names = [c.lower() for c in header_columns(path)]
+        twice = next((c for c in REQUIRED + OPTIONAL if names.count(c) > 1), None)
+        if twice:
+            raise DataError("column appears more than once", file=src, column=twice)
     return df
 
 

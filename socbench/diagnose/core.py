@@ -81,7 +81,7 @@ from ..models import make_model
 from ..models.base import T_REF_C
 from ..models.effects import EFFECTS
 from ..profile import Profile
-from ..socaxis import soc_axis
+from ..socaxis import read_reference_count, soc_axis, soc_capacity
 from .cv import cv_residual
 from .data import Folds, bin_average, make_folds, split_at_gaps
 from .leftover import hidden_fade, leftover, ocv_gap
@@ -330,7 +330,12 @@ def fit_base(name: str, fit_profiles, mode: str = "auto", slow_ocv: str = "mean"
     fit_profiles = list(fit_profiles)
     slow, dynamic = split_fit_records(fit_profiles)
     if not dynamic:
-        raise DataError("the fit data need one record with load (not only a slow OCV test)")
+        # each record's largest current against the capacity it declares: a capacity in mAh makes every record slow
+        rates = "; ".join(f"{p.meta.source or p.name}: at most {np.max(np.abs(p.current_a)) / q:.3g}C of "
+                          f"{q:.4g} Ah" for p in fit_profiles if (q := _capacity(p)))
+        raise DataError("the fit data need one record with load (not only a slow OCV test, whose current stays "
+                        f"within C/{1 / SLOW_TEST_C_RATE:g})" + (f" ({rates}: is the declared capacity right?)"
+                                                                   if rates else ""))
     if len(dynamic) > 1:
         raise DataError("give one dynamic fit record (and optionally one slow OCV test)")
     ocv = capacity = None
@@ -870,6 +875,10 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
                                 "white-noise equivalent σ·√((1+ρ)/(1−ρ)); current "
                                 f"noise {100 * SOC_CURRENT_SD:g} % of C; an added state's initial SD = the spread of "
                                 "its fitted initial value over the folds"}
+            count = read_reference_count(eval_profiles)
+            if count is not None:  # the reference's own axis beside the models' (reported, never used to score)
+                soc_info["reference_count"] = {**count, "model_capacity_ah": {
+                    "before": soc_capacity(base), "after": soc_capacity(final)}}
             if grew:  # reported with where it comes from (the other model's filter noise, the voltage ignored)
                 soc_info["attribution"] = _attribution(models, {"before": vsd_b, "after": vsd_a}, soc_folds, soc0s,
                                                        {"before": sb, "after": sa})

@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import DataError
-from ..profile import Profile
+from ..profile import Profile, gap_steps
 from ..segments import find_segments
 
 #: the fewest samples, and the shortest duration [s], of a piece :func:`split_at_gaps` keeps
@@ -115,6 +115,9 @@ class Folds:
     records: list
     k: int
     blocks: list
+    #: the blocks are of equal *recorded* duration, each gap in a record counted as one median step
+    #: (:func:`make_folds`: a record with a long pause, where equal spans of clock time leave blocks empty)
+    recorded_time: bool = False
 
     @property
     def n(self) -> int:
@@ -133,24 +136,48 @@ class Folds:
         for p, b in zip(self.records, self.blocks):
             edges = [float(p.time_s[np.flatnonzero(b == j)[0]] - p.time_s[0]) for j in range(self.k) if np.any(b == j)]
             recs.append({"profile": p.name, "n": int(p.n), "duration_s": float(p.duration_s), "block_starts_s": edges})
+        equal = "equal recorded duration (each gap counted as one median step)" if self.recorded_time else \
+            "equal duration"
         return {"method": "blocked_cv", "folds": self.k, "records": recs,
-                "note": f"each record cut into {self.k} contiguous blocks of equal duration; fold j fits the effect "
+                "note": f"each record cut into {self.k} contiguous blocks of {equal}; fold j fits the effect "
                         "parameters on every sample outside block j of every record and is scored on block j"}
 
 
+def _blocks(profiles, k: int, recorded: bool) -> list:
+    """Each record's samples' blocks ``0 … k − 1``: equal spans of its clock time, or (``recorded``) of its recorded
+    time, every gap step (:func:`socbench.profile.gap_steps`) counted as one median step."""
+    blocks = []
+    for p in profiles:
+        if recorded and p.n > 1:
+            dt = np.diff(p.time_s)
+            t = np.concatenate([[0.0], np.cumsum(np.where(gap_steps(dt), float(np.median(dt)), dt))])
+            frac = t / max(float(t[-1]), 1e-12)
+        else:
+            frac = (p.time_s - p.time_s[0]) / max(p.duration_s, 1e-12)
+        blocks.append(np.minimum((frac * k).astype(int), k - 1))
+    return blocks
+
+
+def _per_block(blocks, k: int) -> np.ndarray:
+    return np.bincount(np.concatenate(blocks), minlength=k) if blocks else np.zeros(k, dtype=int)
+
+
 def make_folds(profiles, k: int = 4) -> Folds:
-    """Blocked folds over the evaluation profiles (module docstring): ``k`` equal-duration blocks per record."""
+    """Blocked folds over the evaluation profiles (module docstring): ``k`` equal-duration blocks per record. Where a
+    block would hold fewer than :data:`MIN_BLOCK_SAMPLES` samples and the records have gaps (a logger off for a day
+    at rest), the blocks span equal *recorded* time instead (:func:`_blocks`)."""
     profiles = list(profiles)
     if k < 2:
         raise ValueError("blocked cross-validation needs at least 2 folds")
-    blocks = []
-    for p in profiles:
-        frac = (p.time_s - p.time_s[0]) / max(p.duration_s, 1e-12)
-        blocks.append(np.minimum((frac * k).astype(int), k - 1))
-    per_block = np.bincount(np.concatenate(blocks), minlength=k) if blocks else np.zeros(k, dtype=int)
+    blocks = _blocks(profiles, k, recorded=False)
+    per_block = _per_block(blocks, k)
+    recorded = False
+    if per_block.min() < MIN_BLOCK_SAMPLES and any(gap_steps(np.diff(p.time_s)).any() for p in profiles):
+        blocks, recorded = _blocks(profiles, k, recorded=True), True
+        per_block = _per_block(blocks, k)
     if per_block.min() < MIN_BLOCK_SAMPLES:
         names = ", ".join(p.meta.source or p.name for p in profiles)
         raise DataError(f"the evaluation data holds {int(per_block.sum())} samples as the diagnosis reads it (bins of "
                         f"--dt seconds); its {k} blocks of held-out time need at least {MIN_BLOCK_SAMPLES} each "
                         f"(fewest: {int(per_block.min())}): give a longer record or a smaller --dt", file=names)
-    return Folds(profiles, int(k), blocks)
+    return Folds(profiles, int(k), blocks, recorded)

@@ -46,6 +46,40 @@ def alike_sentence(effect: str, alike: list) -> str:
             "not) or a capacity test would tell them apart.")
 
 
+#: a reference SOC further than this from a count of the records' current (RMS, SOC fraction) is not read as one
+COUNT_RESIDUAL_MAX = 0.01
+#: the reference's capacity and the model's differ enough to say what it does to the SOC error (a share)
+COUNT_GAP = 0.01
+#: a current the reference leaves out below this share of 1C is not stated (the 0.05 % of 1C below which the search's
+#: rests rule a current-sensor offset out)
+COUNT_CURRENT_C = 0.0005
+
+
+def reference_count_sentence(rc: dict) -> str:
+    """What the evaluation records' reference SOC counts against what the model counts
+    (:func:`socbench.socaxis.read_reference_count`, ``diagnosis.json`` → ``soc.reference_count``), in one sentence."""
+    if rc["residual_soc_rms"] > COUNT_RESIDUAL_MAX:
+        return (f"The evaluation records' reference SOC is no count of their current (it lies "
+                f"{_pct(rc['residual_soc_rms'])} points RMS from the nearest one): its SOC axis is not read.")
+    q, qb, qa = rc["capacity_ah"], rc["model_capacity_ah"]["before"], rc["model_capacity_ah"]["after"]
+    c = rc["uncounted_current_a"]
+    text = f"The evaluation records' reference SOC counts {q:.4g} Ah per unit of SOC"
+    if c is not None and abs(c) >= COUNT_CURRENT_C * q:
+        text += (f", and {abs(1000 * c):.1f} mA {'less' if c > 0 else 'more'} discharge than the records' current "
+                 "sensor reads")
+    elif c is not None:
+        text += ", and the current as the records' sensor reads it"
+    text += (f" (within {_pct(rc['residual_soc_rms'])} points RMS); the base model counts {qb:.4g} Ah "
+             f"({100 * (qb / q - 1):+.1f} %)")
+    if abs(qa / qb - 1.0) > 1e-9:
+        text += f", the model after the search {qa:.4g} Ah ({100 * (qa / q - 1):+.1f} %)"
+    gap = qa / q - 1.0
+    if abs(gap) > COUNT_GAP:
+        text += (f". Against this reference a count on the final model's axis drifts by {100 * abs(gap):.1f} % of "
+                 "the charge moved, whatever the filter; the voltage corrects it only where the OCV's slope shows it")
+    return text + "."
+
+
 def attribution_lines(att, name: str) -> list:
     """Where a change of filter ``name``'s SOC error comes from (:func:`socbench.diagnose.core.soc_attribution`):
     a table and what it says, as Markdown lines (ending with an empty one); none without ``att``."""
@@ -104,6 +138,8 @@ def markdown(diag, figures=()) -> str:
                              for label, d in (("before (base model)", b), (f"after ({added})", a))])
     if diag.soc.get("note"):
         lines += ["", f"SOC: {diag.soc['note']}."]
+    if diag.soc.get("reference_count"):
+        lines += ["", reference_count_sentence(diag.soc["reference_count"])]
     for name in diag.soc.get("worse", ()):
         lines += ["", soc_worse_sentence(name, b["soc"][name]["soc_rmse"], a["soc"][name]["soc_rmse"])]
         lines += [""] + attribution_lines(diag.soc.get("attribution"), name)[:-1]

@@ -67,6 +67,9 @@ POSITIVITY_REFIT_WEIGHT = 1e3
 #: a record whose SOC reaches below this (and above 1 − this) on the fit's axis counts as covering [0, 1] (polynomial
 #: nodes and lookup knots on [0, 1])
 DOMAIN_FULL_BELOW = 0.02
+#: an HPPC whose SOC range on the fit's axis is narrower than this cannot carry SOC-dependent parameters (a step of
+#: an HPPC is 5–20 % of SOC): the fit is refused outside constant mode, which names the capacity as the usual cause
+MIN_FIT_DOMAIN = 0.02
 #: samples whose SOC lies further than this beyond the OCV curve's rest points are left out of the fit: there the OCV
 #: is an extension, not a measurement, and the dynamic parameters would be bent to absorb its error. Within it: the last
 #: pulse set's own dip below the lowest rest point, which every HPPC that ends at the cut-off has
@@ -476,6 +479,10 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
     specs = [param_spec(p, guess, n_br, _reference_value(ref, p), units.get(p)) for p in pnames]
     if start is not None:
         specs = [_started(s, _reference_value(start, s.name)) for s in specs]
+    if mode != "constant" and domain[1] - domain[0] < MIN_FIT_DOMAIN:
+        raise DataError(f"the record covers SOC {domain[0]:.3f}–{domain[1]:.3f} only, counted on a capacity of "
+                        f"{q:.4g} Ah: too narrow for SOC-dependent parameters ({mode} mode); check the capacity "
+                        "(a capacity in mAh given as Ah?) or fit in constant mode", file=src)
     forms = _forms_for(name, mode, len(specs), knots, domain)
     if domain != (0.0, 1.0) and any(isinstance(f, PolyForm) for f in forms):
         notes.append("SOC polynomials fitted on the record's SOC range [{:.3f}, {:.3f}] and stored clamped to it"

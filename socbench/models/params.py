@@ -482,8 +482,55 @@ def params_to_dict(model_name: str, params: ModelParams, **extra) -> dict:
     }
 
 
+#: the SOC grid a parameter file's values are checked on (:func:`check_values`)
+CHECK_SOC = np.linspace(0.0, 1.0, 101)
+
+
+def _must_be(name: str) -> tuple | None:
+    """``(test, words)`` a parameter's values must pass by what its name says it is: a resistance ``R…`` at least
+    zero, a capacitance ``C<digit>`` or a time constant ``tau…`` above zero; None for any other name (the
+    phenomenological ``K…``, ``A``, ``B``, … of the 14 models take either sign)."""
+    if name.startswith("R"):
+        return (lambda v: v >= 0.0), "a resistance, at least 0"
+    if (name.startswith("C") and name[1:].isdigit()) or name.startswith("tau"):
+        return (lambda v: v > 0.0), "above 0"
+    return None
+
+
+def _data_points(f) -> np.ndarray | None:
+    """The values a parameter is given at (a constant's, a lookup's, a temperature table's of those), or None for a
+    polynomial, whose sign between and beyond its nodes is the models' to guard (ECM_SPEC: the paper's own R0(z)
+    polynomials dip below zero near full)."""
+    if isinstance(f, Constant):
+        return np.atleast_1d(np.asarray(f.value, dtype=float))
+    if isinstance(f, Lookup):
+        return np.asarray(f.value, dtype=float)
+    if isinstance(f, TemperatureTable):
+        nodes = [_data_points(n) for n in f.nodes]
+        return None if any(n is None for n in nodes) else np.concatenate(nodes)
+    return None
+
+
+def check_values(values: Mapping) -> None:
+    """A parameter file's values: finite on :data:`CHECK_SOC` (where the models evaluate them: SOC is clipped to
+    0…1) at each temperature they tabulate, and, where they are given as data points (:func:`_data_points`), within
+    the sign their name implies (:func:`_must_be`). Raises :class:`ConfigError` naming the parameter."""
+    for name, f in values.items():
+        for temp in f.temperatures or (None,):
+            v = np.asarray(f.value_and_deriv(CHECK_SOC, temp)[0], dtype=float)
+            if not np.isfinite(v).all():
+                k = int(np.argmax(~np.isfinite(v)))
+                at = f" at {temp:g} °C" if temp is not None else ""
+                raise ConfigError(f"parameter '{name}' must be finite: {v[k]:g} at SOC {CHECK_SOC[k]:g}{at}")
+        must, points = _must_be(name), _data_points(f)
+        if must is not None and points is not None and not must[0](points).all():
+            bad = points[~must[0](points)][0]
+            raise ConfigError(f"parameter '{name}' must be {must[1]}, got {bad:g}")
+
+
 def params_from_dict(d: Mapping, *, ocv: OCVCurve | None = None, file: str = "") -> tuple[str, ModelParams]:
-    """``(model_name, ModelParams)`` from the JSON form. ``ocv`` fills in a file that carries none."""
+    """``(model_name, ModelParams)`` from the JSON form. ``ocv`` fills in a file that carries none. Every value is
+    checked (:func:`check_values`) and every malformed entry is a :class:`ConfigError` naming the file."""
     known = {"model", "capacity_ah", "eta_charge", "ocv", "params", "options", "source", "notes", "fit", "paper",
              "capacity_by_temperature", "model_error", "effects"}
     unknown = sorted(set(d) - known)
@@ -492,17 +539,24 @@ def params_from_dict(d: Mapping, *, ocv: OCVCurve | None = None, file: str = "")
     for key in ("model", "params"):
         if key not in d:
             raise ConfigError(f"{file or 'parameters'}: missing key '{key}'")
-    curve = ocv_from_dict(d["ocv"]) if "ocv" in d else ocv
+    try:
+        curve = ocv_from_dict(d["ocv"]) if "ocv" in d else ocv
+    except DataError as exc:
+        raise exc.with_file(file) if file else exc from None
+    except ConfigError as exc:
+        raise ConfigError(f"{file or 'parameters'}: 'ocv': {exc}") from None
+    except (TypeError, ValueError, KeyError, AttributeError) as exc:
+        raise ConfigError(f"{file or 'parameters'}: 'ocv' malformed ({type(exc).__name__}: {exc})") from None
     if curve is None:
         raise ConfigError(f"{file or 'parameters'}: no OCV curve (key 'ocv')")
     if "capacity_ah" not in d:
         raise ConfigError(f"{file or 'parameters'}: missing key 'capacity_ah'")
     try:
         p = ModelParams(
-            capacity_ah=float(d["capacity_ah"]),
+            capacity_ah=_number(d["capacity_ah"], "capacity_ah"),
             ocv=curve,
             values={k: soc_function(v) for k, v in d["params"].items()},
-            eta_charge=float(d.get("eta_charge", 1.0)),
+            eta_charge=_number(d.get("eta_charge", 1.0), "eta_charge"),
             options=d.get("options", {}),
             source=d.get("source", ""),
             notes=tuple(d.get("notes", ())),
@@ -510,9 +564,19 @@ def params_from_dict(d: Mapping, *, ocv: OCVCurve | None = None, file: str = "")
                                      if d.get("capacity_by_temperature") is not None else None),
             effects=tuple(d.get("effects", ())),
         )
+        check_values(p.values)
     except ConfigError as exc:
         raise ConfigError(f"{file or 'parameters'}: {exc}") from None
+    except (TypeError, ValueError, KeyError, AttributeError) as exc:  # a value of the wrong type or shape
+        raise ConfigError(f"{file or 'parameters'}: malformed entry ({type(exc).__name__}: {exc})") from None
     return str(d["model"]), p
+
+
+def _number(v, key: str) -> float:
+    """A JSON number of a parameter file (``key`` names it in the error): not a string, a list or a boolean."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ConfigError(f"'{key}' must be a number, got {v!r}")
+    return float(v)
 
 
 def load_params(path) -> tuple[str, ModelParams]:
@@ -522,6 +586,10 @@ def load_params(path) -> tuple[str, ModelParams]:
         d = json.loads(path.read_text())
     except FileNotFoundError:
         raise DataError("file not found", file=str(path)) from None
+    except IsADirectoryError:
+        raise DataError("is a directory, not a parameter file", file=str(path)) from None
+    except (PermissionError, UnicodeDecodeError) as exc:
+        raise DataError(f"cannot be read ({type(exc).__name__})", file=str(path)) from None
     except json.JSONDecodeError as exc:
         raise DataError(f"not valid JSON ({exc.msg} at line {exc.lineno})", file=str(path)) from None
     if not isinstance(d, Mapping):

@@ -1,0 +1,186 @@
+"""Inputs a lab's files hold that the commands once mishandled (found by running the CLI on variants of records of
+an independent generator, ``tests/hppc_records.py``): each is a user error with one line and exit 2 naming what is
+wrong, or a record the commands now take.
+
+* a parameter file with a NaN, a negative resistance, a zero capacitance, a string capacity, a model it does not
+  name correctly, or a directory given as the file: exit 2 naming the file (a NaN once ran to exit 0 and wrote NaN
+  into the metrics; a string capacity and a directory were internal errors, exit 1);
+* ``socbench estimate`` with another cell's parameter set: refused as ``simulate`` refuses it (it once ran to a
+  12 V RMS error);
+* a fit record whose capacity is given in mAh as Ah: exit 2 saying so (once a singular matrix, exit 1), and a
+  warning where a reference SOC contradicts it; the diagnosis' refusal names the capacity;
+* an evaluation record with a day-long pause at rest: diagnosed, its held-out blocks spanning equal recorded time
+  (once refused: equal spans of clock time left two of four blocks empty);
+* a record whose time is in ms: one warning where the reference SOC shows it (it once passed silently);
+* a canonical CSV without its current column, or with its voltage column twice: the column named (once "could not
+  detect the format", and the first of two voltage columns taken silently).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+
+from socbench.cli import main
+from socbench.profile import Profile
+from tests.hppc_records import ISSUE_CELL, Instrument, drive_record, issue_record, write_canonical
+
+
+@pytest.fixture(scope="module")
+def records(tmp_path_factory):
+    """An issue-13 HPPC (with its reference SOC), a drive record of the same cell, and a parameter file fitted on
+    the HPPC."""
+    d = tmp_path_factory.mktemp("odd")
+    hppc = write_canonical(issue_record(seed=3, soc_ref_capacity_ratio=1.0).profile, d / "hppc.csv")
+    drive = drive_record(ISSUE_CELL, Instrument(dt=1.0, v_noise=1e-3), seed=4, duration_s=4 * 3600.0).profile
+    field = write_canonical(drive, d / "field.csv")
+    assert main(["fit", "--data", str(hppc), "--model", "thevenin", "--out", str(d / "p.json")]) == 0
+    return d, hppc, field, json.loads((d / "p.json").read_text())
+
+
+def _one_line_error(capsys, argv, *words) -> str:
+    rc = main(argv)
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, (rc, err)
+    lines = [ln for ln in err.splitlines() if ": error: " in ln]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    return lines[0]
+
+
+@pytest.mark.parametrize("change, words", [
+    (lambda d: d["params"].update(R0={"const": float("nan")}), ("'R0' must be finite",)),
+    (lambda d: d["params"].update(R1={"const": -0.01}), ("'R1' must be a resistance, at least 0",)),
+    (lambda d: d["params"].update(C1={"const": 0.0}), ("'C1' must be above 0",)),
+    (lambda d: d.update(capacity_ah="abc"), ("'capacity_ah' must be a number",)),
+    (lambda d: d["params"].pop("C1"), ("needs parameter 'C1'",)),
+    (lambda d: d.update(model="nosuchmodel"), ("unknown model 'nosuchmodel'",)),
+])
+def test_a_bad_parameter_file_is_a_user_error_naming_it(records, tmp_path, capsys, change, words):
+    d, _, field, good = records
+    bad = json.loads(json.dumps(good))
+    change(bad)
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(bad, allow_nan=True))
+    for cmd in (["simulate", "--data", str(field), "--params", str(path), "--json", str(tmp_path / "m.json")],
+                ["estimate", "--data", str(field), "--params", str(path), "--estimator", "ekf",
+                 "--out", str(tmp_path / "e")]):
+        _one_line_error(capsys, cmd, str(path), *words)
+    assert not (tmp_path / "m.json").exists()
+
+
+def test_a_directory_as_the_parameter_file(records, tmp_path, capsys):
+    _, _, field, _ = records
+    _one_line_error(capsys, ["simulate", "--data", str(field), "--params", str(tmp_path)], str(tmp_path),
+                    "is a directory")
+
+
+def test_estimate_refuses_another_cells_parameter_set(records, tmp_path, capsys):
+    _, _, field, _ = records
+    _one_line_error(capsys, ["estimate", "--data", str(field), "--params", "paper:dp", "--estimator", "ekf",
+                             "--out", str(tmp_path / "e")], "does not match the 'paper:dp' parameter set")
+
+
+def _mah_copy(src, dst, with_reference: bool) -> str:
+    """``src`` written again with its sidecar's capacity in mAh (× 1000), with or without the reference SOC."""
+    from socbench.datasets import load
+
+    p = load(src)
+    if not with_reference:
+        p = Profile(p.time_s, p.current_a, p.voltage_v, meta=p.meta)
+    write_canonical(p, dst)
+    side = json.loads(dst.with_suffix(".json").read_text())
+    side["capacity_ah"] *= 1000.0
+    dst.with_suffix(".json").write_text(json.dumps(side))
+    return str(dst)
+
+
+def test_a_capacity_in_mah_is_said_not_crashed_on(records, tmp_path, capsys):
+    d, hppc, field, _ = records
+    q_mah = 1000.0 * ISSUE_CELL.capacity_ah
+    _one_line_error(capsys, ["fit", "--data", str(hppc), "--model", "thevenin", "--out", str(tmp_path / "x.json"),
+                             "--capacity", f"{q_mah:g}"], "too narrow for SOC-dependent parameters", "mAh")
+    bare = _mah_copy(hppc, tmp_path / "bare.csv", with_reference=False)
+    _one_line_error(capsys, ["fit", "--data", bare, "--model", "thevenin", "--out", str(tmp_path / "x.json")],
+                    "too narrow", f"{q_mah:.4g} Ah")
+    # with a reference SOC that contradicts the capacity, a warning says so before the fit refuses the axis
+    ref = _mah_copy(hppc, tmp_path / "ref.csv", with_reference=True)
+    _one_line_error(capsys, ["fit", "--data", ref, "--model", "thevenin", "--out", str(tmp_path / "y.json")],
+                    "too narrow")
+    assert main(["fit", "--data", ref, "--model", "thevenin", "--out", str(tmp_path / "y.json")]) == 2
+    assert "the reference SOC moves 100 points but the current column counts 0.1 points of 3300 Ah" in \
+        capsys.readouterr().err
+    # the diagnosis finds no record with load at that capacity, and says the capacity is why
+    _one_line_error(capsys, ["diagnose", "--fit", ref, "--eval", str(field), "--model", "thevenin",
+                             "--out", str(tmp_path / "d")], "is the declared capacity right?", "of 3300 Ah")
+
+
+def test_an_evaluation_record_with_a_day_long_pause(records, tmp_path, capsys):
+    """A drive record logged for two hours, a day at rest with the logger off, and two hours more: diagnosed, every
+    held-out block holding samples."""
+    from socbench.datasets import load
+
+    d, hppc, field, _ = records
+    p = load(field)
+    t = p.time_s.copy()
+    half = int(np.searchsorted(t, t[0] + 2 * 3600.0))
+    i = p.current_a.copy()
+    i[half - 600:half + 600] = 0.0  # at rest on both sides of the pause (the cell held, the current bridges it)
+    t[half:] += 86400.0
+    paused = write_canonical(Profile(t, i, p.voltage_v, soc_ref=p.soc_ref, meta=p.meta), tmp_path / "paused.csv")
+    out = tmp_path / "d"
+    assert main(["diagnose", "--fit", str(hppc), "--eval", str(paused), "--model", "thevenin", "--out", str(out),
+                 "--no-figures"]) == 0, capsys.readouterr().err
+    split = json.loads((out / "diagnosis.json").read_text())["split"]
+    assert "equal recorded duration" in split["note"]
+    assert all(len(r["block_starts_s"]) == split["folds"] for r in split["records"])
+
+
+def _rewritten(src, dst, edit) -> str:
+    """``src``'s CSV text with ``edit(header, rows)`` applied (lists of cells), its sidecar copied."""
+    lines = src.read_text().splitlines()
+    header, rows = lines[0].split(","), [ln.split(",") for ln in lines[1:]]
+    header, rows = edit(header, rows)
+    dst.write_text("\n".join(",".join(r) for r in [header, *rows]) + "\n")
+    dst.with_suffix(".json").write_text(src.with_suffix(".json").read_text())
+    return str(dst)
+
+
+def test_time_in_milliseconds_is_said_where_the_reference_shows_it(records, tmp_path, capsys):
+    d, _, field, _ = records
+
+    def to_ms(header, rows):
+        k = header.index("time_s")
+        for r in rows:
+            r[k] = repr(1000.0 * float(r[k]))
+        return header, rows
+
+    ms = _rewritten(field, tmp_path / "ms.csv", to_ms)
+    assert main(["simulate", "--data", ms, "--params", str(d / "p.json"), "--json", str(tmp_path / "m.json")]) == 0
+    err = capsys.readouterr().err
+    assert "time in ms, current in mA or a capacity too small?" in err, err
+    assert float(re.search(r"(\d+)× the", err).group(1)) >= 1000.0, err  # ms: at least the thousandfold
+    # the record as it was: no such warning
+    assert main(["simulate", "--data", str(field), "--params", str(d / "p.json"), "--json",
+                 str(tmp_path / "m.json")]) == 0
+    assert "time in ms" not in capsys.readouterr().err
+
+
+def test_a_missing_or_repeated_canonical_column_is_named(records, tmp_path, capsys):
+    d, _, field, _ = records
+
+    def drop_current(header, rows):
+        k = header.index("current_a")
+        return [c for j, c in enumerate(header) if j != k], [[c for j, c in enumerate(r) if j != k] for r in rows]
+
+    def voltage_twice(header, rows):
+        return header + ["voltage_v"], [r + ["3.0"] for r in rows]
+
+    for edit, words in ((drop_current, ("column 'current_a'", "missing column")),
+                        (voltage_twice, ("column 'voltage_v'", "appears more than once"))):
+        path = _rewritten(field, tmp_path / f"{edit.__name__}.csv", edit)
+        _one_line_error(capsys, ["simulate", "--data", path, "--params", str(d / "p.json")], path, *words)
