@@ -23,7 +23,9 @@ import pytest
 from socbench.datasets import load
 from socbench.datasets.panasonic import find_panasonic
 from socbench.diagnose import diagnose, fit_base
+from socbench.diagnose.report import reference_count_sentence
 from socbench.diagnose.search import initial_soc
+from socbench.socaxis import reference_capacity
 
 pytestmark = [pytest.mark.realdata, pytest.mark.slow]
 
@@ -79,6 +81,13 @@ def test_calce_lfp_soc_is_not_worse_after_the_loop(data_dir):
     assert d.after["rmse_v"] <= d.before["rmse_v"]
     for name in ("ekf", "ukf"):
         assert d.after["soc"][name]["soc_rmse"] <= d.before["soc"][name]["soc_rmse"], d.after["soc"]
+    # the loader's reference is its count of the same current on the capacity it declares: read back as that count,
+    # no current left out, and the report says the scoring converts to its axis
+    rc = d.soc["reference_count"]
+    assert rc["records"] == 2 and rc["declared_capacity_ah"] == [reference_capacity(p) for p in evals]
+    assert rc["capacity_ah"] == pytest.approx(rc["declared_capacity_ah"][0], rel=1e-6)
+    assert abs(rc["uncounted_current_a"]) < 1e-6 * rc["capacity_ah"] and rc["residual_soc_rms"] < 1e-6
+    assert "converted to that axis" in reference_count_sentence(rc)
 
 
 @pytest.mark.parametrize("record", ["03-09-17_17.59_3349_Dis1C_1.mat", "07-22-17_22.44_4020_Dis1C_1.mat"])

@@ -142,6 +142,9 @@ def test_the_sentence_says_what_the_axes_part_by():
     assert "the model after the search 8 Ah (+0.0 %)" in s and "drifts" not in s
     s = reference_count_sentence(_rc(rms=0.03))
     assert "is no count of their current" in s and "Ah" not in s
+    # a reference its records declare a count on a capacity: the scoring converts to that axis, no drift remains
+    s = reference_count_sentence({**_rc(), "declared_capacity_ah": [8.0]})
+    assert "declare their reference a count on 8 Ah" in s and "drifts" not in s
 
 
 @functools.cache
@@ -157,6 +160,7 @@ def test_the_diagnosis_reports_the_reference_count(tmp_path):
     fade = case.draws["capacity"]["fade"]
     assert rc["capacity_ah"] == pytest.approx(case.capacity_ah * (1.0 - fade), rel=Q_TOL)
     assert rc["model_capacity_ah"]["before"] == pytest.approx(d.base_model.params.capacity_ah)
+    assert rc["declared_capacity_ah"] is None  # the benchmark's truth is no declared count
     write_report(d, tmp_path, with_figures=False)
     js = json.loads((tmp_path / "diagnosis.json").read_text())
     assert js["soc"]["reference_count"]["capacity_ah"] == pytest.approx(rc["capacity_ah"])

@@ -81,7 +81,7 @@ from ..models import make_model
 from ..models.base import T_REF_C
 from ..models.effects import EFFECTS
 from ..profile import Profile
-from ..socaxis import read_reference_count, soc_axis, soc_capacity
+from ..socaxis import read_reference_count, reference_capacity, soc_axis, soc_capacity
 from .cv import cv_residual
 from .data import Folds, bin_average, make_folds, split_at_gaps
 from .leftover import hidden_fade, leftover, ocv_gap
@@ -877,8 +877,12 @@ def diagnose(model_name: str, fit_profiles, eval_profiles, *, mode: str = "auto"
                                 "its fitted initial value over the folds"}
             count = read_reference_count(eval_profiles)
             if count is not None:  # the reference's own axis beside the models' (reported, never used to score)
+                declared = [reference_capacity(p) for p in eval_profiles if getattr(p, "soc_ref", None) is not None]
                 soc_info["reference_count"] = {**count, "model_capacity_ah": {
-                    "before": soc_capacity(base), "after": soc_capacity(final)}}
+                    "before": soc_capacity(base), "after": soc_capacity(final)},
+                    # where every record declares its reference a count with a capacity, the filters' SOC is
+                    # converted to that axis before it is scored (socbench.socaxis)
+                    "declared_capacity_ah": declared if all(q is not None for q in declared) else None}
             if grew:  # reported with where it comes from (the other model's filter noise, the voltage ignored)
                 soc_info["attribution"] = _attribution(models, {"before": vsd_b, "after": vsd_a}, soc_folds, soc0s,
                                                        {"before": sb, "after": sa})

@@ -74,7 +74,11 @@ def reference_count_sentence(rc: dict) -> str:
     if abs(qa / qb - 1.0) > 1e-9:
         text += f", the model after the search {qa:.4g} Ah ({100 * (qa / q - 1):+.1f} %)"
     gap = qa / q - 1.0
-    if abs(gap) > COUNT_GAP:
+    declared = rc.get("declared_capacity_ah")
+    if declared:
+        text += (f". The records declare their reference a count on {', '.join(f'{d:.4g}' for d in declared)} Ah: "
+                 "the filters' SOC is converted to that axis before it is scored")
+    elif abs(gap) > COUNT_GAP:
         text += (f". Against this reference a count on the final model's axis drifts by {100 * abs(gap):.1f} % of "
                  "the charge moved, whatever the filter; the voltage corrects it only where the OCV's slope shows it")
     return text + "."
