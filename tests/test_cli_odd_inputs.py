@@ -13,7 +13,8 @@ wrong, or a record the commands now take.
   (once refused: equal spans of clock time left two of four blocks empty);
 * a record whose time is in ms: one warning where the reference SOC shows it (it once passed silently);
 * a canonical CSV without its current column, or with its voltage column twice: the column named (once "could not
-  detect the format", and the first of two voltage columns taken silently).
+  detect the format", and the first of two voltage columns taken silently);
+* a parameter set of another model under this one's name: one warning naming the parameters it leaves unused.
 """
 
 from __future__ import annotations
@@ -184,3 +185,17 @@ def test_a_missing_or_repeated_canonical_column_is_named(records, tmp_path, caps
                         (voltage_twice, ("column 'voltage_v'", "appears more than once"))):
         path = _rewritten(field, tmp_path / f"{edit.__name__}.csv", edit)
         _one_line_error(capsys, ["simulate", "--data", path, "--params", str(d / "p.json")], path, *words)
+
+
+def test_a_set_of_another_model_under_this_ones_name_is_said(records, tmp_path, capsys):
+    """A Thevenin set labelled "rint": the Rint model runs without R1 and C1, and one warning says so."""
+    d, _, field, good = records
+    relabelled = {**good, "model": "rint"}
+    path = tmp_path / "rint.json"
+    path.write_text(json.dumps(relabelled))
+    assert main(["simulate", "--data", str(field), "--params", str(path), "--json", str(tmp_path / "m.json")]) == 0
+    err = capsys.readouterr().err
+    assert "model 'rint' does not use the parameter(s) C1, R1" in err, err
+    assert main(["simulate", "--data", str(field), "--params", str(d / "p.json"), "--json",
+                 str(tmp_path / "m.json")]) == 0
+    assert "does not use" not in capsys.readouterr().err

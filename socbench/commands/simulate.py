@@ -58,9 +58,13 @@ def resolve_params(spec: str):
         return name, paper_params(name)
     name, params = load_params(spec)
     try:  # an unknown model or a parameter it needs missing, said with the file's name
-        make_model(name, params)
+        model = make_model(name, params)
     except ConfigError as exc:
         raise ConfigError(f"{spec}: {exc}") from None
+    unused = sorted(set(params.values) - set(model.required_params()))
+    if unused:  # a set of another model under this one's name (a DP's R2, C2 under "thevenin") runs without them
+        warnings.warn(f"{spec}: model '{name}' does not use the parameter(s) {', '.join(unused)} the file gives: a "
+                      "set fitted for another model?", SocbenchWarning, stacklevel=2)
     return name, params
 
 
