@@ -144,7 +144,9 @@ def read_reference_count(profiles, uncounted: bool = True) -> dict | None:
     (0, 1) count (a reference clipped at full or empty stops counting there), and only the records whose reference
     spans :data:`COUNT_MIN_SPAN` with a current that counts some charge. ``c`` is None with ``uncounted=False`` (the
     count alone, ``z = z_r − A/Q``) and where a steady current cannot tell it from the capacity
-    (:data:`COUNT_COLLINEAR`)."""
+    (:data:`COUNT_COLLINEAR`). A record is counted through a logging gap as its current column holds it
+    (:meth:`~socbench.profile.Profile.amp_hours`): the diagnosis reads its records after cutting them at the gaps the
+    current does not bridge (:func:`socbench.diagnose.data.split_at_gaps`)."""
     cols = []
     for p in profiles:
         ref = getattr(p, "soc_ref", None)
