@@ -181,7 +181,7 @@ def test_a_missing_or_repeated_canonical_column_is_named(records, tmp_path, caps
     def voltage_twice(header, rows):
         return header + ["voltage_v"], [r + ["3.0"] for r in rows]
 
-    for edit, words in ((drop_current, ("column 'current_a'", "missing column")),
+    for edit, words in ((drop_current, ("column 'current_a'", "missing column: its first line reads 'time_s,")),
                         (voltage_twice, ("column 'voltage_v'", "appears more than once"))):
         path = _rewritten(field, tmp_path / f"{edit.__name__}.csv", edit)
         _one_line_error(capsys, ["simulate", "--data", path, "--params", str(d / "p.json")], path, *words)

@@ -75,8 +75,8 @@ def _missing_canonical_column(path: Path) -> None:
         return
     missing = [c for c in REQUIRED if c not in cols]
     if len(missing) == 1:
-        raise DataError(f"missing column (a canonical CSV has the columns {', '.join(REQUIRED)})", file=str(path),
-                        column=missing[0])
+        raise DataError(f"missing column{_first_line(path)}; a canonical CSV has the columns {', '.join(REQUIRED)}",
+                        file=str(path), column=missing[0])
 
 
 def _first_line(path: Path) -> str:
