@@ -50,3 +50,18 @@ class SocbenchWarning(UserWarning):
 
 class ModelError(ValueError):
     """A model left its admissible region in strict mode (negative capacitance, unstable eigenvalue...)."""
+
+
+#: an error quotes a bad cell up to this many characters (a block of zeroed bytes reads as one huge cell)
+CELL_SHOWN = 40
+
+
+def shown(value) -> str:
+    """A bad cell as an error quotes it: ``empty`` for a missing value, else its ``repr`` (a numpy scalar as the plain
+    number), cut to :data:`CELL_SHOWN` characters."""
+    if hasattr(value, "item") and getattr(value, "ndim", 1) == 0:
+        value = value.item()
+    if value is None or (isinstance(value, float) and value != value):
+        return "empty or NaN"
+    text = repr(value)
+    return text if len(text) <= CELL_SHOWN else text[:CELL_SHOWN] + "…"

@@ -77,8 +77,20 @@ def output_file(path, option: str = "--out") -> Path:
     return p
 
 
+def _umask() -> int:
+    mask = os.umask(0)  # reading the umask sets it: set it back at once (done once, at import, before any thread)
+    os.umask(mask)
+    return mask
+
+
+#: the mode a plain ``open`` gives a new file under the process' umask: ``mkstemp`` makes its files 0600, results
+#: other users of a shared machine could not read
+FILE_MODE = 0o666 & ~_umask()
+
+
 def atomic_write_bytes(path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder and ``os.replace``."""
+    """Write ``data`` to ``path`` through a temporary file in the same folder and ``os.replace``; the file gets the
+    mode a plain write would give it (:data:`FILE_MODE`)."""
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -89,13 +101,18 @@ def atomic_write_bytes(path, data: bytes) -> None:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()
+            os.fchmod(fh.fileno(), FILE_MODE)
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         try:
             os.unlink(tmp)
         except FileNotFoundError:
             pass
+        if isinstance(exc, IsADirectoryError):  # a folder of the file's name in the way: the user's to fix
+            raise ConfigError(f"cannot write {path}: a folder of that name is in the way") from None
+        if isinstance(exc, OSError) and exc.errno in _WHY:
+            raise ConfigError(f"cannot write {path}: {_WHY[exc.errno]}") from None
         raise
 
 

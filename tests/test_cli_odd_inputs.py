@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 
 import numpy as np
 import pytest
@@ -199,3 +200,97 @@ def test_a_set_of_another_model_under_this_ones_name_is_said(records, tmp_path, 
     assert main(["simulate", "--data", str(field), "--params", str(d / "p.json"), "--json",
                  str(tmp_path / "m.json")]) == 0
     assert "does not use" not in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------------- other commands and formats
+def test_an_output_file_name_taken_by_a_folder_and_the_files_mode(records, tmp_path, capsys):
+    """A folder where ``estimate.csv`` goes: one line, exit 2 (was an internal error after the run). The files
+    written get the mode a plain write gives under the umask (``mkstemp`` alone left them 0600)."""
+    import os
+
+    from socbench.io import atomic_write_text
+
+    d, _, field, _ = records
+    out = tmp_path / "e"
+    (out / "estimate.csv").mkdir(parents=True)
+    _one_line_error(capsys, ["estimate", "--data", str(field), "--params", str(d / "p.json"), "--estimator", "ekf",
+                             "--out", str(out)], "estimate.csv", "a folder of that name is in the way")
+    mask = os.umask(0o022)
+    try:
+        atomic_write_text(tmp_path / "m.txt", "x")
+    finally:
+        os.umask(mask)
+    assert (tmp_path / "m.txt").stat().st_mode & 0o777 == 0o666 & ~mask
+
+
+def test_a_scenario_file_that_is_not_text(tmp_path, capsys):
+    path = tmp_path / "bin.toml"
+    path.write_bytes(b"\xff\xfe\x00bin")
+    _one_line_error(capsys, ["scenarios", str(path)], str(path), "not UTF-8 text")
+
+
+def test_diagnose_says_what_its_evaluation_records_cannot_test(records, tmp_path, capsys):
+    """``--effects ,`` is empty (the fit test read it as none, the search as all); the fit record given as --eval too,
+    and records at rest throughout, each get one warning."""
+    from socbench.datasets import load
+
+    d, hppc, field, _ = records
+    _one_line_error(capsys, ["diagnose", "--fit", str(hppc), "--eval", str(field), "--model", "thevenin", "--out",
+                             str(tmp_path / "x"), "--effects", ","], "--effects is empty")
+    assert main(["diagnose", "--fit", str(hppc), "--eval", str(hppc), "--model", "thevenin", "--out",
+                 str(tmp_path / "same"), "--no-figures"]) == 0
+    assert "given as --fit and as --eval" in capsys.readouterr().err
+    p = load(field)
+    rest = write_canonical(Profile(p.time_s, 0.0 * p.current_a, p.voltage_v, meta=p.meta), tmp_path / "rest.csv")
+    main(["diagnose", "--fit", str(hppc), "--eval", str(rest), "--model", "thevenin", "--out", str(tmp_path / "r"),
+          "--no-figures"])
+    assert "at rest throughout" in capsys.readouterr().err
+    assert main(["diagnose", "--fit", str(hppc), "--eval", str(field), "--model", "thevenin", "--out",
+                 str(tmp_path / "ok"), "--no-figures"]) == 0
+    err = capsys.readouterr().err
+    assert "at rest throughout" not in err and "given as --fit" not in err
+
+
+def test_a_bad_cell_is_quoted_short():
+    from socbench.errors import CELL_SHOWN, shown
+
+    assert shown(np.float64(np.nan)) == "empty or NaN" and shown(None) == "empty or NaN"
+    assert shown(np.float64(np.inf)) == "inf" and shown("ERR") == "'ERR'"
+    long = shown("2" + "\x00" * 16000)
+    assert len(long) == CELL_SHOWN + 1 and long.endswith("…")
+
+
+def test_a_corrupt_events_file_beside_the_dji_telemetry(data_dir, tmp_path, capsys):
+    src = data_dir / "uav_dji_m100"
+    # a copy, not a link: the loader reads the events beside the telemetry file it resolves
+    shutil.copy(src / "battery_telemetry_all_flights.csv", tmp_path)
+    events = (src / "flight_mode_events_all_flights.csv").read_text().splitlines()
+    k = events[0].split(",").index("to_mode")
+    cut = [",".join(c for j, c in enumerate(line.split(",")) if j != k) for line in events]
+    (tmp_path / "flight_mode_events_all_flights.csv").write_text("\n".join(cut) + "\n")
+    _one_line_error(capsys, ["simulate", "--data", str(tmp_path / "battery_telemetry_all_flights.csv"),
+                             "--params", "paper:thevenin"], "flight_mode_events_all_flights.csv",
+                    "column 'to_mode'", "missing column")
+
+
+def test_a_leaderboard_whose_every_cell_fails_on_its_record(data_dir, tmp_path, capsys, monkeypatch):
+    """The CALCE US06 record with a NaN voltage: the study still writes its report, and exits 2 naming the file,
+    the column and the row (it exited 0, the reason only in leaderboard.md)."""
+    calce = tmp_path / "data" / "calce_a123_lfp"
+    calce.mkdir(parents=True)
+    for f in (data_dir / "calce_a123_lfp").iterdir():
+        (calce / f.name).symlink_to(f)
+    us06 = calce / "A1-00x_20degC_US06_from_full.csv"
+    lines = us06.read_text().splitlines()
+    us06.unlink()
+    k = lines[0].split(",").index("Voltage_V")
+    row = lines[100].split(",")
+    row[k] = "NaN"
+    lines[100] = ",".join(row)
+    us06.write_text("\n".join(lines) + "\n")
+    monkeypatch.setenv("SOCBENCH_DATA_DIR", str(tmp_path / "data"))
+    line = _one_line_error(capsys, ["leaderboard", "--models", "thevenin", "--estimators", "ekf", "--scenarios",
+                                    "calce-us06", "--seeds", "1", "--backend", "serial", "--no-figures", "--out",
+                                    str(tmp_path / "lb")], "every cell failed on its input", "column 'Voltage_V'")
+    assert "row 100" in line
+    assert (tmp_path / "lb" / "leaderboard.md").exists()

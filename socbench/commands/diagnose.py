@@ -9,6 +9,9 @@ record) falls by ≥ 10 %. Writes ``diagnosis.json`` (DESIGN.md keys), ``diagnos
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
+
+import numpy as np
 
 from ..checks import check_current_against_reference, check_same_cell
 from ..datasets import load
@@ -60,12 +63,23 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-figures", action="store_true", help="skip the figures")
 
 
+#: evaluation records that never draw more than this C-rate are at rest throughout (a warning says so)
+NO_LOAD_C = 0.05
+
+
+def _resolved(path: str) -> str:
+    """``path`` as one file on disk (``builtin:`` names as given)."""
+    return path if ":" in path and not Path(path).exists() else str(Path(path).resolve())
+
+
 def run(args) -> int:
     if args.model not in model_names():
         raise ConfigError(f"unknown model '{args.model}'; known: {', '.join(model_names())}")
     candidates = None
-    if args.effects:
+    if args.effects is not None:
         candidates = [e.strip() for e in args.effects.split(",") if e.strip()]
+        if not candidates:  # an empty list would be read as "all" by the search and as "none" by the fit test
+            raise ConfigError(f"--effects is empty; known: {', '.join(effect_names())}")
         bad = [e for e in candidates if e not in effect_names()]
         if bad:
             raise ConfigError(f"unknown effect '{bad[0]}'; known: {', '.join(effect_names())}")
@@ -82,6 +96,15 @@ def run(args) -> int:
     evals = [load(p, args.format) for p in args.eval]
     for e in evals:
         check_same_cell(e, fit, "an --eval record")
+    loads = [float(np.max(np.abs(e.current_a))) / q for e in evals if (q := e.meta.capacity_ah or args.capacity)]
+    if loads and max(loads) < NO_LOAD_C:  # rests only: nothing under load for the held-out scores to test
+        warnings.warn(f"{', '.join(args.eval)}: the evaluation records draw at most {max(loads):.2g}C: at rest "
+                      "throughout, they test the OCV and the relaxation, not what the model predicts under load",
+                      SocbenchWarning, stacklevel=2)
+    for path in set(map(_resolved, args.eval)) & set(map(_resolved, args.fit)):  # scored where it was fitted
+        warnings.warn(f"{path}: given as --fit and as --eval: the held-out errors are measured on the record the base "
+                      "model was fitted on, so they say how well it fits, not how well it predicts", SocbenchWarning,
+                      stacklevel=2)
     diag = diagnose(args.model, fit, evals, mode=args.mode, dt=args.dt, folds=args.folds, candidates=candidates,
                     slow_ocv=args.slow_ocv, soc=not args.no_soc, base_refit=not args.no_base_refit,
                     refine_ocv=REFINE_OCV_OPTION[args.refine_ocv],

@@ -25,7 +25,7 @@ import sys
 import warnings
 
 from ..domain import WARN_FRACTION
-from ..errors import ConfigError, SocbenchWarning
+from ..errors import ConfigError, DataError, SocbenchWarning
 from ..io import output_dir
 from ..study import (
     BACKENDS,
@@ -96,6 +96,10 @@ def _terminate(signum, frame):
     raise KeyboardInterrupt
 
 
+#: the error types of a cell that failed on its input (a scenario's record, a parameter file), not on the code
+USER_ERRORS = ("DataError: ", "ConfigError: ")
+
+
 def run(args) -> int:
     from ..report import write_report
 
@@ -138,4 +142,12 @@ def run(args) -> int:
                       f"domain (out_of_domain column; worst {w['model']} + {w['estimator']} on {w['scenario']}: "
                       f"{100 * w['out_of_domain']:.1f} %)", SocbenchWarning, stacklevel=2)
     print(f"wrote {out / 'leaderboard.csv'}, {out / 'leaderboard.md'} and {len(report['figures'])} figures")
+    # a cell that failed on its input (a scenario's measured record unreadable): the user's to fix, said here too
+    user = sorted({e.split(": ", 1)[1] for rec in result.cells
+                   if (e := rec.get("error") or "").startswith(USER_ERRORS)})
+    if user and all(rec.get("error") for rec in result.cells):
+        raise DataError(f"every cell failed on its input; {user[0]}" + (f" (and {len(user) - 1} more, in "
+                                                                         "leaderboard.md)" if len(user) > 1 else ""))
+    for message in user:
+        warnings.warn(f"a cell failed on its input: {message}", SocbenchWarning, stacklevel=2)
     return 0

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..errors import DataError
+from ..errors import DataError, shown
 from ..profile import Profile, ProfileMeta, true_runs
 from .canonical import check_current_sign
 from .counting import soc_between_full_charges
@@ -77,7 +77,7 @@ def _numeric(df: pd.DataFrame, col: str, src: str) -> np.ndarray:
     bad = ~np.isfinite(values)
     if bad.any():
         row = int(np.argmax(bad)) + 1
-        raise DataError(f"not a finite number ({df[col].iloc[row - 1]!r})", file=src, column=col, row=row)
+        raise DataError(f"not a finite number ({shown(df[col].iloc[row - 1])})", file=src, column=col, row=row)
     return values
 
 

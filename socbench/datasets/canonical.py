@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..errors import DataError
+from ..errors import DataError, shown
 from ..profile import Profile, ProfileMeta, gap_steps
 from .header import header_columns
 
@@ -146,7 +146,7 @@ def _numeric(df: pd.DataFrame, c: str, src: str) -> np.ndarray:
         if c == "time_s" and _is_date_time(text):
             raise DataError(f"a date and time ({text!r}), not seconds: write the seconds since the record's start",
                             file=src, column=c, row=row)
-        raise DataError(f"not a finite number ({text!r})", file=src, column=c, row=row)
+        raise DataError(f"not a finite number ({shown(text)})", file=src, column=c, row=row)
     return values
 
 

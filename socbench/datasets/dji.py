@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..errors import DataError
+from ..errors import DataError, shown
 from ..profile import Profile, ProfileMeta
 from .header import header_columns
 
@@ -111,7 +111,7 @@ def read_telemetry(path) -> tuple[pd.DataFrame, dict]:
         bad = ~np.isfinite(values)
         if bad.any():
             row = int(np.argmax(bad)) + 1
-            raise DataError(f"not a finite number ({df[c].iloc[row - 1]!r})", file=str(path), column=c, row=row)
+            raise DataError(f"not a finite number ({shown(df[c].iloc[row - 1])})", file=str(path), column=c, row=row)
         df[c] = values
     if (df["current_A"] < -1.0).mean() > 0.5:
         raise DataError("current is mostly negative: expected positive = discharge", file=str(path), column="current_A")
@@ -126,11 +126,23 @@ def read_telemetry(path) -> tuple[pd.DataFrame, dict]:
     return clean, dropped
 
 
+#: the columns of the flight-mode events file :func:`_read_events` reads
+EVENT_COLUMNS = ("log_id", "t_s_since_first_battery_record", "to_mode")
+
+
 def _read_events(telemetry_path: Path) -> dict:
     path = telemetry_path.with_name(EVENTS)
     if not path.exists():
         return {}
-    ev = pd.read_csv(path)
+    try:
+        ev = pd.read_csv(path)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DataError(f"cannot parse the flight-mode events beside the telemetry: {first}", file=str(path)) from None
+    for column in EVENT_COLUMNS:
+        if column not in ev.columns:
+            raise DataError("missing column of the flight-mode events beside the telemetry", file=str(path),
+                            column=column)
     out: dict = {}
     for log_id, g in ev.groupby("log_id", sort=False):
         t = pd.to_numeric(g["t_s_since_first_battery_record"], errors="coerce").fillna(-np.inf).to_numpy()

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..errors import DataError
+from ..errors import DataError, shown
 from ..profile import Profile, ProfileMeta
 from ..socaxis import REFERENCE_CAPACITY_KEY
 from .counting import soc_between_full_charges
@@ -75,7 +75,7 @@ def load_nissan_leaf(path) -> Profile:
         bad = ~np.isfinite(values)
         if bad.any():
             row = int(np.argmax(bad)) + 1
-            raise DataError(f"not a finite number ({df[c].iloc[row - 1]!r})", file=src, column=c, row=row)
+            raise DataError(f"not a finite number ({shown(df[c].iloc[row - 1])})", file=src, column=c, row=row)
         cols[c] = values
     t, i_raw, v = cols["time_s"], cols["current_A"], cols["voltage_V"]
     check_cell_units(v, i_raw, voltage_range=VOLTAGE_RANGE, max_abs_current=MAX_ABS_CURRENT, cell="33 Ah cell",

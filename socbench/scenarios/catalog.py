@@ -63,6 +63,10 @@ def _read(path, label: str) -> dict:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ConfigError(f"{label}: file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{label}: is a directory, not a scenario file") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{label}: not UTF-8 text (byte {exc.start}): a scenario file is TOML") from None
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
