@@ -72,6 +72,20 @@ def _resolved(path: str) -> str:
     return path if ":" in path and not Path(path).exists() else str(Path(path).resolve())
 
 
+def _warn_what_the_records_cannot_test(args, evals) -> None:
+    """One warning each (after a diagnosis that ran: a refused one says only why) where the evaluation records are at
+    rest throughout (at most :data:`NO_LOAD_C`) or include a fit record (the held-out errors are then in sample)."""
+    loads = [float(np.max(np.abs(e.current_a))) / q for e in evals if (q := e.meta.capacity_ah or args.capacity)]
+    if loads and max(loads) < NO_LOAD_C:  # rests only: nothing under load for the held-out scores to test
+        warnings.warn(f"{', '.join(args.eval)}: the evaluation records draw at most {max(loads):.2g}C: at rest "
+                      "throughout, they test the OCV and the relaxation, not what the model predicts under load",
+                      SocbenchWarning, stacklevel=3)
+    for path in sorted(set(map(_resolved, args.eval)) & set(map(_resolved, args.fit))):  # scored where it was fitted
+        warnings.warn(f"{path}: given as --fit and as --eval: the held-out errors are measured on the record the base "
+                      "model was fitted on, so they say how well it fits, not how well it predicts", SocbenchWarning,
+                      stacklevel=3)
+
+
 def run(args) -> int:
     if args.model not in model_names():
         raise ConfigError(f"unknown model '{args.model}'; known: {', '.join(model_names())}")
@@ -96,20 +110,12 @@ def run(args) -> int:
     evals = [load(p, args.format) for p in args.eval]
     for e in evals:
         check_same_cell(e, fit, "an --eval record")
-    loads = [float(np.max(np.abs(e.current_a))) / q for e in evals if (q := e.meta.capacity_ah or args.capacity)]
-    if loads and max(loads) < NO_LOAD_C:  # rests only: nothing under load for the held-out scores to test
-        warnings.warn(f"{', '.join(args.eval)}: the evaluation records draw at most {max(loads):.2g}C: at rest "
-                      "throughout, they test the OCV and the relaxation, not what the model predicts under load",
-                      SocbenchWarning, stacklevel=2)
-    for path in set(map(_resolved, args.eval)) & set(map(_resolved, args.fit)):  # scored where it was fitted
-        warnings.warn(f"{path}: given as --fit and as --eval: the held-out errors are measured on the record the base "
-                      "model was fitted on, so they say how well it fits, not how well it predicts", SocbenchWarning,
-                      stacklevel=2)
     diag = diagnose(args.model, fit, evals, mode=args.mode, dt=args.dt, folds=args.folds, candidates=candidates,
                     slow_ocv=args.slow_ocv, soc=not args.no_soc, base_refit=not args.no_base_refit,
                     refine_ocv=REFINE_OCV_OPTION[args.refine_ocv],
                     capacity_ah=args.capacity, soc0=args.soc0)
     write_report(diag, args.out, with_figures=not args.no_figures)
+    _warn_what_the_records_cannot_test(args, evals)
     b, a = diag.before, diag.after
     print(f"{args.model}: effects added: {', '.join(diag.effects_added) or 'none'}")
     print(f"  held-out voltage RMSE {1000 * b['rmse_v']:.2f} -> {1000 * a['rmse_v']:.2f} mV")
