@@ -56,11 +56,35 @@ class SerialBackend:
         pass
 
 
-def _worker_signals(jobs: int = 0) -> None:
+#: prctl's option that sends the calling process a signal when its parent dies (Linux, <linux/prctl.h>)
+PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent(parent: int) -> None:
+    """Ask Linux to send this worker SIGTERM when the runner dies (a runner killed with SIGKILL cannot stop its
+    workers, which would wait on the task queue forever, orphaned); elsewhere, nothing. A runner already gone before
+    the request took effect: exit at once."""
+    import ctypes
+    import ctypes.util
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    except (OSError, AttributeError):
+        return
+    if parent and os.getppid() != parent:
+        os._exit(1)
+
+
+def _worker_signals(jobs: int = 0, parent: int = 0) -> None:
     # Workers leave Ctrl-C to the runner, which stops them itself after the store is consistent; SIGTERM (how the
     # runner stops them) must kill them outright, whatever handler a forked worker inherited from its parent.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    _die_with_parent(parent)
     if jobs:  # the compiled filters split a batch over threads (socbench.kernels.engine): the workers share the cores
         from ..kernels.engine import share_cores
 
@@ -74,7 +98,8 @@ class ProcessBackend:
 
     def __init__(self, jobs: int | None = None):
         self.jobs = int(jobs or os.cpu_count() or 1)
-        self.pool = cf.ProcessPoolExecutor(max_workers=self.jobs, initializer=_worker_signals, initargs=(self.jobs,))
+        self.pool = cf.ProcessPoolExecutor(max_workers=self.jobs, initializer=_worker_signals,
+                                           initargs=(self.jobs, os.getpid()))
 
     def submit(self, fn, *args):
         return self.pool.submit(fn, *args)
