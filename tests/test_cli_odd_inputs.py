@@ -12,8 +12,8 @@ wrong, or a record the commands now take.
 * an evaluation record with a day-long pause at rest: diagnosed, its held-out blocks spanning equal recorded time
   (once refused: equal spans of clock time left two of four blocks empty);
 * a record whose time is in ms: one warning where the reference SOC shows it (it once passed silently);
-* a canonical CSV without its current column, or with its voltage column twice: the column named (once "could not
-  detect the format", and the first of two voltage columns taken silently);
+* a canonical CSV without its current column, or with its voltage column twice: the column named (once only "could
+  not detect the format", and the first of two voltage columns taken silently);
 * a parameter set of another model under this one's name: one warning naming the parameters it leaves unused.
 """
 
@@ -182,7 +182,8 @@ def test_a_missing_or_repeated_canonical_column_is_named(records, tmp_path, caps
     def voltage_twice(header, rows):
         return header + ["voltage_v"], [r + ["3.0"] for r in rows]
 
-    for edit, words in ((drop_current, ("column 'current_a'", "missing column: its first line reads 'time_s,")),
+    for edit, words in ((drop_current, ("column 'current_a'", "its first line reads 'time_s,",
+                                        "this one has no 'current_a'")),
                         (voltage_twice, ("column 'voltage_v'", "appears more than once"))):
         path = _rewritten(field, tmp_path / f"{edit.__name__}.csv", edit)
         _one_line_error(capsys, ["simulate", "--data", path, "--params", str(d / "p.json")], path, *words)

@@ -54,29 +54,30 @@ def detect_format(path) -> str:
         hits.remove("canonical")
     if len(hits) == 1:
         return hits[0]
-    if not hits and p.suffix.lower() == ".csv":
-        _missing_canonical_column(p)
     if not hits:
+        missing = _missing_canonical_column(p)
         raise DataError(f"could not detect the format{_first_line(p)}; a canonical CSV is comma-separated with the "
-                        "columns time_s, current_a, voltage_v (temperature_c, soc_ref optional); else pass --format "
-                        f"(known: {', '.join(FORMATS)})", file=str(path))
+                        "columns time_s, current_a, voltage_v (temperature_c, soc_ref optional)"
+                        + (f", and this one has no '{missing}'" if missing else "")
+                        + f"; else pass --format (known: {', '.join(FORMATS)})", file=str(path), column=missing)
     raise DataError(f"ambiguous format: matches {' and '.join(hits)}; pass --format explicitly", file=str(path))
 
 
-def _missing_canonical_column(path: Path) -> None:
-    """A header that names two of the canonical CSV's required columns but not the third: that column is missing (a
-    :class:`DataError` naming it), rather than a format none knows."""
+def _missing_canonical_column(path: Path) -> str | None:
+    """The one required column of the canonical CSV a ``.csv`` header lacks where it names the other two (what
+    :func:`detect_format`'s refusal then names), else None: a file with a time and a voltage column but no current
+    column reads as that, not only as a format none knows."""
     from .canonical import REQUIRED
     from .header import header_columns
 
+    if path.suffix.lower() != ".csv":
+        return None
     try:
         cols = {c.lower() for c in header_columns(path)}
     except (OSError, UnicodeDecodeError):
-        return
+        return None
     missing = [c for c in REQUIRED if c not in cols]
-    if len(missing) == 1:
-        raise DataError(f"missing column{_first_line(path)}; a canonical CSV has the columns {', '.join(REQUIRED)}",
-                        file=str(path), column=missing[0])
+    return missing[0] if len(missing) == 1 else None
 
 
 def _first_line(path: Path) -> str:
