@@ -57,8 +57,9 @@ CELL_SHOWN = 40
 
 
 def shown(value) -> str:
-    """A bad cell as an error quotes it: ``empty`` for a missing value, else its ``repr`` (a numpy scalar as the plain
-    number), cut to :data:`CELL_SHOWN` characters."""
+    """A bad cell as an error quotes it: ``empty or NaN`` for a missing value (a loader that parses numbers reads an
+    empty cell and a NaN alike), else its ``repr`` (a numpy scalar as the plain number), cut to :data:`CELL_SHOWN`
+    characters."""
     if hasattr(value, "item") and getattr(value, "ndim", 1) == 0:
         value = value.item()
     if value is None or (isinstance(value, float) and value != value):
