@@ -66,3 +66,9 @@ def shown(value) -> str:
         return "empty or NaN"
     text = repr(value)
     return text if len(text) <= CELL_SHOWN else text[:CELL_SHOWN] + "…"
+
+
+def first_line(exc: BaseException) -> str:
+    """What a parser's exception says, as one line of an error: its message's first line, else its type's name."""
+    text = str(exc)
+    return text.splitlines()[0] if text.strip() else type(exc).__name__

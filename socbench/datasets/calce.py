@@ -25,9 +25,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..errors import DataError, shown
+from ..errors import DataError, first_line
 from ..profile import Profile, ProfileMeta, true_runs
 from .canonical import check_current_sign
+from .columns import numeric_column
 from .counting import soc_between_full_charges
 from .header import sniff_csv
 from .units import check_cell_units
@@ -72,15 +73,6 @@ def _test_name(path: Path, layout: str) -> str:
     return "drive cycle"
 
 
-def _numeric(df: pd.DataFrame, col: str, src: str) -> np.ndarray:
-    values = pd.to_numeric(df[col], errors="coerce").to_numpy(dtype=float)
-    bad = ~np.isfinite(values)
-    if bad.any():
-        row = int(np.argmax(bad)) + 1
-        raise DataError(f"not a finite number ({shown(df[col].iloc[row - 1])})", file=src, column=col, row=row)
-    return values
-
-
 def load_calce(path) -> Profile:
     """Load one CALCE A123 CSV export as a :class:`Profile` (positive = discharge, SOC counted from full)."""
     path = Path(path)
@@ -88,7 +80,7 @@ def load_calce(path) -> Profile:
     try:
         df = pd.read_csv(path, encoding="utf-8-sig")
     except (pd.errors.EmptyDataError, pd.errors.ParserError, UnicodeDecodeError, ValueError) as exc:
-        raise DataError(f"cannot parse as CSV: {str(exc).splitlines()[0] if str(exc) else exc}", file=src) from None
+        raise DataError(f"cannot parse as CSV: {first_line(exc)}", file=src) from None
     df.columns = [str(c).strip() for c in df.columns]
     layout = _layout(df.columns)
     if layout is None:
@@ -99,9 +91,9 @@ def load_calce(path) -> Profile:
     if len(df) == 0:
         raise DataError("no data rows", file=src)
     tcol = TIME_COLUMN[layout]
-    t = _numeric(df, tcol, src)
-    i_raw = _numeric(df, "Current_A", src)
-    v = _numeric(df, "Voltage_V", src)
+    t = numeric_column(df, tcol, src)
+    i_raw = numeric_column(df, "Current_A", src)
+    v = numeric_column(df, "Voltage_V", src)
     check_cell_units(v, i_raw, voltage_range=VOLTAGE_RANGE, max_abs_current=MAX_ABS_CURRENT, cell="1.1 Ah LFP cell",
                      src=src, voltage_column="Voltage_V", current_column="Current_A")
     dt = np.diff(t)

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..errors import DataError, shown
+from ..errors import DataError, first_line, shown
 from ..profile import Profile, ProfileMeta, gap_steps
 from .header import header_columns
 
@@ -117,8 +117,7 @@ def _read_frame(path: Path) -> pd.DataFrame:
     except DataError:
         raise
     except Exception as exc:  # pandas/pyarrow raise many types on junk input; at this boundary all mean "unreadable"
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise DataError(f"cannot parse: {first}", file=src) from None
+        raise DataError(f"cannot parse: {first_line(exc)}", file=src) from None
     df.columns = [str(c).strip() for c in df.columns]
     if path.suffix.lower() != ".parquet":  # pandas renames a repeated name ('voltage_v.1'): read the header itself
         names = [c.lower() for c in header_columns(path)]

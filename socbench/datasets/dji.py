@@ -28,8 +28,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..errors import DataError, shown
+from ..errors import DataError, first_line
 from ..profile import Profile, ProfileMeta
+from .columns import numeric_column
 from .header import header_columns
 
 TELEMETRY = "battery_telemetry_all_flights.csv"
@@ -107,12 +108,7 @@ def read_telemetry(path) -> tuple[pd.DataFrame, dict]:
     if len(df) == 0:
         raise DataError("no data rows", file=str(path))
     for c in COLUMNS[2:]:
-        values = pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float)
-        bad = ~np.isfinite(values)
-        if bad.any():
-            row = int(np.argmax(bad)) + 1
-            raise DataError(f"not a finite number ({shown(df[c].iloc[row - 1])})", file=str(path), column=c, row=row)
-        df[c] = values
+        df[c] = numeric_column(df, c, str(path))
     if (df["current_A"] < -1.0).mean() > 0.5:
         raise DataError("current is mostly negative: expected positive = discharge", file=str(path), column="current_A")
     soc_glitch = (df["remain_percent_bms"] == 0) & (df["voltage_V"] > SOC0_GLITCH_MIN_V)
@@ -137,8 +133,8 @@ def _read_events(telemetry_path: Path) -> dict:
     try:
         ev = pd.read_csv(path)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise DataError(f"cannot parse the flight-mode events beside the telemetry: {first}", file=str(path)) from None
+        raise DataError(f"cannot parse the flight-mode events beside the telemetry: {first_line(exc)}",
+                        file=str(path)) from None
     for column in EVENT_COLUMNS:
         if column not in ev.columns:
             raise DataError("missing column of the flight-mode events beside the telemetry", file=str(path),

@@ -20,9 +20,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..errors import DataError, shown
+from ..errors import DataError, first_line
 from ..profile import Profile, ProfileMeta
 from ..socaxis import REFERENCE_CAPACITY_KEY
+from .columns import numeric_column
 from .counting import soc_between_full_charges
 from .header import sniff_csv
 from .units import check_cell_units
@@ -62,7 +63,7 @@ def load_nissan_leaf(path) -> Profile:
     try:
         df = pd.read_csv(path, encoding="utf-8-sig", dtype={"mode": str, "flag": str})
     except (pd.errors.EmptyDataError, pd.errors.ParserError, UnicodeDecodeError, ValueError) as exc:
-        raise DataError(f"cannot parse as CSV: {str(exc).splitlines()[0] if str(exc) else exc}", file=src) from None
+        raise DataError(f"cannot parse as CSV: {first_line(exc)}", file=src) from None
     df.columns = [str(c).strip() for c in df.columns]
     for c in COLUMNS:
         if c not in df.columns:
@@ -71,12 +72,7 @@ def load_nissan_leaf(path) -> Profile:
         raise DataError("no data rows", file=src)
     cols = {}
     for c in NUMERIC:
-        values = pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float)
-        bad = ~np.isfinite(values)
-        if bad.any():
-            row = int(np.argmax(bad)) + 1
-            raise DataError(f"not a finite number ({shown(df[c].iloc[row - 1])})", file=src, column=c, row=row)
-        cols[c] = values
+        cols[c] = numeric_column(df, c, src)
     t, i_raw, v = cols["time_s"], cols["current_A"], cols["voltage_V"]
     check_cell_units(v, i_raw, voltage_range=VOLTAGE_RANGE, max_abs_current=MAX_ABS_CURRENT, cell="33 Ah cell",
                      src=src, voltage_column="voltage_V", current_column="current_A")

@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataError
+from ..errors import DataError, first_line
 from ..profile import Profile, ProfileMeta
 from .units import check_cell_units
 
@@ -157,8 +157,7 @@ def _read_struct(path: Path) -> dict[str, np.ndarray]:
     try:
         mat = loadmat(src)
     except Exception as exc:  # scipy raises ValueError, TypeError, MatReadError... on non-MAT or truncated input
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise DataError(f"not a readable MATLAB .mat file ({first})", file=src) from None
+        raise DataError(f"not a readable MATLAB .mat file ({first_line(exc)})", file=src) from None
     if "meas" not in mat:
         found = [k for k in mat if not k.startswith("__")]
         raise DataError(f"no struct 'meas' (variables: {', '.join(found) or 'none'}); not a Panasonic 18650PF file",
