@@ -330,14 +330,12 @@ def soc_with_sensor_offset(hppc: Path, field: Path, model: str, offset_a: float,
 
 
 def axis_gap(reference: dict | None) -> float:
-    """``|Q_final/Q_ref − 1|`` of a diagnosis' ``soc.reference_count`` (the final model's capacity against the one the
-    field reference counts with); 0 without one, or where the reference is no count
-    (:data:`socbench.diagnose.report.COUNT_RESIDUAL_MAX`)."""
-    from socbench.diagnose.report import COUNT_RESIDUAL_MAX
+    """``|Q_final/Q_ref − 1|`` of a diagnosis' ``soc.reference_count`` (:func:`socbench.diagnose.report.axis_gap`);
+    0 without one, or where the reference is no count."""
+    from socbench.diagnose.report import axis_gap as gap_of
 
-    if not reference or reference["residual_soc_rms"] > COUNT_RESIDUAL_MAX:
-        return 0.0
-    return abs(reference["model_capacity_ah"]["after"] / reference["capacity_ah"] - 1.0)
+    gap = gap_of(reference) if reference else None
+    return 0.0 if gap is None else abs(gap)
 
 
 #: why the missing branch of a Thevenin case was not named, read from the diagnosis (``branch_verdict``)
@@ -403,6 +401,7 @@ def summary(cases: list) -> dict:
     ran = [c for c in cases if c["added"] is not None]
     with_soc = [c for c in ran if c.get("soc_rmse_before_ekf") is not None and c.get("soc_rmse_after_ekf") is not None]
     alone = {c["seed"]: c.get("soc_offset_alone") or {} for c in with_soc}
+    worse = [c for c in with_soc if ekf_grew(c["soc_rmse_before_ekf"], c["soc_rmse_after_ekf"])]
     offset = [c for c in ran if abs(c["offset_c"]) >= OFFSET_NAMED_FRAC]
     thev = [c for c in ran if c["model"] == "thevenin"]
     spurious = [(c["seed"], e, c.get("protocol", "")) for c in ran for e in c["added"]
@@ -423,15 +422,12 @@ def summary(cases: list) -> dict:
             "spurious": spurious,
             # issue #13's bound on what the search's effects may cost the SOC estimate, on records it did not make
             "soc_cases": len(with_soc),
-            "soc_worse": [(c["seed"], c["added"]) for c in with_soc
-                          if ekf_grew(c["soc_rmse_before_ekf"], c["soc_rmse_after_ekf"])],
+            "soc_worse": [(c["seed"], c["added"]) for c in worse],
             # of those, the ones whose base model is as much worse with the sensor's true offset fixed in alone
             "soc_worse_offset_alone": [k for k, a in alone.items() if ekf_grew(a.get("base"), a.get("offset"))],
             # of those, the ones where the diagnosis reports the field reference counting another capacity than the
             # final model's (socbench.socaxis.read_reference_count): the SOC axis' own error, which no filter removes
-            "soc_worse_axis_gap": [c["seed"] for c in with_soc
-                                   if ekf_grew(c["soc_rmse_before_ekf"], c["soc_rmse_after_ekf"])
-                                   and axis_gap(c.get("reference_count")) > COUNT_GAP],
+            "soc_worse_axis_gap": [c["seed"] for c in worse if axis_gap(c.get("reference_count")) > COUNT_GAP],
             "by_metadata": {m: _axis_summary([c for c in cases if c.get("metadata") == m]) for m in METADATA},
             "by_protocol": {p: {"cases": sum(c.get("protocol") == p for c in cases),
                                 "fit_ok": sum(c.get("protocol") == p and c["fit_exit"] == 0 for c in cases),

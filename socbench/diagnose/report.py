@@ -55,10 +55,20 @@ COUNT_GAP = 0.01
 COUNT_CURRENT_C = 0.0005
 
 
+def axis_gap(rc: dict) -> float | None:
+    """``Q_final/Q_ref − 1`` of a reference count (``diagnosis.json`` → ``soc.reference_count``): how far the final
+    model's capacity lies from the one the reference counts with; None where the reference is no count of the records'
+    current (:data:`COUNT_RESIDUAL_MAX`)."""
+    if rc["residual_soc_rms"] > COUNT_RESIDUAL_MAX:
+        return None
+    return rc["model_capacity_ah"]["after"] / rc["capacity_ah"] - 1.0
+
+
 def reference_count_sentence(rc: dict) -> str:
     """What the evaluation records' reference SOC counts against what the model counts
     (:func:`socbench.socaxis.read_reference_count`, ``diagnosis.json`` → ``soc.reference_count``), in one sentence."""
-    if rc["residual_soc_rms"] > COUNT_RESIDUAL_MAX:
+    gap = axis_gap(rc)
+    if gap is None:
         return (f"The evaluation records' reference SOC is no count of their current (it lies "
                 f"{_pct(rc['residual_soc_rms'])} points RMS from the nearest one): its SOC axis is not read.")
     q, qb, qa = rc["capacity_ah"], rc["model_capacity_ah"]["before"], rc["model_capacity_ah"]["after"]
@@ -72,8 +82,7 @@ def reference_count_sentence(rc: dict) -> str:
     text += (f" (within {_pct(rc['residual_soc_rms'])} points RMS); the base model counts {qb:.4g} Ah "
              f"({100 * (qb / q - 1):+.1f} %)")
     if abs(qa / qb - 1.0) > 1e-9:
-        text += f", the model after the search {qa:.4g} Ah ({100 * (qa / q - 1):+.1f} %)"
-    gap = qa / q - 1.0
+        text += f", the model after the search {qa:.4g} Ah ({100 * gap:+.1f} %)"
     declared = rc.get("declared_capacity_ah")
     if declared:
         text += (f". The records declare their reference a count on {', '.join(f'{d:.4g}' for d in declared)} Ah: "
