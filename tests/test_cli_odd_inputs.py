@@ -11,10 +11,16 @@ wrong, or a record the commands now take.
   warning where a reference SOC contradicts it; the diagnosis' refusal names the capacity;
 * an evaluation record with a day-long pause at rest: diagnosed, its held-out blocks spanning equal recorded time
   (once refused: equal spans of clock time left two of four blocks empty);
-* a record whose time is in ms: one warning where the reference SOC shows it (it once passed silently);
+* a record whose time is in ms: one warning where the reference SOC shows it (it once passed silently); without a
+  reference, the fit's refusal of such an HPPC says that its current counts more than the cell holds;
 * a canonical CSV without its current column, or with its voltage column twice: the column named (once only "could
   not detect the format", and the first of two voltage columns taken silently);
-* a parameter set of another model under this one's name: one warning naming the parameters it leaves unused.
+* a parameter set of another model under this one's name: one warning naming the parameters it leaves unused;
+* a record of one sample: refused naming the file (it once ran to metrics over no step);
+* a JSON sidecar with a byte-order mark, or ``n_series: 1.0``: read (both were refused as invalid);
+* ``--voltage-sd nan`` or ``--current-sd inf``: refused naming the option (the message named an internal class);
+* a DJI telemetry file with a repeated time stamp or a segment out of time order: one warning each (the loader
+  dropped and sorted them silently).
 """
 
 from __future__ import annotations
@@ -172,6 +178,22 @@ def test_time_in_milliseconds_is_said_where_the_reference_shows_it(records, tmp_
     assert "time in ms" not in capsys.readouterr().err
 
 
+def test_an_hppc_with_time_in_milliseconds_and_no_reference(records, tmp_path, capsys):
+    """Without a reference SOC to compare, the fit's refusal says what the count shows: far more than the capacity."""
+    _, hppc, _, _ = records
+
+    def to_ms_without_reference(header, rows):
+        k, z = header.index("time_s"), header.index("soc_ref")
+        for r in rows:
+            r[k] = repr(1000.0 * float(r[k]))
+        return [c for j, c in enumerate(header) if j != z], [[c for j, c in enumerate(r) if j != z] for r in rows]
+
+    ms = _rewritten(hppc, tmp_path / "hppc_ms.csv", to_ms_without_reference)
+    line = _one_line_error(capsys, ["fit", "--data", ms, "--model", "thevenin", "--out", str(tmp_path / "p.json")],
+                           "hppc_ms.csv", "no HPPC rest points", "time in ms (column 'time_s')")
+    assert float(re.search(r"counts (\d+)× the capacity", line).group(1)) >= 1000.0
+
+
 def test_a_missing_or_repeated_canonical_column_is_named(records, tmp_path, capsys):
     d, _, field, _ = records
 
@@ -295,3 +317,61 @@ def test_a_leaderboard_whose_every_cell_fails_on_its_record(data_dir, tmp_path, 
                                     str(tmp_path / "lb")], "every cell failed on its input", "column 'Voltage_V'")
     assert "row 100" in line
     assert (tmp_path / "lb" / "leaderboard.md").exists()
+
+
+def test_a_record_of_one_sample(records, tmp_path, capsys):
+    _, hppc, _, _ = records
+    one = tmp_path / "one.csv"
+    one.write_text("\n".join(hppc.read_text().splitlines()[:2]) + "\n")
+    for argv in (["simulate", "--data", str(one), "--params", "paper:thevenin"],
+                 ["estimate", "--data", str(one), "--params", "paper:thevenin", "--estimator", "ekf", "--out",
+                  str(tmp_path / "e")]):
+        _one_line_error(capsys, argv, "one.csv", "column 'time_s'", "1 sample")
+
+
+def test_a_sidecar_with_a_byte_order_mark_and_a_float_cell_count(records, tmp_path):
+    from socbench.datasets import load
+
+    _, hppc, _, _ = records
+    shutil.copy(hppc, tmp_path / "r.csv")
+    meta = json.loads(hppc.with_suffix(".json").read_text())
+    meta.update(n_series=1.0, capacity_ah=meta["capacity_ah"])
+    (tmp_path / "r.json").write_bytes(b"\xef\xbb\xbf" + json.dumps(meta).encode())
+    p = load(tmp_path / "r.csv")
+    assert p.meta.n_series == 1 and isinstance(p.meta.n_series, int)
+    assert p.meta.capacity_ah == pytest.approx(meta["capacity_ah"])
+    (tmp_path / "r.json").write_text(json.dumps({**meta, "n_series": 1.5}))
+    with pytest.raises(Exception, match="n_series must be a positive integer"):
+        load(tmp_path / "r.csv")
+
+
+@pytest.mark.parametrize("option, value", [("--voltage-sd", "nan"), ("--current-sd", "inf"), ("--voltage-sd", "-1")])
+def test_a_sensor_noise_that_is_not_a_number(records, tmp_path, capsys, option, value):
+    _, hppc, _, _ = records
+    line = _one_line_error(capsys, ["estimate", "--data", str(hppc), "--params", "paper:thevenin", "--estimator",
+                                    "ekf", "--out", str(tmp_path / "e"), option, value], option)
+    assert "SensorNoise" not in line
+
+
+def test_dji_repeats_and_disorder_are_said(data_dir, tmp_path):
+    import warnings
+
+    from socbench.datasets.dji import load_dji
+    from socbench.errors import SocbenchWarning
+
+    lines = (data_dir / "uav_dji_m100" / "battery_telemetry_all_flights.csv").read_text().splitlines()
+    repeated = lines[:6] + [lines[5]] + lines[6:]  # a record logged twice
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "battery_telemetry_all_flights.csv").write_text("\n".join(repeated) + "\n")
+    with pytest.warns(SocbenchWarning, match=r"row 7: 1 record\(s\) repeat a time stamp"):
+        p = load_dji(tmp_path / "a" / "battery_telemetry_all_flights.csv")
+    assert p.meta.extra["dropped"]["duplicate_time"] == 1
+    swapped = lines[:5] + [lines[6], lines[5]] + lines[7:]  # two records of one segment swapped
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "battery_telemetry_all_flights.csv").write_text("\n".join(swapped) + "\n")
+    with pytest.warns(SocbenchWarning, match="not in time order; they are sorted"):
+        q = load_dji(tmp_path / "b" / "battery_telemetry_all_flights.csv")
+    assert np.all(np.diff(q.time_s) > 0)
+    with warnings.catch_warnings():  # the published file: neither
+        warnings.simplefilter("error", SocbenchWarning)
+        load_dji(data_dir / "uav_dji_m100")

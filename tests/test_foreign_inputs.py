@@ -137,10 +137,13 @@ def test_a_pack_record_beside_a_cell_fit_is_refused_before_any_fit(tmp_path, cap
 def test_an_evaluation_record_too_short_to_cross_validate_is_refused(tmp_path, capsys):
     cols, meta = paper_record(n=600)
     fit = write(tmp_path / "fit.csv", cols, meta=meta)
-    short = write(tmp_path / "short.csv", {k: v[:1] for k, v in cols.items()}, meta=meta)
+    short = write(tmp_path / "short.csv", {k: v[:2] for k, v in cols.items()}, meta=meta)
     for argv in (["--eval", short], ["--eval", fit, "--dt", "100000"]):
         rc, _, err = cli(capsys, "diagnose", "--fit", fit, *argv, "--model", "thevenin", "--out", tmp_path / "d")
         assert rc == 2 and "blocks of held-out time" in err and len(err.strip().splitlines()) == 1
+    one = write(tmp_path / "one.csv", {k: v[:1] for k, v in cols.items()}, meta=meta)  # no time step at all
+    rc, _, err = cli(capsys, "diagnose", "--fit", fit, "--eval", one, "--model", "thevenin", "--out", tmp_path / "d")
+    assert rc == 2 and "1 sample: a record needs at least 2" in err and len(err.strip().splitlines()) == 1
     for value in ("inf", "nan", "-1"):
         rc, _, err = cli(capsys, "diagnose", "--fit", fit, "--eval", fit, "--model", "thevenin", "--out",
                          tmp_path / "d", "--capacity", value)

@@ -31,6 +31,7 @@ samples lie outside the model's domain.
 from __future__ import annotations
 
 import json
+import math
 import warnings
 
 from ..checks import (
@@ -99,6 +100,9 @@ def run(args) -> int:
         raise DataError(f"--soc0 must be in [0, 1], got {args.soc0}")
     if not 0 < args.soc0_sd <= 1:  # an SD wider than the whole SOC range is no prior; the filters' runs fail on it
         raise ConfigError(f"--soc0-sd must be in (0, 1] (a fraction of full charge), got {args.soc0_sd}")
+    for option, sd in (("--voltage-sd", args.voltage_sd), ("--current-sd", args.current_sd)):
+        if not (math.isfinite(sd) and sd >= 0):
+            raise ConfigError(f"{option} must be a finite number >= 0, got {sd}")
     if args.gate_widen and "gate_widen" not in estimator_class(args.estimator).defaults:
         raise ConfigError(f"--gate-widen applies to the EKF family (ekf, iekf, aekf, hinf, dual), not "
                           f"'{args.estimator}'")

@@ -99,6 +99,10 @@ def _first_line(path: Path) -> str:
 FIRST_LINE_SHOWN = 100
 
 
+#: the fewest samples a record file may hold: one sample has no time step to simulate, filter or fit over
+MIN_SAMPLES = 2
+
+
 def load(path, fmt: str = "auto") -> Profile:
     """Load ``path`` as a Profile. ``builtin:hppc`` / ``builtin:1c`` give the paper pack's embedded profiles."""
     text = str(path)
@@ -113,6 +117,9 @@ def load(path, fmt: str = "auto") -> Profile:
         profile = _loader(fmt)(p)
     except DataError as exc:
         raise exc.with_file(text) from None
+    if profile.n < MIN_SAMPLES:
+        raise DataError(f"{profile.n} sample: a record needs at least {MIN_SAMPLES} to step a model through",
+                        file=text, column="time_s")
     profile.meta.extra.setdefault("format", fmt)  # which loader read it (auto says what it picked)
     return profile
 

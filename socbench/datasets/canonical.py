@@ -71,7 +71,7 @@ def _read_meta(path: Path) -> dict:
     if not side.exists():
         return {}
     try:
-        d = json.loads(side.read_text(encoding="utf-8"))
+        d = json.loads(side.read_text(encoding="utf-8-sig"))  # an editor on Windows writes a BOM
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DataError(f"sidecar is not valid JSON ({getattr(exc, 'msg', exc)})", file=str(side)) from None
     if not isinstance(d, dict):
@@ -91,6 +91,8 @@ def _meta(path: Path) -> ProfileMeta:
         if not (math.isfinite(cap) and cap > 0):
             raise DataError(f"capacity_ah must be positive, got {cap!r}", file=side)
     n_series = meta.get("n_series", 1)
+    if isinstance(n_series, float) and n_series.is_integer():  # a tool that writes every number as a float: 1.0
+        n_series = int(n_series)
     if isinstance(n_series, bool) or not isinstance(n_series, int) or n_series < 1:
         raise DataError(f"n_series must be a positive integer, got {n_series!r}", file=side)
     return ProfileMeta(

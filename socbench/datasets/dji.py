@@ -21,6 +21,7 @@ phases of each. :func:`read_segments` gives the segments one by one (the replay 
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -28,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..errors import DataError, first_line
+from ..errors import DataError, SocbenchWarning, first_line
 from ..profile import Profile, ProfileMeta
 from .columns import numeric_column
 from .header import header_columns
@@ -116,6 +117,11 @@ def read_telemetry(path) -> tuple[pd.DataFrame, dict]:
     dup = df.duplicated(["log_id", "battery_segment", "t_s_since_first_battery_record"]) & ~soc_glitch & ~temp_glitch
     dropped = {"soc_zero_at_high_voltage": int(soc_glitch.sum()), "temperature_zero": int(temp_glitch.sum()),
                "duplicate_time": int(dup.sum())}
+    if dup.any():  # none in the published file: a file that has them was written by something else; say so
+        first = int(np.flatnonzero(dup.to_numpy())[0])
+        warnings.warn(f"{path}, column 't_s_since_first_battery_record', row {first + 2}: {int(dup.sum())} record(s) "
+                      f"repeat a time stamp of their battery segment; each repeat is dropped (the first kept)",
+                      SocbenchWarning, stacklevel=2)
     clean = df[~(soc_glitch | temp_glitch | dup)].copy()
     clean.attrs["source"] = str(path)
     clean.attrs["raw_counts"] = df.groupby(["log_id", "battery_segment"], sort=False).size().to_dict()
@@ -167,6 +173,9 @@ def _read_segments(path: str, size: int, mtime_ns: int) -> tuple[list[DjiSegment
     events = _read_events(path)
     segments = []
     for (log_id, seg), g in df.groupby(["log_id", "battery_segment"], sort=False):
+        if not g["t_s_since_first_battery_record"].is_monotonic_increasing:  # the published file is in time order
+            warnings.warn(f"{path}, column 't_s_since_first_battery_record': the records of log {log_id} segment "
+                          f"{seg} are not in time order; they are sorted by time", SocbenchWarning, stacklevel=2)
         g = g.sort_values("t_s_since_first_battery_record", kind="stable")
         t_abs = g["t_s_since_first_battery_record"].to_numpy()
         t0 = t_abs[0]

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..checks import OVER_COUNT
 from ..errors import ConfigError, DataError
 from ..models.effects import augment
 from ..models.params import Constant, ModelParams
@@ -453,8 +454,8 @@ def setup_fit(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | 
             if analysis_error is not None and analysis_error.column:  # a bad column, not a missing structure: say so
                 raise analysis_error
             why = f" ({analysis_error.message})" if analysis_error is not None else ""
-            raise DataError(f"the record has no HPPC rest points to build an OCV curve from{why}; pass an OCV curve",
-                            file=src)
+            raise DataError(f"the record has no HPPC rest points to build an OCV curve from{why}; pass an OCV "
+                            f"curve{_over_count_hint(profile, capacity_ah or profile.meta.capacity_ah)}", file=src)
         q = capacity_ah or profile.meta.capacity_ah
         if not q:
             raise DataError("unknown capacity: pass capacity_ah or give the profile meta.capacity_ah", file=src)
@@ -575,6 +576,21 @@ def _warnings(prob: FitProblem, res: LsqResult, values: dict, stderr: dict) -> l
     if len(iu) > 20:
         out.append(f"... and {len(iu) - 20} more parameter pairs with |corr| > {CORR_WARN}")
     return out
+
+
+def _over_count_hint(profile: Profile, capacity_ah: float | None) -> str:
+    """What to say beside "no HPPC rest points" when the current column counts more than
+    :data:`~socbench.checks.OVER_COUNT` capacities between its fullest and emptiest point: a cell cannot hold that,
+    so the time or the current is on another scale (time in ms stretches every rest and pulse 1000-fold, past what
+    the pulse finder takes for a pulse); empty otherwise."""
+    if not capacity_ah or profile.n < 2:
+        return ""
+    held = float(np.ptp(profile.amp_hours())) / float(capacity_ah)
+    if held <= OVER_COUNT:
+        return ""
+    return (f"; the current column counts {held:.0f}× the capacity of {float(capacity_ah):.4g} Ah between its fullest "
+            "and emptiest point, more than a cell holds: time in ms (column 'time_s'), current in mA or a capacity "
+            "too small?")
 
 
 def fit_model(name: str, profile: Profile, mode: str = "paper", ocv: OCVCurve | None = None,
