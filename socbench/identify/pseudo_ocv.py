@@ -27,7 +27,8 @@ discharge alike, and a hysteresis state swings alike after each set of charge pu
 from step to step. So the median over the intervals of ``c̃`` at the same position ``u = (z − z_a)/(z_b − z_a)``
 within them comes off too (with at least three intervals to take it from). The refined curve — the rest points,
 and ``U(z_m) + c̃(z_m) − median shape(u_m)`` at the centres of the bins inside each interval (clipped to the
-voltages of its two rest points and made monotone by isotonic regression) — passes through every rest point as
+voltages of its two rest points and made monotone by isotonic regression, each run the regression pools one point
+at its mean SOC, a bin clipped to a rest point's voltage left out) — passes through every rest point as
 measured; only the shape between them comes from the load. PCHIP interpolates it like any OCV curve. Whether the
 refinement helps is for validation to say: :func:`refit_on_refined_ocv` keeps the refit on it only when none of its
 branches is slower than the record (such a branch only ramps with the charge moved, trading against the refined
@@ -42,7 +43,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..models.registry import make_model
-from ..ocv import OCVCurve, monotone_points
+from ..ocv import OCVCurve, collapse_ties, monotone_points
 from ..profile import Profile
 from .fit import FitResult, branches_identified, fit_model, setup_fit
 from .hppc import analyze_hppc
@@ -128,8 +129,12 @@ def refine_ocv(fit: FitResult, profile: Profile, bin_soc: float = BIN_SOC,
     points_z, points_v = [anchors], [anchor_v]
     for a, zc, c in intervals:
         u = (zc - anchors[a]) / (anchors[a + 1] - anchors[a])
-        # monotone within the interval and between its two rest points, which stay as measured
+        # monotone within the interval and between its two rest points, which stay as measured: a bin clipped to
+        # a rest point's voltage leaves the curve to the rest point, and the runs the isotonic regression pools are
+        # one point each (socbench.ocv.collapse_ties: no step of flat runs for a filter's Jacobian)
         zi, vi = monotone_points(zc, np.clip(ocv(zc) + c - common(u), anchor_v[a], anchor_v[a + 1]))
+        inside = (vi > anchor_v[a]) & (vi < anchor_v[a + 1])
+        zi, vi = collapse_ties(zi[inside], vi[inside])
         points_z.append(zi)
         points_v.append(vi)
     zs, vs = np.concatenate(points_z), np.concatenate(points_v)
