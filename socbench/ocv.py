@@ -312,9 +312,9 @@ def collapse_ties(soc, voltage) -> tuple[np.ndarray, np.ndarray]:
     Isotonic regression pools the points that violate the order into runs of one value: through them PCHIP draws a
     step, flat (zero slope) along each run and steep between runs. An OCV is strictly increasing; the run says only
     that the curve passes its value somewhere along it. A filter's Jacobian is the curve's slope, which such steps
-    make zero or many times too steep: an EKF on an LFP curve refined from its record (:mod:`socbench.identify.
-    pseudo_ocv`, 113 flat segments of 164) jumped 50 SOC points in minutes where the UKF, reading secants across
-    the steps, held within a point."""
+    make zero or many times too steep: an EKF on an LFP curve refined from its record
+    (:mod:`socbench.identify.pseudo_ocv`, 113 flat segments of 164) jumped 50 SOC points in minutes where the UKF,
+    reading secants across the steps, held within a point."""
     z = np.asarray(soc, dtype=float)
     v = np.asarray(voltage, dtype=float)
     if z.size < 2:

@@ -331,17 +331,17 @@ def test_a_record_of_one_sample(records, tmp_path, capsys):
 
 def test_a_sidecar_with_a_byte_order_mark_and_a_float_cell_count(records, tmp_path):
     from socbench.datasets import load
+    from socbench.errors import DataError
 
     _, hppc, _, _ = records
     shutil.copy(hppc, tmp_path / "r.csv")
-    meta = json.loads(hppc.with_suffix(".json").read_text())
-    meta.update(n_series=1.0, capacity_ah=meta["capacity_ah"])
+    meta = {**json.loads(hppc.with_suffix(".json").read_text()), "n_series": 1.0}
     (tmp_path / "r.json").write_bytes(b"\xef\xbb\xbf" + json.dumps(meta).encode())
     p = load(tmp_path / "r.csv")
     assert p.meta.n_series == 1 and isinstance(p.meta.n_series, int)
     assert p.meta.capacity_ah == pytest.approx(meta["capacity_ah"])
     (tmp_path / "r.json").write_text(json.dumps({**meta, "n_series": 1.5}))
-    with pytest.raises(Exception, match="n_series must be a positive integer"):
+    with pytest.raises(DataError, match="n_series must be a positive integer"):
         load(tmp_path / "r.csv")
 
 

@@ -292,8 +292,8 @@ def test_collapse_ties_gives_one_point_per_run():
 
 
 #: LFP draws of the randomised generator with a 1 mV voltage ADC (seeds the refinement was not developed on): on a
-#: plateau the step segments' medians tie, and the isotonic regression pooled them into runs (30–100 flat segments of
-#: 200 per curve before socbench.ocv.collapse_ties)
+#: plateau the step segments' medians tie, and the isotonic regression pooled them into runs (8–102 flat segments per
+#: curve before socbench.ocv.collapse_ties)
 LFP_SEEDS = range(400, 412)
 
 
