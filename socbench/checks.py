@@ -112,6 +112,17 @@ DEAD_CURRENT_SHARE = 0.2
 OVER_COUNT = 3.0
 
 
+def recorded_span(profile: Profile, cumulative) -> float:
+    """How far ``cumulative`` (a per-sample running quantity: the reference SOC, the counted charge) moves between its
+    highest and lowest point over the record's recorded steps only: across a logging gap a reference carries charge
+    the current column cannot (the Panasonic HPPC files omit the discharges between pulse sets), and the column holds
+    its last current through the gap."""
+    if profile.n < 2:
+        return 0.0
+    recorded = ~gap_steps(profile.dt)
+    return float(np.ptp(np.cumsum(np.diff(np.asarray(cumulative, dtype=float))[recorded]))) if recorded.any() else 0.0
+
+
 def check_current_against_reference(profile: Profile, capacity_ah: float | None, what: str) -> bool:
     """Warn (one line) when the record's reference SOC moves :data:`DEAD_CURRENT_SPAN` or more while its current
     column, counted with ``capacity_ah``, moves less than :data:`DEAD_CURRENT_SHARE` of that (both over the recorded
@@ -121,11 +132,8 @@ def check_current_against_reference(profile: Profile, capacity_ah: float | None,
     ref = profile.soc_ref
     if ref is None or ref.ndim != 1 or not capacity_ah or profile.n < 2:
         return False
-    # the moves over recorded steps only: across a logging gap the reference carries charge the column cannot (the
-    # Panasonic HPPC files omit the discharges between pulse sets)
-    recorded = ~gap_steps(profile.dt)
-    span = float(np.ptp(np.cumsum(np.diff(ref)[recorded])))
-    counted = float(np.ptp(np.cumsum(np.diff(profile.amp_hours())[recorded]))) / float(capacity_ah)
+    span = recorded_span(profile, ref)
+    counted = recorded_span(profile, profile.amp_hours()) / float(capacity_ah)
     src = profile.meta.source or profile.meta.name
     if span >= DEAD_CURRENT_SPAN and counted > OVER_COUNT * span:
         warnings.warn(f"{src}: the current column counts {100 * counted:.0f} points of {float(capacity_ah):.4g} Ah, "

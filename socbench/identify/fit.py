@@ -37,7 +37,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..checks import OVER_COUNT
+from ..checks import OVER_COUNT, recorded_span
 from ..errors import ConfigError, DataError
 from ..models.effects import augment
 from ..models.params import Constant, ModelParams
@@ -580,12 +580,13 @@ def _warnings(prob: FitProblem, res: LsqResult, values: dict, stderr: dict) -> l
 
 def _over_count_hint(profile: Profile, capacity_ah: float | None) -> str:
     """What to say beside "no HPPC rest points" when the current column counts more than
-    :data:`~socbench.checks.OVER_COUNT` capacities between its fullest and emptiest point: a cell cannot hold that,
+    :data:`~socbench.checks.OVER_COUNT` capacities between its fullest and emptiest point (over its recorded steps,
+    as :func:`~socbench.checks.check_current_against_reference` counts it): a cell cannot hold that,
     so the time or the current is on another scale (time in ms stretches every rest and pulse 1000-fold, past what
     the pulse finder takes for a pulse); empty otherwise."""
-    if not capacity_ah or profile.n < 2:
+    if not capacity_ah:
         return ""
-    held = float(np.ptp(profile.amp_hours())) / float(capacity_ah)
+    held = recorded_span(profile, profile.amp_hours()) / float(capacity_ah)
     if held <= OVER_COUNT:
         return ""
     return (f"; the current column counts {held:.0f}× the capacity of {float(capacity_ah):.4g} Ah between its fullest "
