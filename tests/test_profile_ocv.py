@@ -9,6 +9,7 @@ from socbench import DataError, OCVCurve, Profile, ProfileMeta
 from socbench.metrics import chi2_band, voltage_error_stats
 from socbench.models.params import Constant, Lookup, Polynomial
 from socbench.ocv import monotone_points
+from socbench.profile import run_medians
 
 
 def _meta():
@@ -64,6 +65,21 @@ def test_profile_batch_views_and_amp_hours():
     np.testing.assert_allclose(p.amp_hours()[:, -1], [2.0, 1.0])
     gap = Profile(np.array([0, 1, 2, 3, 60, 61.0]), np.zeros(6), meta=_meta())
     assert gap.gaps() == [(5, 57.0)]
+
+
+def test_run_medians_equal_numpy_per_run():
+    """200 random draws of disjoint runs (lengths 1–40, odd and even, quantised values with ties): each median is
+    np.median of its run's slice, exactly."""
+    rng = np.random.default_rng(11)
+    for _ in range(200):
+        values = np.round(rng.normal(size=rng.integers(50, 400)), int(rng.integers(0, 3)))
+        cuts = np.sort(rng.choice(np.arange(1, values.size), size=int(rng.integers(1, 20)), replace=False))
+        bounds = np.r_[0, cuts, values.size]
+        runs = [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if rng.random() < 0.6]
+        want = [np.median(values[a:b]) for a, b in runs]
+        np.testing.assert_array_equal(run_medians(values, runs), want)
+    assert run_medians(np.arange(5.0), []).shape == (0,)
+    np.testing.assert_array_equal(run_medians(np.array([3.0, 1.0, 2.0, 4.0]), [(3, 4), (0, 3), (0, 4)]), [4, 2, 2.5])
 
 
 def test_ocv_pchip_is_monotone_with_exact_slope_and_inverse():

@@ -118,7 +118,7 @@ from scipy.optimize import isotonic_regression
 from ..errors import DataError
 from ..metrics import lag1_autocorrelation
 from ..ocv import OCVCurve, monotone_points
-from ..profile import Profile, samples_fingerprint, true_runs
+from ..profile import Profile, run_medians, samples_fingerprint, true_runs
 from ..socaxis import reference_capacity
 
 #: relative disagreement between the integrated current and the reference SOC above which the reference is used
@@ -1013,22 +1013,24 @@ def _analyze_hppc(profile: Profile, capacity_ah, i_rest, max_pulse_s, min_rest_s
     sign = np.sign(di)
     candidates = []
     held = []  # (duration, level) of every held phase from a rest: the pulses, and the steps a record shows
-    for a, b in true_runs(active):
-        for pa, pb in _phases(a, b, sign, t_after, t):
-            if pa != a or pa == 0 or pb >= n:
-                continue
-            dur = float(t[pb] - t[pa])
-            seg = di[pa:pb]
-            level = float(np.median(seg))
-            if float(np.median(np.abs(seg - level))) > max(lev.lo_a, PULSE_FLATNESS * abs(level)):
-                continue  # not a held current (driving, a ramp)
-            if abs(level) < PULSE_SNR * lev.hi_a:
-                continue  # hardly above the rest threshold: a wobble of a current that has no clear rest level
-            held.append((dur, level))
-            before = rest_by_stop.get(pa)
-            if before is None or before.duration_s < PULSE_REST_RATIO * dur:
-                continue  # an HPPC rests before every pulse; a drive cycle crosses zero for a moment
-            candidates.append((pa, pb, dur))
+    # the first phase of each active run, where it ends inside the record: a phase that starts from a rest
+    from_rest = [ph for a, b in true_runs(active) if a > 0
+                 for ph in _phases(a, b, sign, t_after, t)[:1] if ph[1] < n]
+    levels = run_medians(di, from_rest)
+    spread = np.zeros_like(di)  # |I − level| over each such phase, for its median absolute deviation
+    for (pa, pb), level in zip(from_rest, levels):
+        spread[pa:pb] = np.abs(di[pa:pb] - level)
+    for (pa, pb), level, mad in zip(from_rest, levels.tolist(), run_medians(spread, from_rest).tolist()):
+        dur = float(t[pb] - t[pa])
+        if mad > max(lev.lo_a, PULSE_FLATNESS * abs(level)):
+            continue  # not a held current (driving, a ramp)
+        if abs(level) < PULSE_SNR * lev.hi_a:
+            continue  # hardly above the rest threshold: a wobble of a current that has no clear rest level
+        held.append((dur, level))
+        before = rest_by_stop.get(pa)
+        if before is None or before.duration_s < PULSE_REST_RATIO * dur:
+            continue  # an HPPC rests before every pulse; a drive cycle crosses zero for a moment
+        candidates.append((pa, pb, dur))
     # which way the test steps: down from full (the usual HPPC: what comes before full is pre-conditioning) or up to
     # it (an HPPC in the charge direction, whose levels are reached by charging: the whole record before full is the
     # test). Decided by the SOC of the held phases over time, the steps among them
