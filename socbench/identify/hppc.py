@@ -89,7 +89,11 @@ or a fixed duration where the record can tell. The analysis
    never reaching back across a gap in the record longer than that window. A record is an
    HPPC test when it has at least two OCV points and rests before at least half of its pulse sets
    (:data:`REST_SHARE`); otherwise (a drive cycle, a constant discharge, a flight) :func:`analyze_hppc` raises one
-   :class:`DataError` line;
+   :class:`DataError` line. Once a record is read as an HPPC, a rest of ``min_rest_s`` after a discharge step (in
+   the charge direction, a charge step) that no pulse set follows gives a point too, and so does the rest at full
+   before the first step: a logger every 5–10 s misses a 5–10 s pulse half the time, and the level it opened has no
+   set in the file. Such a rest runs on through the pulse no sample caught, so its point is read before the voltage
+   first falls (``_with_step_rests``, ``tests/test_hppc_step_rests.py``);
 7. estimates per pulse the **instantaneous resistance** ``r_inst = −ΔV/ΔI`` across the leading edge (one sample: under
    the ZOH convention ``y_k = h(x_k, I_k)`` this is exactly the model's ``R0(z)`` plus the decay of the RC states over
    one sample), the same across the trailing edge, the **pulse resistance** ``(V_before − V_end)/I`` at the end of
@@ -185,6 +189,15 @@ COUNTED_ALIKE = "counted alike"
 #: for a coarse sampling of a 5 min rest); after a shorter rest most of the polarisation is still there, and drive
 #: cycles stop for a minute or two
 MIN_OCV_REST_S = 240.0
+#: a rest of ``min_rest_s`` or more inside the test that follows a step of at least this share of the capacity (a
+#: held phase longer than the pulses, in the test's direction) gives an OCV point even where no pulse set follows it:
+#: a logger every 5–10 s misses 5–10 s pulses (the sample falls before or after them), and a step-and-rest test
+#: has none; the rest after the step relaxed all the same (module docstring, 6)
+STEP_REST_MIN_SOC = 0.02
+#: … read before the voltage first falls by this many times its sample-to-sample noise, and at least
+#: :data:`REST_DROP_MIN_V`, from one sample to the next (a pulse between two samples; :func:`_undisturbed_stop`)
+REST_DROP_SIGMAS = 6.0
+REST_DROP_MIN_V = 1e-3
 #: a record that starts this far (SOC) above its highest rest point gets its OCV continued to its top
 #: (:attr:`HPPCAnalysis.ocv_top_extension`)
 TOP_EXTENSION_MIN = 0.01
@@ -705,7 +718,9 @@ def analyze_hppc(profile: Profile, capacity_ah: float | None = None, i_rest: flo
             _MEMO.move_to_end(key)
     if hit is None:
         try:
-            hit = _read_only(_analyze_with_ladder(profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_start))
+            hit = _read_only(_with_step_rests(
+                _analyze_with_ladder(profile, capacity_ah, i_rest, max_pulse_s, min_rest_s, soc_start),
+                profile, min_rest_s))
         except DataError as exc:
             hit = exc
         with _MEMO_LOCK:
@@ -1271,6 +1286,70 @@ def _test_end(pulses, rests, ah, q: float, ascending: bool) -> int:
     if after is None or after.stop >= n or ah[after.stop - 1] - float(np.min(ah[after.stop:])) <= SET_SPLIT * q:
         return n
     return after.stop
+
+
+def _with_step_rests(analysis: HPPCAnalysis, profile: Profile, min_rest_s: float) -> HPPCAnalysis:
+    """``analysis`` (of ``profile``) with an OCV point at the end of each rest of ``min_rest_s``
+    or more inside the test that follows a step and gives no point yet (:data:`STEP_REST_MIN_SOC`): the active run
+    before it lasts longer than the pulse bound and moves at least that share of the capacity in the test's direction
+    (discharge down from full, charge in the charge direction: the branch of the other rest points). A test down from
+    full also gets the rest at full before its first step, where it rested ``min_rest_s`` or more. A rest across a
+    gap in the record is left out (the step may have happened in the gap), and so is one within half that share of
+    SOC of a point (the rest after the first pulses at full). Such a rest ends where the next level's pulse fell
+    between two samples, if it did: its point is read before the voltage first falls (:func:`_undisturbed_stop`), not
+    in the relaxation after that pulse. Added to the analysis :func:`analyze_hppc` settles on,
+    not counted in deciding whether a record is an HPPC or which pulse bound reads it: a drive with long stops is
+    no HPPC for having them."""
+    ah, q, rests = analysis.ah, analysis.capacity_ah, analysis.rests
+    t, v = profile.time_s, profile.voltage_v
+    start = analysis.start_index
+    end = analysis.end_index if analysis.end_index is not None else ah.size
+    down = analysis.steps != "charge"
+    gap_jump = gap_step_ah(ah)
+    candidates = []
+    top = next((r for r in rests if r.stop > start and r.duration_s >= min_rest_s), None) if down else None
+    if top is not None and abs(ah[max(top.start, start)] - ah[start]) <= SET_SPLIT * q:
+        candidates.append(top)  # the rest at full before the first step
+    for before, r in zip(rests, rests[1:]):
+        if r.start < start or r.stop > end or r.duration_s < min_rest_s or r.stop >= ah.size:
+            continue
+        moved = (ah[r.start] - ah[before.stop]) * (1.0 if down else -1.0)
+        if t[r.start] - t[before.stop] > analysis.max_pulse_s and moved >= STEP_REST_MIN_SOC * q \
+                and not spans_gap(ah, r.start, r.stop, gap_jump):
+            candidates.append(r)
+    points = [(-1, float(z), float(v)) for z, v in zip(analysis.ocv_soc, analysis.ocv_voltage)]
+    added = []
+    for r in candidates:
+        stop = _undisturbed_stop(v, r.start, r.stop)
+        rested = float(t[stop - 1] - t[r.start])
+        if rested < min_rest_s or min(abs(r.soc_end - z) for _, z, _ in points) < STEP_REST_MIN_SOC / 2:
+            continue
+        point_v = r.v_end if stop == r.stop else _rest_end_voltage(t, v, r.start, stop, rested)
+        points.append((r.start, r.soc_end, point_v))
+        added.append(r.soc_end)
+    if not added:
+        return analysis
+    # in the order of the record: each measured point at the rest it ends
+    at = {(r.soc_end, r.v_end): r.start for r in rests}
+    points = sorted((at.get((z, v), k), z, v) for k, z, v in points)
+    note = (f"{len(added)} OCV point(s) from rests at full or after a step that no pulse set follows (at z = "
+            f"{', '.join(f'{z:.3f}' for z in added[:5])}{', ...' if len(added) > 5 else ''}): pulses shorter than the "
+            "sample period, or a step-and-rest test")
+    return replace(analysis, ocv_soc=np.array([z for _, z, _ in points]),
+                   ocv_voltage=np.array([v for _, _, v in points]), notes=analysis.notes + (note,))
+
+
+def _undisturbed_stop(v: np.ndarray, start: int, stop: int) -> int:
+    """One past the last sample of the rest ``[start, stop)`` before its voltage first falls from one sample to the
+    next by :data:`REST_DROP_SIGMAS` times its sample-to-sample noise (robust: 1.4826 × the median absolute difference
+    / √2) and at least :data:`REST_DROP_MIN_V`: a discharge pulse no sample caught. A rest after a discharge only
+    rises as it relaxes; ``stop`` when nothing falls."""
+    dv = np.diff(v[start:stop])
+    if dv.size < 2:
+        return stop
+    sigma = 1.4826 * float(np.median(np.abs(dv - np.median(dv)))) / np.sqrt(2.0)
+    falls = np.flatnonzero(dv < -max(REST_DROP_SIGMAS * sigma, REST_DROP_MIN_V))
+    return start + int(falls[0]) + 1 if falls.size else stop
 
 
 def ocv_from_hppc(profile: Profile, capacity_ah: float | None = None, **options) -> OCVCurve:
